@@ -1,0 +1,50 @@
+"""The currency between data sources and the shard writer."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Caption:
+    """One description of a clip. ``start``/``end`` are seconds into the clip (HumanML3D's ``#from#to``);
+    ``end = None`` means "to the end of the clip". ``tokens`` are HumanML3D's ``word/POS`` tokens when the
+    source has them (used by the official T2M evaluator), else empty."""
+
+    text: str
+    tokens: tuple[str, ...] = ()
+    start: float = 0.0
+    end: float | None = None
+
+
+@dataclass
+class Clip:
+    """A joint sequence as a source delivers it, before feature extraction.
+
+    ``joints`` is (T, J, 3) in the skeleton's own units (metres for HumanML3D-style sources, millimetres
+    for KIT), Y up, at ``fps``. Sources do not resample: the feature stage does, to the skeleton's fps.
+    """
+
+    id: str
+    joints: np.ndarray
+    fps: float
+    skeleton: str  # a name from mfm.skeleton.SKELETONS
+    captions: list[Caption]
+    split: str  # "train" | "val" | "test"
+    source: str  # "humanml3d" | "kit" | "amass" | "deepmimic" | "synthetic" | ...
+    action: str | None = None  # class label for action-to-motion (DeepMimic, synthetic)
+    path: str = ""  # the file it was read from, for error messages
+    meta: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SkippedInput:
+    """A source item that could not become a Clip (unreadable file, wrong shape, ...). Sources yield these
+    instead of raising so that the skip report counts them; ``--strict`` turns the first into an error."""
+
+    id: str
+    path: str
+    reason: str  # a short machine-readable category, e.g. "unreadable", "bad_shape", "no_captions"
+    detail: str = ""
