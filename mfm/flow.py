@@ -108,6 +108,8 @@ def flow_matching_loss(
     generator: torch.Generator | None = None,
     sigma_min: float = SIGMA_MIN,
     cond_mask: torch.Tensor | None = None,
+    t: torch.Tensor | None = None,
+    x0: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch.
 
@@ -115,6 +117,8 @@ def flow_matching_loss(
     Random draws, in this order, all from ``generator`` if given (deterministic tests and resume):
     t (B,), noise x0 (B, T, D), then the model's condition dropout (unless ``cond_mask`` is given). A compiled
     training step should draw ``cond_mask`` itself (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
+    ``t`` (B,) and ``x0`` (B, T, D), when given, replace the draws (a data-parallel step slices them from the
+    global batch's draws so that any world size computes the same thing).
     Returns the scalar loss and ``{"loss": detached loss, "valid_frames": number of frames averaged}``.
     """
     if x1.dim() != 3:
@@ -122,8 +126,10 @@ def flow_matching_loss(
     if lengths.shape != (x1.shape[0],):
         raise ValueError(f"lengths must be ({x1.shape[0]},), got {tuple(lengths.shape)}")
     lengths = lengths.to(x1.device)
-    t = sample_time(x1.shape[0], generator, x1.device)
-    x0 = sample_noise(x1, generator)
+    if t is None:
+        t = sample_time(x1.shape[0], generator, x1.device)
+    if x0 is None:
+        x0 = sample_noise(x1, generator)
     x_t = interpolate(x0, x1, t, sigma_min)
     # With an explicit cond_mask the model draws nothing; not passing the generator then keeps a torch.compile'd
     # model free of a graph break (a Generator argument breaks the graph).

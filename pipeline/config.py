@@ -1,0 +1,481 @@
+"""Typed training configuration: nested dataclasses, YAML presets, dotted overrides.
+
+A run's configuration is resolved once, in this order, and then never changes:
+
+    dataclass defaults  <-  preset YAML (configs/<name>.yaml or a file path)  <-  ``key.sub=value`` overrides
+
+``load_config(TrainConfig, "tiny", ["optim.lr=3e-4", "train.max_steps=20"])`` does all three. Every value is
+type-checked against the dataclass field it lands in (int, float, bool, str, Optional, Literal, list/tuple,
+nested dataclasses); an unknown key fails naming the key and the valid ones. Each section validates its own
+values in ``__post_init__``, so a config built directly in Python is checked the same way.
+
+``to_dict(cfg)`` / ``from_dict(TrainConfig, d)`` round-trip exactly; the resolved dict is what checkpoints and
+run folders store.
+
+YAML is read with YAML 1.2 scalar rules: only ``true``/``false`` are booleans (so ``verify: off`` stays the
+string ``"off"``) and ``1e-4`` is a float (PyYAML's 1.1 rules read it as a string).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import types
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_hints
+
+import yaml
+
+from mfm.model import ModelConfig
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+"""Where preset names resolve: ``"tiny"`` -> ``configs/tiny.yaml``."""
+
+T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """A config value, key, preset or override is invalid; the message names it."""
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Sections
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DataConfig:
+    """The streaming dataset (see docs/dataset-format.md)."""
+
+    manifest: str = "data/deepmimic-minilm/manifest.json"
+    """Path or URL of the dataset's manifest.json; shard paths inside it are relative to its folder."""
+    format: Literal["tar", "parquet"] = "tar"
+    """Which copy of the records to stream: webdataset tar shards or Parquet parts."""
+    window: int = 196
+    """Frames per training sample: longer motions are randomly cropped, shorter ones padded and masked."""
+    unit_length: int = 4
+    """Crop lengths are multiples of this, one unit shorter with probability 1/3 (MDM/MFM); 1 disables it."""
+    batch_size: int = 32
+    """Samples per batch on each rank (global batch = batch_size x world_size x grad_accum)."""
+    num_workers: int = 0
+    """DataLoader worker processes per rank (0: load in the training process)."""
+    shuffle_buffer: int = 256
+    """Samples held in the in-stream shuffle buffer (0 or 1: no sample shuffling)."""
+    seed: int = 0
+    """Seed of the shard order, shuffle buffer, crops and caption choice (independent of train.seed)."""
+    verify: Literal["strict", "tolerant", "off"] = "strict"
+    """strict: check every shard's size and sha256 against the manifest before training and fail naming the shard;
+    tolerant: skip unreadable samples, counted and logged; off: no checks."""
+    caption_policy: Literal["random", "first"] = "random"
+    """Which of a motion's captions a visit uses: a random one (training) or always the first (debugging)."""
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        _require(bool(self.manifest.strip()), "data.manifest must not be empty")
+        _require(self.window >= 1, f"data.window must be >= 1, got {self.window}")
+        _require(1 <= self.unit_length <= self.window, f"data.unit_length must lie in [1, window], got {self.unit_length}")
+        _require(self.batch_size >= 1, f"data.batch_size must be >= 1, got {self.batch_size}")
+        _require(self.num_workers >= 0, f"data.num_workers must be >= 0, got {self.num_workers}")
+        _require(self.shuffle_buffer >= 0, f"data.shuffle_buffer must be >= 0, got {self.shuffle_buffer}")
+        _require(self.seed >= 0, f"data.seed must be >= 0, got {self.seed}")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class OptimConfig:
+    """AdamW, linear warm-up, gradient clipping and accumulation, and the EMA of the weights."""
+
+    lr: float = 1e-4
+    """Peak learning rate (reached after warmup_steps, constant afterwards)."""
+    weight_decay: float = 0.0
+    betas: tuple[float, float] = (0.9, 0.999)
+    warmup_steps: int = 0
+    """Optimizer steps of linear warm-up from 0 to lr."""
+    grad_clip: float = 1.0
+    """Max global gradient norm; 0 disables clipping."""
+    grad_accum: int = 1
+    """Micro-batches accumulated per optimizer step."""
+    ema_decay: float = 0.9999
+    """EMA weight of the previous average at each EMA update."""
+    ema_every: int = 1
+    """Optimizer steps between EMA updates."""
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        _require(self.lr > 0.0, f"optim.lr must be > 0, got {self.lr}")
+        _require(self.weight_decay >= 0.0, f"optim.weight_decay must be >= 0, got {self.weight_decay}")
+        _require(all(0.0 <= b < 1.0 for b in self.betas), f"optim.betas must lie in [0, 1), got {self.betas}")
+        _require(self.warmup_steps >= 0, f"optim.warmup_steps must be >= 0, got {self.warmup_steps}")
+        _require(self.grad_clip >= 0.0, f"optim.grad_clip must be >= 0 (0 disables), got {self.grad_clip}")
+        _require(self.grad_accum >= 1, f"optim.grad_accum must be >= 1, got {self.grad_accum}")
+        _require(0.0 <= self.ema_decay < 1.0, f"optim.ema_decay must lie in [0, 1), got {self.ema_decay}")
+        _require(self.ema_every >= 1, f"optim.ema_every must be >= 1, got {self.ema_every}")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TrainLoopConfig:
+    """Length of the run, logging, checkpointing, resume, precision and failure policy."""
+
+    max_steps: int = 10_000
+    """Optimizer steps to train for (the run ends at this step, resumed or not)."""
+    log_every: int = 50
+    """Optimizer steps between log lines / logged scalars."""
+    save_every: int = 1_000
+    """Optimizer steps between checkpoints."""
+    keep_last: int = 3
+    """Complete checkpoints kept on disk (the newest is never deleted); 0 keeps all of them."""
+    resume: str = "auto"
+    """auto: newest complete checkpoint in out_dir if any, else start fresh; never: always start fresh (fails if
+    out_dir already holds checkpoints, rather than mixing runs); otherwise the path of a checkpoint folder,
+    which must exist and be complete."""
+    out_dir: str = "runs/default"
+    """Run folder: resolved config, checkpoints/, logs."""
+    mixed_precision: Literal["no", "bf16", "auto"] = "auto"
+    """auto: bf16 autocast on a GPU that supports it, full fp32 otherwise."""
+    seed: int = 0
+    """Seed of model initialisation and of the noise / time draws of training."""
+    nonfinite: Literal["skip", "stop"] = "skip"
+    """On a non-finite loss or gradient norm on any rank: skip the update on every rank, or stop the run."""
+    nonfinite_budget: int = 10
+    """With nonfinite=skip: consecutive skipped steps tolerated before the run stops."""
+    wandb: Literal["offline", "online", "disabled"] = "offline"
+    """Weights & Biases mode (offline needs no network; `wandb sync` uploads later)."""
+    wandb_project: str = "mfm"
+    compile: bool = False
+    """torch.compile the model."""
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        _require(self.max_steps >= 1, f"train.max_steps must be >= 1, got {self.max_steps}")
+        _require(self.log_every >= 1, f"train.log_every must be >= 1, got {self.log_every}")
+        _require(self.save_every >= 1, f"train.save_every must be >= 1, got {self.save_every}")
+        _require(self.keep_last >= 0, f"train.keep_last must be >= 0 (0 keeps all), got {self.keep_last}")
+        _require(bool(self.resume.strip()), "train.resume must be 'auto', 'never' or a checkpoint path")
+        _require(bool(self.out_dir.strip()), "train.out_dir must not be empty")
+        _require(self.seed >= 0, f"train.seed must be >= 0, got {self.seed}")
+        _require(self.nonfinite_budget >= 0, f"train.nonfinite_budget must be >= 0, got {self.nonfinite_budget}")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TrainConfig:
+    """Everything a training run needs; saved resolved (``to_dict``) in every checkpoint and run folder."""
+
+    data: DataConfig = dataclasses.field(default_factory=DataConfig)
+    model: ModelConfig = dataclasses.field(default_factory=ModelConfig)
+    optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
+    train: TrainLoopConfig = dataclasses.field(default_factory=TrainLoopConfig)
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        prefix = self.model.num_prefix_tokens
+        _require(
+            self.data.window + prefix <= self.model.max_len,
+            f"data.window ({self.data.window}) + {prefix} prefix token(s) exceeds model.max_len ({self.model.max_len})",
+        )
+        if self.model.length_token:
+            _require(
+                self.data.window <= self.model.max_frames,
+                f"data.window ({self.data.window}) exceeds model.max_frames ({self.model.max_frames}), "
+                "the largest length the length token can embed",
+            )
+
+
+def _require(condition: bool, message: str) -> None:
+    if not condition:
+        raise ConfigError(message)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Type checking and conversion
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def coerce_fields(obj: Any) -> None:
+    """Type-check every field of dataclass ``obj`` in place (lists become tuples where the type says so).
+
+    Called first in each section's ``__post_init__`` so that direct construction is checked like YAML input.
+    """
+    hints = get_type_hints(type(obj))
+    for field in dataclasses.fields(obj):
+        value = getattr(obj, field.name)
+        coerced = _coerce(value, hints[field.name], f"{type(obj).__name__}.{field.name}")
+        if coerced is not value:
+            object.__setattr__(obj, field.name, coerced)  # frozen dataclasses: still being initialised
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    """Return ``value`` checked against (and, where lossless, converted to) type ``tp``; ``where`` names it."""
+    origin = get_origin(tp)
+    if tp is Any:
+        return value
+    if origin is Literal:
+        for choice in get_args(tp):
+            if value == choice and type(value) is type(choice):
+                return choice
+        raise ConfigError(f"{where}: expected one of {list(get_args(tp))}, got {value!r}")
+    if origin is Union or origin is types.UnionType:
+        return _coerce_union(value, tp, where)
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return value
+        if isinstance(value, Mapping):
+            return _from_dict(tp, value, where)
+        raise ConfigError(f"{where}: expected a mapping for section {tp.__name__}, got {value!r}")
+    if tp in (list, tuple) or origin in (list, tuple):
+        return _coerce_sequence(value, tp, where)
+    if tp is dict or origin is dict:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+        key_type, value_type = get_args(tp) or (Any, Any)
+        return {
+            _coerce(k, key_type, f"{where} key"): _coerce(v, value_type, f"{where}.{k}") for k, v in value.items()
+        }
+    return _coerce_scalar(value, tp, where)
+
+
+def _coerce_union(value: Any, tp: Any, where: str) -> Any:
+    arms = get_args(tp)
+    if value is None:
+        if type(None) in arms:
+            return None
+        raise ConfigError(f"{where}: expected {_type_name(tp)}, got None")
+    for arm in arms:
+        if arm is type(None):
+            continue
+        try:
+            return _coerce(value, arm, where)
+        except ConfigError:
+            continue
+    raise ConfigError(f"{where}: expected {_type_name(tp)}, got {value!r}")
+
+
+def _coerce_sequence(value: Any, tp: Any, where: str) -> Any:
+    if not isinstance(value, (list, tuple)):
+        raise ConfigError(f"{where}: expected a list, got {value!r}")
+    origin = get_origin(tp) or tp
+    args = get_args(tp)
+    if origin is list:
+        item_type = args[0] if args else Any
+        return [_coerce(v, item_type, f"{where}[{i}]") for i, v in enumerate(value)]
+    if len(args) == 2 and args[1] is Ellipsis:  # tuple[X, ...]
+        return tuple(_coerce(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+    if args:
+        if len(value) != len(args):
+            raise ConfigError(f"{where}: expected {len(args)} items, got {len(value)}: {value!r}")
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args, strict=True)))
+    return tuple(value)
+
+
+def _coerce_scalar(value: Any, tp: Any, where: str) -> Any:
+    # bool is a subclass of int: reject it explicitly so `num_layers: true` is an error, not 1.
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+    elif tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():  # 6.0e5 steps
+            return int(value)
+    elif tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+    elif tp is str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, Path):
+            return str(value)
+    elif tp is Path:
+        if isinstance(value, (str, Path)):
+            return Path(value)
+    else:
+        raise ConfigError(f"{where}: unsupported field type {_type_name(tp)} in a config dataclass")
+    raise ConfigError(f"{where}: expected {_type_name(tp)}, got {type(value).__name__} {value!r}")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# dict <-> dataclass
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain nested dict of a config dataclass (tuples as lists): YAML/JSON-safe, and ``from_dict`` inverts it."""
+    if not dataclasses.is_dataclass(cfg) or isinstance(cfg, type):
+        raise TypeError(f"to_dict expects a dataclass instance, got {type(cfg).__name__}")
+    return {field.name: _plain(getattr(cfg, field.name)) for field in dataclasses.fields(cfg)}
+
+
+def _plain(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return to_dict(value)
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
+    """Build ``cls`` from a (possibly partial) nested dict; missing keys keep their defaults, unknown keys fail."""
+    return _from_dict(cls, data, "")
+
+
+def _from_dict(cls: type[T], data: Mapping[str, Any], where: str) -> T:
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where or cls.__name__}: expected a mapping, got {data!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(str(k) for k in data if k not in fields)
+    if unknown:
+        dotted = [_join(where, k) for k in unknown]
+        scope = f" under {where!r}" if where else ""
+        raise ConfigError(f"unknown config key(s) {dotted}; valid keys{scope}: {sorted(fields)}")
+    hints = get_type_hints(cls)
+    kwargs = {name: _coerce(value, hints[name], _join(where, name)) for name, value in data.items()}
+    try:
+        return cls(**kwargs)
+    except ConfigError:
+        raise
+    except (ValueError, TypeError) as err:  # a section's own __post_init__ (e.g. ModelConfig) rejected a value
+        raise ConfigError(f"{where or cls.__name__}: {err}") from err
+
+
+def _join(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else str(key)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# YAML presets and overrides
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class _Yaml12Loader(yaml.SafeLoader):
+    """SafeLoader with YAML 1.2 booleans and floats (see the module docstring)."""
+
+
+_BOOL_TAG = "tag:yaml.org,2002:bool"
+_FLOAT_TAG = "tag:yaml.org,2002:float"
+_Yaml12Loader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag not in (_BOOL_TAG, _FLOAT_TAG)]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_Yaml12Loader.add_implicit_resolver(_BOOL_TAG, re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
+# Appended after the int resolver, so plain integers still resolve to int first.
+_Yaml12Loader.add_implicit_resolver(
+    _FLOAT_TAG,
+    re.compile(
+        r"^(?:[-+]?(?:(?:[0-9]+\.[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?|[0-9]+[eE][-+]?[0-9]+)"
+        r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
+    ),
+    list("-+0123456789."),
+)
+
+
+def parse_yaml(text: str, source: str = "<string>") -> Any:
+    """Parse YAML text with the config's scalar rules; errors name ``source``."""
+    try:
+        return yaml.load(text, Loader=_Yaml12Loader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{source}: invalid YAML: {err}") from err
+
+
+def available_presets() -> list[str]:
+    """Preset names in configs/ (``tiny``, ``default``, ...)."""
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+
+
+def resolve_preset(preset: str | Path) -> Path:
+    """A preset name (``"tiny"`` -> configs/tiny.yaml) or a YAML file path, checked to exist."""
+    path = Path(preset)
+    looks_like_path = isinstance(preset, Path) or path.suffix in (".yaml", ".yml") or len(path.parts) > 1
+    if looks_like_path:
+        if not path.is_file():
+            raise FileNotFoundError(f"config file {path} does not exist")
+        return path
+    candidate = CONFIG_DIR / f"{preset}.yaml"
+    if not candidate.is_file():
+        raise FileNotFoundError(
+            f"no config preset named {preset!r} ({candidate} does not exist); available: {available_presets()}"
+        )
+    return candidate
+
+
+def read_preset(preset: str | Path) -> dict[str, Any]:
+    """The raw (unvalidated) nested dict of a preset; an empty file is an empty dict."""
+    path = resolve_preset(preset)
+    data = parse_yaml(path.read_text(encoding="utf-8"), source=str(path))
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections, got {type(data).__name__}")
+    return data
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``"optim.lr=3e-4"`` -> ``(["optim", "lr"], 0.0003)``; the value is parsed as YAML (``key=`` gives None)."""
+    key, sep, raw = text.partition("=")
+    keys = key.strip().split(".")
+    if not sep or not all(k.strip() for k in keys):
+        raise ConfigError(f"override {text!r} is not of the form section.key=value")
+    return [k.strip() for k in keys], parse_yaml(raw, source=f"override {text!r}")
+
+
+def _check_key_path(cls: type, keys: list[str], override: str) -> None:
+    """Fail naming the override if ``keys`` does not lead to a field of ``cls``'s tree."""
+    section: Any = cls
+    for depth, key in enumerate(keys):
+        where = ".".join(keys[:depth])
+        if not (isinstance(section, type) and dataclasses.is_dataclass(section)):
+            raise ConfigError(f"override {override!r}: {where!r} is a value, not a section")
+        hints = get_type_hints(section)
+        names = [f.name for f in dataclasses.fields(section) if f.init]
+        if key not in names:
+            scope = f"under {where!r}" if where else "at the top level"
+            raise ConfigError(
+                f"override {override!r}: unknown config key {'.'.join(keys[: depth + 1])!r}; "
+                f"valid keys {scope}: {names}"
+            )
+        section = _dataclass_in(hints[key])
+
+
+def _dataclass_in(tp: Any) -> Any:
+    """The dataclass inside ``tp`` (also inside Optional[...]), else ``tp`` itself."""
+    if get_origin(tp) in (Union, types.UnionType):
+        for arm in get_args(tp):
+            if dataclasses.is_dataclass(arm):
+                return arm
+    return tp
+
+
+def _set_nested(data: dict[str, Any], keys: list[str], value: Any) -> None:
+    node = data
+    for key in keys[:-1]:
+        child = node.get(key)
+        if not isinstance(child, dict):
+            child = {}
+            node[key] = child
+        node = child
+    node[keys[-1]] = value
+
+
+def load_config(cls: type[T], preset: str | Path | None = None, overrides: Iterable[str] = ()) -> T:
+    """Resolve a config: ``cls`` defaults, then the preset (name in configs/ or YAML path), then the overrides.
+
+    Raises ConfigError (a ValueError) naming the offending key, override or file, and FileNotFoundError for a
+    preset that does not exist.
+    """
+    data: dict[str, Any] = {} if preset is None else read_preset(preset)
+    for text in overrides:
+        keys, value = parse_override(text)
+        _check_key_path(cls, keys, text)
+        _set_nested(data, keys, value)
+    return _from_dict(cls, data, "")
+
+
+def to_yaml(cfg: Any) -> str:
+    """The resolved config as YAML (loads back with ``load_config(type(cfg), path)``)."""
+    return yaml.safe_dump(to_dict(cfg), sort_keys=False)

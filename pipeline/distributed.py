@@ -1,0 +1,335 @@
+"""The one place that talks to accelerate and torch.distributed.
+
+The trainer and evaluator see a :class:`Dist`: who am I (rank, world size, device), a few collectives, and the
+thin accelerate hooks a training step needs (prepare, accumulate, backward, clip, autocast). One process on a CPU
+is the same code path: every collective is then a local no-op that returns the value a 1-rank reduction would.
+
+Launches that work (rank 0 decides, everyone is told):
+
+* ``python launch/train.py`` or ``accelerate launch launch/train.py``: one process, CPU or one GPU.
+* ``torchrun --standalone --nproc_per_node N launch/train.py``: N ranks; gloo on CPU, NCCL on GPUs.
+* ``accelerate launch --config_file configs/accelerate/multi_gpu.yaml ...`` (or ``--multi_gpu``): N GPUs.
+* Two CPU ranks through accelerate: ``ACCELERATE_USE_CPU=1 accelerate launch --multi_gpu --num_processes 2
+  --num_machines 1 --mixed_precision no --dynamo_backend no ...`` (configs/accelerate/cpu_2ranks.yaml).
+
+Launches that silently run fewer processes than asked are refused with :class:`LaunchError`: accelerate 1.15's
+``accelerate launch --cpu --num_processes 2`` (and a ``MULTI_CPU`` config) start ONE process, and a plain
+``Accelerator()`` under a multi-process launcher without a GPU starts independent single-process copies.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+from collections.abc import Mapping
+from datetime import timedelta
+from typing import Any, TypeVar
+
+import torch
+import torch.distributed as torch_dist
+from accelerate import Accelerator
+from accelerate.state import AcceleratorState, GradientState
+from accelerate.utils import DistributedDataParallelKwargs, InitProcessGroupKwargs
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+_MPI_WORLD_SIZE_VARS = ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "MV2_COMM_WORLD_SIZE")
+
+CPU_TWO_RANK_RECIPE = (
+    "ACCELERATE_USE_CPU=1 accelerate launch --multi_gpu --num_processes 2 --num_machines 1 "
+    "--mixed_precision no --dynamo_backend no <script>  (or: torchrun --standalone --nproc_per_node 2 <script>)"
+)
+
+
+class LaunchError(RuntimeError):
+    """The process was launched in a way that would silently train with the wrong number of ranks."""
+
+
+def _flag(value: str | None) -> bool:
+    return value is not None and value.strip().lower() in ("1", "true", "yes", "on")
+
+
+def check_launch_environment(environ: Mapping[str, str]) -> None:
+    """Refuse accelerate's silent single-process CPU launch before anything is initialised.
+
+    ``accelerate launch --cpu --num_processes N`` (N > 1) and a ``MULTI_CPU`` config run the script once through
+    the simple launcher: it exports ACCELERATE_USE_CPU and MASTER_ADDR (because N > 1) but no WORLD_SIZE/RANK,
+    which every real multi-process launcher (torchrun, accelerate's multi-GPU launcher, mpirun) sets.
+    """
+    requested_multi_cpu = _flag(environ.get("ACCELERATE_USE_CPU")) and "MASTER_ADDR" in environ
+    has_rank_info = "WORLD_SIZE" in environ or any(v in environ for v in _MPI_WORLD_SIZE_VARS)
+    if requested_multi_cpu and not has_rank_info:
+        raise LaunchError(
+            "accelerate was asked for several CPU processes (ACCELERATE_USE_CPU and MASTER_ADDR are set) but started "
+            "this script once, without WORLD_SIZE: accelerate 1.15's `--cpu --num_processes N` and MULTI_CPU configs "
+            "run a single process. For N real CPU ranks use:\n  " + CPU_TWO_RANK_RECIPE + "\n"
+            "For one process, drop --num_processes (and unset MASTER_ADDR)."
+        )
+
+
+def check_world_size(num_processes: int, environ: Mapping[str, str]) -> None:
+    """Refuse a run whose process group is smaller than the launcher's WORLD_SIZE."""
+    expected = environ.get("WORLD_SIZE")
+    if expected is not None and int(expected) != num_processes:
+        raise LaunchError(
+            f"the launcher set WORLD_SIZE={expected} but accelerate initialised {num_processes} process(es): each "
+            "rank would train alone on all of the data. On a CPU-only machine pass cpu=True / set "
+            f"ACCELERATE_USE_CPU=1; for CPU ranks use:\n  {CPU_TWO_RANK_RECIPE}"
+        )
+
+
+def resolve_mixed_precision(setting: str) -> str:
+    """``"auto"`` -> ``"bf16"`` on a CUDA device that supports it, else ``"no"``; other settings pass through."""
+    if setting not in ("no", "bf16", "auto"):
+        raise ValueError(f"mixed precision must be 'no', 'bf16' or 'auto', got {setting!r}")
+    if setting != "auto":
+        return setting
+    return "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"
+
+
+class Dist:
+    """This process's place in the run, collectives, and the accelerate hooks of a training step.
+
+    Build one per process, before the model. ``cpu=None`` picks CPU (gloo between ranks) when no GPU is visible
+    or ACCELERATE_USE_CPU is set. ``mixed_precision`` is the config's ``train.mixed_precision`` ("auto" resolves
+    here); it wins over ``accelerate launch --mixed_precision``.
+    """
+
+    def __init__(
+        self,
+        *,
+        mixed_precision: str = "no",
+        grad_accum: int = 1,
+        cpu: bool | None = None,
+        find_unused_parameters: bool = False,
+        collective_timeout_s: float | None = None,
+    ) -> None:
+        environ = os.environ
+        check_launch_environment(environ)
+        if cpu is None:
+            cpu = _flag(environ.get("ACCELERATE_USE_CPU")) or not torch.cuda.is_available()
+        self._mixed_precision = resolve_mixed_precision(mixed_precision)
+        launcher_precision = environ.get("ACCELERATE_MIXED_PRECISION")
+        if launcher_precision not in (None, self._mixed_precision):
+            logger.info(
+                "ignoring the launcher's mixed_precision=%s: the training config asks for %s",
+                launcher_precision,
+                self._mixed_precision,
+            )
+        handlers: list[Any] = [DistributedDataParallelKwargs(find_unused_parameters=find_unused_parameters)]
+        if collective_timeout_s is not None:
+            handlers.append(InitProcessGroupKwargs(timeout=timedelta(seconds=collective_timeout_s)))
+        self._accelerator = Accelerator(
+            cpu=cpu,
+            mixed_precision=self._mixed_precision,
+            gradient_accumulation_steps=grad_accum,
+            kwargs_handlers=handlers,
+            # The trainer steps its scheduler once per optimizer step; accelerate's default would step it
+            # world_size times per call, silently shortening warm-up on N ranks.
+            step_scheduler_with_optimizer=False,
+        )
+        check_world_size(self._accelerator.num_processes, environ)
+        self._closed = False
+        logger.debug(
+            "rank %d/%d (local %d) on %s, mixed precision %s",
+            self.rank,
+            self.world_size,
+            self.local_rank,
+            self.device,
+            self._mixed_precision,
+        )
+
+    # -- who am I --------------------------------------------------------------------------------------------
+
+    @property
+    def rank(self) -> int:
+        return self._accelerator.process_index
+
+    @property
+    def world_size(self) -> int:
+        return self._accelerator.num_processes
+
+    @property
+    def local_rank(self) -> int:
+        return self._accelerator.local_process_index
+
+    @property
+    def device(self) -> torch.device:
+        return self._accelerator.device
+
+    @property
+    def is_main(self) -> bool:
+        """Global rank 0: the only process that writes checkpoints, logs and W&B."""
+        return self._accelerator.is_main_process
+
+    @property
+    def is_local_main(self) -> bool:
+        return self._accelerator.is_local_main_process
+
+    @property
+    def is_distributed(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def mixed_precision(self) -> str:
+        """The resolved setting: ``"no"`` or ``"bf16"``."""
+        return self._mixed_precision
+
+    # -- training-step hooks (thin accelerate wrappers) -------------------------------------------------------
+
+    def prepare(self, *objects: Any) -> Any:
+        """Wrap model / optimizer / scheduler for the device, DDP and autocast (returns them in the same order).
+
+        Never pass the training DataLoader: the streaming dataset shards itself by rank and worker, and
+        accelerate would shard it again, silently dropping data (accelerate issue 3547).
+        """
+        for obj in objects:
+            if isinstance(obj, torch.utils.data.DataLoader):
+                raise TypeError(
+                    "Dist.prepare() refuses DataLoaders: the streaming dataset shards itself by rank, and "
+                    "accelerate.prepare() would shard it a second time and silently drop data"
+                )
+        return self._accelerator.prepare(*objects)
+
+    def accumulate(self, model: torch.nn.Module) -> contextlib.AbstractContextManager[None]:
+        """Context for one micro-batch: gradients sync (and the prepared optimizer steps) every grad_accum calls."""
+        return self._accelerator.accumulate(model)
+
+    @property
+    def sync_gradients(self) -> bool:
+        """True inside the micro-batch that completes an optimizer step."""
+        return self._accelerator.sync_gradients
+
+    def no_sync(self, model: torch.nn.Module) -> contextlib.AbstractContextManager[None]:
+        """Skip the DDP gradient all-reduce for this backward (manual accumulation)."""
+        return self._accelerator.no_sync(model)
+
+    def backward(self, loss: torch.Tensor) -> None:
+        self._accelerator.backward(loss)
+
+    def clip_grad_norm_(self, parameters: Any, max_norm: float) -> torch.Tensor:
+        """Clip the global gradient norm; returns the norm before clipping (a device tensor, no host sync)."""
+        return self._accelerator.clip_grad_norm_(parameters, max_norm)
+
+    def autocast(self) -> contextlib.AbstractContextManager[None]:
+        """Autocast for code outside the prepared model's forward (e.g. a loss), per the resolved precision."""
+        return self._accelerator.autocast()
+
+    def unwrap(self, model: torch.nn.Module) -> torch.nn.Module:
+        """The bare module under DDP / torch.compile wrappers: what gets saved (no ``_orig_mod.`` key prefix)."""
+        return self._accelerator.unwrap_model(model, keep_torch_compile=False)
+
+    def main_process_first(self) -> contextlib.AbstractContextManager[None]:
+        """Rank 0 runs the block first (e.g. verifying shards), the others after it."""
+        return self._accelerator.main_process_first()
+
+    # -- collectives (every rank must call them, in the same order) -------------------------------------------
+
+    def barrier(self) -> None:
+        if self.is_distributed:
+            self._accelerator.wait_for_everyone()
+
+    def all_reduce_sum(self, tensor: torch.Tensor) -> torch.Tensor:
+        return self._all_reduce(tensor, torch_dist.ReduceOp.SUM)
+
+    def all_reduce_max(self, tensor: torch.Tensor) -> torch.Tensor:
+        return self._all_reduce(tensor, torch_dist.ReduceOp.MAX)
+
+    def all_reduce_min(self, tensor: torch.Tensor) -> torch.Tensor:
+        return self._all_reduce(tensor, torch_dist.ReduceOp.MIN)
+
+    def _all_reduce(self, tensor: torch.Tensor, op: torch_dist.ReduceOp) -> torch.Tensor:
+        """A new tensor (same device and dtype as ``tensor``) holding the reduction; the input is untouched."""
+        if not self.is_distributed:
+            return tensor.detach().clone()
+        # gloo has no bool reductions; int32 MAX/MIN/SUM give any/all/count.
+        work_dtype = torch.int32 if tensor.dtype == torch.bool else tensor.dtype
+        work = tensor.detach().to(device=self.device, dtype=work_dtype, copy=True)
+        torch_dist.all_reduce(work, op=op)
+        if tensor.dtype == torch.bool:
+            work = work != 0
+        return work.to(tensor.device)
+
+    def any_across_ranks(self, flag: bool) -> bool:
+        """True on every rank if ``flag`` is True on any rank (so all ranks take the same branch)."""
+        return bool(self.all_reduce_max(torch.tensor(int(bool(flag)), device=self.device)).item())
+
+    def all_across_ranks(self, flag: bool) -> bool:
+        """True on every rank only if ``flag`` is True on every rank."""
+        return bool(self.all_reduce_min(torch.tensor(int(bool(flag)), device=self.device)).item())
+
+    def broadcast_object(self, obj: T, src: int = 0) -> T:
+        """Rank ``src``'s (picklable) ``obj`` on every rank; the others' argument is ignored."""
+        if not self.is_distributed:
+            return obj
+        box = [obj if self.rank == src else None]
+        torch_dist.broadcast_object_list(box, src=src, device=self.device)
+        return box[0]  # type: ignore[return-value]
+
+    def all_gather_object(self, obj: T) -> list[T]:
+        """Every rank's (picklable) ``obj``, indexed by rank, on every rank."""
+        if not self.is_distributed:
+            return [obj]
+        gathered: list[Any] = [None] * self.world_size
+        torch_dist.all_gather_object(gathered, obj)
+        return gathered
+
+    def gather_tensor(self, tensor: torch.Tensor) -> torch.Tensor:
+        """Every rank's ``tensor`` concatenated along dim 0 in rank order, on every rank (on ``tensor``'s device).
+
+        Ranks may hold different numbers of rows (an evaluation set that does not divide evenly): nothing is
+        padded or duplicated in the result. Trailing dimensions and dtype must agree on all ranks.
+        """
+        if tensor.dim() == 0:
+            raise ValueError("gather_tensor needs a tensor with a leading dimension, got a scalar")
+        if not self.is_distributed:
+            return tensor.detach().clone()
+        # gloo cannot all_gather bool tensors: ship masks as uint8.
+        work = tensor.detach().to(self.device, dtype=torch.uint8 if tensor.dtype == torch.bool else None)
+        work = work.contiguous()
+        layouts = self.all_gather_object((tuple(work.shape), str(work.dtype)))
+        trailing = {(shape[1:], dtype) for shape, dtype in layouts}
+        if len(trailing) != 1:  # every rank sees the same list, so every rank raises: no hang
+            raise ValueError(f"gather_tensor: ranks disagree on trailing shape/dtype: {layouts}")
+        rows = [shape[0] for shape, _ in layouts]
+        padded = work.new_zeros((max(rows), *work.shape[1:]))
+        padded[: work.shape[0]] = work
+        buffers = [torch.empty_like(padded) for _ in range(self.world_size)]
+        torch_dist.all_gather(buffers, padded)
+        gathered = torch.cat([buf[:n] for buf, n in zip(buffers, rows, strict=True)])
+        return gathered.to(tensor.device, dtype=tensor.dtype)
+
+    # -- output on the main process only ------------------------------------------------------------------------
+
+    def log0(self, msg: str, *args: Any, level: int = logging.INFO, log: logging.Logger | None = None) -> None:
+        """Log on global rank 0 only (through ``log``, default this module's logger)."""
+        if self.is_main:
+            (log or logger).log(level, msg, *args)
+
+    def print0(self, *args: Any, **kwargs: Any) -> None:
+        """print() on global rank 0 only: for entry points' user-facing output; library code uses log0."""
+        if self.is_main:
+            print(*args, flush=True, **kwargs)
+
+    # -- teardown -----------------------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Destroy the process group and forget accelerate's process-wide state, so a new Dist can be built."""
+        if self._closed:
+            return
+        self._closed = True
+        self._accelerator.end_training()
+        # accelerate keeps its state in process-wide singletons; a second Accelerator with other settings (a test,
+        # or evaluation after training in one process) would otherwise raise or inherit the old settings.
+        AcceleratorState._reset_state(reset_partial_state=True)
+        GradientState._reset_state()
+
+    def __enter__(self) -> Dist:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+

@@ -1,0 +1,205 @@
+import dataclasses
+import json
+
+import pytest
+
+from mfm.model import ModelConfig
+from pipeline.config import (
+    CONFIG_DIR,
+    ConfigError,
+    DataConfig,
+    OptimConfig,
+    TrainConfig,
+    TrainLoopConfig,
+    available_presets,
+    from_dict,
+    load_config,
+    parse_override,
+    to_dict,
+    to_yaml,
+)
+
+PRESETS = ["default", "humanml3d", "kit", "tiny"]
+
+
+def test_all_expected_presets_exist():
+    assert set(PRESETS) <= set(available_presets())
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_preset_loads_and_round_trips(preset, tmp_path):
+    cfg = load_config(TrainConfig, preset)
+    assert isinstance(cfg.model, ModelConfig)  # the model section is mfm.model's own dataclass
+    plain = to_dict(cfg)
+    json.dumps(plain)  # what checkpoints store must be plain data
+    assert from_dict(TrainConfig, plain) == cfg
+    saved = tmp_path / "resolved.yaml"
+    saved.write_text(to_yaml(cfg))
+    assert load_config(TrainConfig, saved) == cfg
+
+
+def test_paper_presets_match_mfm():
+    hml = load_config(TrainConfig, "humanml3d")
+    assert (hml.model.feature_dim, hml.model.latent_dim, hml.model.ff_dim) == (263, 512, 1024)
+    assert (hml.model.num_layers, hml.model.num_heads, hml.model.dropout) == (8, 4, 0.1)
+    assert (hml.data.window, hml.data.batch_size, hml.optim.lr, hml.train.max_steps) == (196, 128, 1e-4, 600_000)
+    kit = load_config(TrainConfig, "kit")
+    assert (kit.model.feature_dim, kit.train.max_steps) == (251, 300_000)
+    tiny = load_config(TrainConfig, "tiny")
+    assert (tiny.model.num_layers, tiny.model.latent_dim, tiny.train.mixed_precision) == (2, 64, "no")
+
+
+def test_overrides_beat_preset_and_are_typed():
+    cfg = load_config(
+        TrainConfig,
+        "tiny",
+        [
+            "optim.lr=3e-4",  # PyYAML's 1.1 rules would read this as a string
+            "optim.betas=[0.8, 0.95]",
+            "train.max_steps=6e2",  # integral float accepted for an int
+            "data.verify=off",  # YAML 1.1 would make this False
+            "model.length_token=true",
+            "train.out_dir=/tmp/run one",
+            "model.num_layers=3",
+        ],
+    )
+    assert cfg.optim.lr == 3e-4 and isinstance(cfg.optim.lr, float)
+    assert cfg.optim.betas == (0.8, 0.95)
+    assert cfg.train.max_steps == 600 and isinstance(cfg.train.max_steps, int)
+    assert cfg.data.verify == "off"
+    assert cfg.model.length_token is True
+    assert cfg.train.out_dir == "/tmp/run one"
+    assert cfg.model.num_layers == 3
+    # untouched preset values survive, untouched defaults too
+    assert cfg.model.latent_dim == 64
+    assert cfg.optim.grad_accum == OptimConfig().grad_accum
+
+
+def test_later_override_wins():
+    cfg = load_config(TrainConfig, None, ["optim.lr=0.1", "optim.lr=0.2"])
+    assert cfg.optim.lr == 0.2
+
+
+def test_no_preset_gives_defaults():
+    assert load_config(TrainConfig) == TrainConfig()
+
+
+@pytest.mark.parametrize(
+    ("override", "fragments"),
+    [
+        ("model.num_layer=2", ["model.num_layer", "num_layers", "latent_dim"]),
+        ("foo=1", ["'foo'", "data", "model", "optim", "train"]),
+        ("optim.lr.x=1", ["optim.lr", "not a section"]),
+    ],
+)
+def test_unknown_override_key_names_key_and_valid_keys(override, fragments):
+    with pytest.raises(ConfigError) as info:
+        load_config(TrainConfig, "tiny", [override])
+    for fragment in fragments:
+        assert fragment in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("override", "fragment"),
+    [
+        ("model.num_layers=true", "model.num_layers: expected int"),
+        ("model.num_layers=2.5", "model.num_layers: expected int"),
+        ("optim.lr=fast", "optim.lr: expected float"),
+        ("data.verify=maybe", "data.verify: expected one of"),
+        ("optim.betas=[0.9]", "optim.betas: expected 2 items"),
+        ("train.out_dir=", "train.out_dir: expected str, got NoneType"),
+        ("data={window: 8, colour: red}", "data.colour"),
+        ("model.num_heads=3", "divisible by num_heads"),  # mfm.model.ModelConfig's own validation
+        ("optim.ema_decay=1.0", "optim.ema_decay"),
+    ],
+)
+def test_bad_override_values_fail_naming_the_key(override, fragment):
+    with pytest.raises(ConfigError) as info:
+        load_config(TrainConfig, "tiny", [override])
+    assert fragment in str(info.value)
+
+
+@pytest.mark.parametrize("text", ["nokey", "=3", "optim..lr=1", ".lr=2"])
+def test_malformed_override(text):
+    with pytest.raises(ConfigError, match="not of the form"):
+        parse_override(text)
+
+
+def test_parse_override_splits_on_first_equals():
+    assert parse_override("train.resume=runs/a=b/step-00000010") == (["train", "resume"], "runs/a=b/step-00000010")
+
+
+def test_unknown_key_in_yaml_file_names_key(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("optim:\n  lr: 1.0e-4\n  warmup: 10\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(TrainConfig, path)
+    assert "optim.warmup" in str(info.value) and "warmup_steps" in str(info.value)
+
+
+def test_yaml_scalars_follow_yaml_1_2(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("data:\n  verify: off\noptim:\n  lr: 1e-4\ntrain:\n  wandb: online\n  mixed_precision: no\n")
+    cfg = load_config(TrainConfig, path)
+    assert (cfg.data.verify, cfg.optim.lr, cfg.train.wandb, cfg.train.mixed_precision) == ("off", 1e-4, "online", "no")
+
+
+def test_invalid_yaml_names_the_file(tmp_path):
+    path = tmp_path / "broken.yaml"
+    path.write_text("optim: [unclosed\n")
+    with pytest.raises(ConfigError, match="broken.yaml"):
+        load_config(TrainConfig, path)
+
+
+def test_top_level_must_be_a_mapping(tmp_path):
+    path = tmp_path / "list.yaml"
+    path.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(TrainConfig, path)
+
+
+def test_missing_preset_lists_available():
+    with pytest.raises(FileNotFoundError) as info:
+        load_config(TrainConfig, "no-such-preset")
+    assert "tiny" in str(info.value) and str(CONFIG_DIR) in str(info.value)
+
+
+def test_missing_preset_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        load_config(TrainConfig, tmp_path / "absent.yaml")
+
+
+def test_direct_construction_is_validated_and_coerced():
+    assert OptimConfig(betas=[0.5, 0.6]).betas == (0.5, 0.6)
+    with pytest.raises(ConfigError, match="window"):
+        DataConfig(window="196")
+    with pytest.raises(ConfigError, match="batch_size"):
+        DataConfig(batch_size=0)
+    with pytest.raises(ConfigError, match="keep_last"):
+        TrainLoopConfig(keep_last=-1)
+    with pytest.raises(ConfigError, match="mixed_precision"):
+        TrainLoopConfig(mixed_precision="fp16")
+    with pytest.raises(TypeError):  # keyword-only: no positional surprises
+        DataConfig("manifest.json")
+
+
+def test_sections_are_frozen():
+    cfg = TrainConfig()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.optim = OptimConfig(lr=1.0)  # type: ignore[misc]
+    assert dataclasses.replace(cfg, optim=OptimConfig(lr=1.0)).optim.lr == 1.0
+
+
+def test_cross_section_checks():
+    with pytest.raises(ConfigError, match="max_len"):
+        TrainConfig(data=DataConfig(window=300), model=ModelConfig(max_len=200))
+    with pytest.raises(ConfigError, match="max_frames"):
+        TrainConfig(data=DataConfig(window=250), model=ModelConfig(length_token=True, max_frames=196))
+    ok = TrainConfig(data=DataConfig(window=196), model=ModelConfig(length_token=True, max_frames=196))
+    assert ok.data.window == 196
+
+
+def test_from_dict_rejects_unknown_nested_and_keeps_defaults():
+    assert from_dict(TrainConfig, {"train": {"seed": 7}}).train == TrainLoopConfig(seed=7)
+    with pytest.raises(ConfigError, match="model.widht"):
+        from_dict(TrainConfig, {"model": {"widht": 3}})

@@ -1,0 +1,673 @@
+"""The training data stream (pipeline/data.py, pipeline/stages.py): stages alone, exactly-once per epoch,
+equal batch counts, bit-exact resume, shard verification, Parquet backend, normalisation.
+
+Shards are written here exactly as docs/dataset-format.md says, with payloads that encode the motion
+number ``n`` (features[t, d] = 1000 n + t + d/8), so order and coverage assertions read it back."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tarfile
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import torch
+
+from pipeline.data import (
+    LoaderOptions,
+    MotionLoader,
+    ShardReadError,
+    ShardVerificationError,
+    assign_shards,
+    batches_before,
+    iter_motions,
+    open_manifest,
+    plan_epoch,
+    resolve_location,
+    shard_order,
+    split_shards,
+    verify_shards,
+)
+from pipeline.stages import (
+    Collate,
+    CropToWindow,
+    DecodeParquetRow,
+    DecodeTarRecord,
+    Normalize,
+    ParquetRow,
+    PickCaption,
+    RecordError,
+    RecordSpec,
+    TrainingSample,
+    shuffle_buffer_order,
+)
+
+DIM, TEXT_DIM, MAX_TOKENS = 5, 4, 3
+UNEVEN = (7, 3, 11, 5, 9, 4, 6, 8)  # 8 shards, 53 motions
+
+
+# ----------------------------------------------------------------------------------------------------------
+# A dataset written exactly as docs/dataset-format.md says
+# ----------------------------------------------------------------------------------------------------------
+
+
+def motion_id(n: int) -> str:
+    return f"m{n:05d}"
+
+
+def motion_number(sample_id: str) -> int:
+    return int(sample_id[1:])
+
+
+def fixture_motion(n: int, action_classes=(), token_features=False) -> dict:
+    length = 20 + (n * 7) % 37
+    t, d = np.meshgrid(np.arange(length), np.arange(DIM), indexing="ij")
+    features = (1000.0 * n + t + d / 8.0).astype(np.float32)
+    num_captions = 1 + n % 3
+    spans = [(0, length), (0, length // 2 + 4), (length // 3, length)][:num_captions]
+    captions = [{"text": f"motion {n} caption {c}", "tokens": ["motion/NOUN", f"w{c}/NUM"],
+                 "start_frame": s, "end_frame": e} for c, (s, e) in enumerate(spans)]
+    text_emb = (10.0 * n + np.arange(num_captions)[:, None] + np.arange(TEXT_DIM)[None, :] / 100.0).astype(np.float32)
+    rec = {"id": motion_id(n), "length": length, "features": features, "text_emb": text_emb, "captions": captions,
+           "action": action_classes[n % len(action_classes)] if action_classes else None}
+    if token_features:
+        rec["text_tokens"] = np.full((num_captions, MAX_TOKENS, TEXT_DIM), n, np.float32) + \
+            np.arange(num_captions, dtype=np.float32)[:, None, None]
+        rec["text_token_len"] = (1 + np.arange(num_captions) % MAX_TOKENS).astype(np.int32)
+    return rec
+
+
+def _npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return buf.getvalue()
+
+
+def _write_tar(path: Path, records: list[dict], split: str) -> None:
+    with tarfile.open(path, "w", format=tarfile.USTAR_FORMAT) as tar:
+        for rec in records:
+            key = rec["id"]
+            meta = {"id": key, "length": rec["length"], "fps": 20.0, "skeleton": "humanml3d", "source": "fixture",
+                    "split": split, "action": rec["action"], "captions": rec["captions"]}
+            members = [("features.npy", _npy(rec["features"])), ("text_emb.npy", _npy(rec["text_emb"]))]
+            if "text_tokens" in rec:
+                members += [("text_tokens.npy", _npy(rec["text_tokens"])),
+                            ("text_token_len.npy", _npy(rec["text_token_len"]))]
+            members.append(("meta.json", json.dumps(meta, sort_keys=True).encode()))
+            for suffix, payload in members:
+                info = tarfile.TarInfo(f"{key}.{suffix}")
+                info.size, info.mtime, info.uid, info.gid, info.mode = len(payload), 0, 0, 0, 0o644
+                tar.addfile(info, io.BytesIO(payload))
+
+
+def _write_parquet(path: Path, records: list[dict], split: str, token_features: bool) -> None:
+    vec = lambda n: pa.list_(pa.float32(), n)  # noqa: E731  fixed_size_list<float32>[n]
+    columns = {
+        "id": pa.array([r["id"] for r in records], pa.string()),
+        "split": pa.array([split] * len(records), pa.string()),
+        "source": pa.array(["fixture"] * len(records), pa.string()),
+        "skeleton": pa.array(["humanml3d"] * len(records), pa.string()),
+        "action": pa.array([r["action"] for r in records], pa.string()),
+        "fps": pa.array([20.0] * len(records), pa.float32()),
+        "length": pa.array([r["length"] for r in records], pa.int32()),
+        "features": pa.array([r["features"].tolist() for r in records], pa.list_(vec(DIM))),
+        "captions": pa.array([[c["text"] for c in r["captions"]] for r in records], pa.list_(pa.string())),
+        "caption_tokens": pa.array([[c["tokens"] for c in r["captions"]] for r in records],
+                                   pa.list_(pa.list_(pa.string()))),
+        "span_start": pa.array([[c["start_frame"] for c in r["captions"]] for r in records], pa.list_(pa.int32())),
+        "span_end": pa.array([[c["end_frame"] for c in r["captions"]] for r in records], pa.list_(pa.int32())),
+        "text_emb": pa.array([r["text_emb"].tolist() for r in records], pa.list_(vec(TEXT_DIM))),
+    }
+    if token_features:
+        columns["text_tokens"] = pa.array([r["text_tokens"].tolist() for r in records],
+                                          pa.list_(pa.list_(vec(TEXT_DIM))))
+        columns["text_token_len"] = pa.array([r["text_token_len"].tolist() for r in records], pa.list_(pa.int32()))
+    # Small row groups so that reading selected row groups is exercised.
+    pq.write_table(pa.table(columns), path, row_group_size=3)
+
+
+def _file_entry(root: Path, rel: str, num_motions: int) -> dict:
+    data = (root / rel).read_bytes()
+    return {"path": rel, "num_motions": num_motions, "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+
+
+def write_fixture_dataset(root: Path, shard_sizes=UNEVEN, *, split="train", token_features=False,
+                          action_classes=(), mean=None, std=None) -> Path:
+    """Write shards + Parquet parts + manifest.json (last); returns the manifest path."""
+    root.mkdir(parents=True, exist_ok=True)
+    (root / split).mkdir(exist_ok=True)
+    shards, parts, n, lengths = [], [], 0, []
+    for i, size in enumerate(shard_sizes):
+        records = [fixture_motion(n + j, action_classes, token_features) for j in range(size)]
+        n += size
+        lengths += [r["length"] for r in records]
+        tar_rel, pq_rel = f"{split}/shard-{i:05d}.tar", f"{split}/part-{i:05d}.parquet"
+        _write_tar(root / tar_rel, records, split)
+        _write_parquet(root / pq_rel, records, split, token_features)
+        shards.append(_file_entry(root, tar_rel, size))
+        parts.append(_file_entry(root, pq_rel, size))
+    manifest = {
+        "format_version": 1,
+        "dataset_id": hashlib.sha256("".join(sorted(s["sha256"] for s in shards)).encode()).hexdigest(),
+        "builder": {"command": "fixture", "version": "0", "options": {}},
+        "feature_spec": {"representation": "guo", "skeleton": "humanml3d", "dim": DIM, "num_joints": 22,
+                         "fps": 20.0, "unit": "m", "compat": True, "groups": {}},
+        "normalization": {"mean": list(mean if mean is not None else np.zeros(DIM)),
+                          "std": list(std if std is not None else np.ones(DIM)), "split": "train", "rule": "fixture"},
+        "text_encoder": {"id": "fixture", "dim": TEXT_DIM, "weights_sha256": "", "token_features": token_features,
+                         "max_tokens": MAX_TOKENS if token_features else 0},
+        "action_classes": sorted(action_classes),
+        "splits": {split: {"num_motions": n, "num_captions": 0, "num_frames": sum(lengths), "lengths": lengths,
+                           "shards": shards, "parquet": parts}},
+        "skip_report": {"total": 0, "by_reason": {}, "items": []},
+    }
+    path = root / "manifest.json"
+    path.write_text(json.dumps(manifest, indent=1))
+    return path
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return write_fixture_dataset(tmp_path_factory.mktemp("data"))
+
+
+@pytest.fixture(scope="module")
+def all_ids() -> set[str]:
+    return {motion_id(n) for n in range(sum(UNEVEN))}
+
+
+def opts(**kw) -> LoaderOptions:
+    base = dict(batch_size=2, num_workers=0, seed=3, window=24, shuffle_buffer=6)
+    base.update(kw)
+    return LoaderOptions(**base)
+
+
+def take(iterator, n: int) -> list[dict]:
+    return [next(iterator) for _ in range(n)]
+
+
+def assert_batches_equal(a: list[dict], b: list[dict]) -> None:
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert x.keys() == y.keys()
+        for key in x:
+            if isinstance(x[key], torch.Tensor):
+                assert torch.equal(x[key], y[key]), key
+            else:
+                assert x[key] == y[key], key
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Stages alone
+# ----------------------------------------------------------------------------------------------------------
+
+
+def test_resolve_location_local_and_url():
+    assert resolve_location("/data/hml/manifest.json", "train/shard-00000.tar") == "/data/hml/train/shard-00000.tar"
+    assert resolve_location("s3://bucket/hml/manifest.json", "train/a.tar") == "s3://bucket/hml/train/a.tar"
+    assert resolve_location("https://host/x/manifest.json", "/abs/a.tar") == "/abs/a.tar"
+
+
+def test_shard_order_is_a_seeded_permutation_per_epoch():
+    a, b = shard_order(20, seed=1, epoch=0, shuffle=True), shard_order(20, seed=1, epoch=1, shuffle=True)
+    assert sorted(a) == list(range(20)) and sorted(b) == list(range(20))
+    assert not np.array_equal(a, b)
+    assert np.array_equal(a, shard_order(20, seed=1, epoch=0, shuffle=True))
+    assert np.array_equal(shard_order(5, seed=1, epoch=0, shuffle=False), np.arange(5))
+
+
+def test_assign_shards_gives_every_shard_to_one_slot_and_balances():
+    sizes = [10, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    slots = assign_shards(range(len(sizes)), sizes, 3)
+    assert sorted(i for s in slots for i in s) == list(range(len(sizes)))
+    assert [s[0] for s in slots] == [0, 1, 2]  # first shards one per slot: no empty slot
+    loads = [sum(sizes[i] for i in s) for s in slots]
+    assert loads == [10, 6, 5]  # greedy: the small shards fill the two light slots
+
+
+def test_plan_epoch_counts_and_dropped_remainder():
+    plan = plan_epoch(list(UNEVEN), epoch=0, seed=0, world_size=2, readers_per_rank=2, batch_size=4, shuffle=True)
+    assert plan.num_slots == 4 and sum(plan.slot_samples) == sum(UNEVEN)
+    assert plan.batches_per_reader == min(plan.slot_samples) // 4
+    assert plan.batches_per_rank == 2 * plan.batches_per_reader
+    assert plan.samples_dropped == sum(UNEVEN) - 4 * plan.batches_per_reader * 4
+
+
+def test_batches_before_matches_round_robin():
+    for readers in (1, 2, 3):
+        for position in range(10):
+            counts = Counter(k % readers for k in range(position))
+            assert [batches_before(position, r, readers) for r in range(readers)] == [counts[r] for r in range(readers)]
+
+
+def test_shuffle_buffer_order_is_a_local_permutation():
+    rng = np.random.default_rng(0)
+    order = shuffle_buffer_order(100, 8, rng)
+    assert sorted(order) == list(range(100))
+    assert not np.array_equal(order, np.arange(100))
+    # A buffer of 8 can only emit item i once it has been read: output step s holds an item < s + 8.
+    assert all(item < step + 8 for step, item in enumerate(order))
+    assert np.array_equal(shuffle_buffer_order(10, 1, rng), np.arange(10))
+
+
+def _raw_records(manifest_path: Path, shard_index=0) -> list[dict]:
+    from webdataset.tariterators import group_by_keys, tar_file_expander
+
+    path = manifest_path.parent / f"train/shard-{shard_index:05d}.tar"
+    with open(path, "rb") as stream:
+        return list(group_by_keys(tar_file_expander([{"url": str(path), "stream": stream}])))
+
+
+SPEC = RecordSpec(feature_dim=DIM, text_dim=TEXT_DIM)
+
+
+def test_decode_tar_record(dataset):
+    rec = DecodeTarRecord(SPEC)(_raw_records(dataset)[1])
+    expected = fixture_motion(1)
+    assert rec.id == "m00001" and rec.action is None
+    assert np.array_equal(rec.features, expected["features"])
+    assert np.array_equal(rec.text_emb, expected["text_emb"])
+    assert rec.captions == ("motion 1 caption 0", "motion 1 caption 1")
+    assert rec.spans.tolist() == [[c["start_frame"], c["end_frame"]] for c in expected["captions"]]
+
+
+def test_decode_tar_record_rejects_bad_records(dataset):
+    raw = _raw_records(dataset)[0]
+    with pytest.raises(RecordError, match="missing member .features.npy"):
+        DecodeTarRecord(SPEC)({k: v for k, v in raw.items() if k != "features.npy"})
+    with pytest.raises(RecordError, match="features shape"):
+        DecodeTarRecord(RecordSpec(feature_dim=DIM + 1, text_dim=TEXT_DIM))(raw)
+    meta = json.loads(raw["meta.json"])
+    meta["captions"][0]["end_frame"] = meta["length"] + 5
+    with pytest.raises(RecordError, match="caption span"):
+        DecodeTarRecord(SPEC)({**raw, "meta.json": json.dumps(meta).encode()})
+
+
+def test_decode_parquet_row_equals_tar_record(dataset):
+    part = pq.ParquetFile(dataset.parent / "train/part-00002.parquet")
+    table = part.read_row_group(1)  # rows 3..5 of the shard: a sliced row exercises offsets
+    tar_records = _raw_records(dataset, 2)
+    for j in range(table.num_rows):
+        a = DecodeParquetRow(SPEC)(ParquetRow(table.slice(j, 1), "part"))
+        b = DecodeTarRecord(SPEC)(tar_records[3 + j])
+        assert a.id == b.id and a.captions == b.captions and a.caption_tokens == b.caption_tokens
+        for field in ("features", "text_emb", "spans"):
+            assert np.array_equal(getattr(a, field), getattr(b, field))
+
+
+def test_pick_caption_is_deterministic_per_epoch_and_cuts_the_span(dataset):
+    rec = DecodeTarRecord(SPEC)(_raw_records(dataset)[2])  # motion 2: three captions
+    picks = [PickCaption(seed=5, epoch=e)(rec) for e in range(30)]
+    assert {p.caption_index for p in picks} == {0, 1, 2}
+    again = PickCaption(seed=5, epoch=7)(rec)
+    assert again.caption_index == picks[7].caption_index
+    for p in picks:
+        start, end = rec.spans[p.caption_index]
+        assert p.start_frame == start and np.array_equal(p.features, rec.features[start:end])
+        assert p.caption == rec.captions[p.caption_index]
+        assert np.array_equal(p.text_emb, rec.text_emb[p.caption_index])
+
+
+def _sample(length: int, sample_id="x") -> TrainingSample:
+    feats = np.arange(length, dtype=np.float32)[:, None].repeat(DIM, 1)
+    return TrainingSample(id=sample_id, features=feats, caption="c", caption_tokens=(), caption_index=0,
+                          text_emb=np.zeros(TEXT_DIM, np.float32), action=None, start_frame=10)
+
+
+def test_crop_to_window_follows_mdm():
+    lengths = []
+    for i in range(300):
+        crop = CropToWindow(window=196, unit_length=4, shorten_prob=1 / 3, seed=0, epoch=i)
+        out = crop(_sample(50, f"s{i}"))
+        m = out.features.shape[0]
+        lengths.append(m)
+        offset = int(out.features[0, 0])
+        assert np.array_equal(out.features[:, 0], np.arange(offset, offset + m))  # contiguous
+        assert out.start_frame == 10 + offset and offset + m <= 50
+    assert set(lengths) == {48, 44}  # 50 → 12 units, sometimes one unit less
+    assert 0.2 < lengths.count(44) / len(lengths) < 0.45  # MDM's 1/3
+    long = CropToWindow(window=24, unit_length=4, shorten_prob=0.0, seed=0, epoch=0)(_sample(100))
+    assert long.features.shape[0] == 24
+    assert CropToWindow(window=24, unit_length=1, shorten_prob=0.5, seed=0, epoch=0)(_sample(13)).features.shape[0] == 13
+    assert CropToWindow(window=24, unit_length=4, shorten_prob=1.0, seed=0, epoch=0)(_sample(3)).features.shape[0] == 3
+    assert CropToWindow(window=24, unit_length=4, shorten_prob=1.0, seed=0, epoch=0)(_sample(5)).features.shape[0] == 4
+
+
+def test_normalize_uses_given_stats_and_rejects_zero_std():
+    mean, std = np.arange(DIM, dtype=np.float32), np.full(DIM, 2.0, np.float32)
+    out = Normalize(mean, std)(_sample(6))
+    assert np.allclose(out.features, (np.arange(6, dtype=np.float32)[:, None] - mean) / 2.0)
+    with pytest.raises(ValueError, match="std"):
+        Normalize(mean, np.zeros(DIM))
+
+
+def test_collate_pads_and_masks():
+    a, b = _sample(5, "a"), _sample(3, "b")
+    b = TrainingSample(**{**b.__dict__, "action": "walk"})
+    batch = Collate(window=8, action_classes=["run", "walk"])([a, b])
+    assert batch["features"].shape == (2, 8, DIM) and batch["features"].dtype == torch.float32
+    assert batch["lengths"].tolist() == [5, 3] and batch["action"].tolist() == [-1, 1]
+    assert batch["mask"].tolist()[1] == [True] * 3 + [False] * 5
+    assert torch.all(batch["features"][1, 3:] == 0)
+    assert batch["ids"] == ["a", "b"] and batch["text_emb"].shape == (2, TEXT_DIM)
+    with pytest.raises(RecordError, match="action_classes"):
+        Collate(window=8, action_classes=["run"])([b])
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The loader: exactly once, equal batches, resume
+# ----------------------------------------------------------------------------------------------------------
+
+
+def one_epoch_per_rank(manifest, world_size: int, **kw) -> list[list[dict]]:
+    out = []
+    for rank in range(world_size):
+        loader = MotionLoader(manifest, "train", opts(**kw), rank=rank, world_size=world_size)
+        batches = list(loader.iter_epoch())
+        assert loader.epoch == 1 and loader.batches_in_epoch == 0
+        out.append(batches)
+    return out
+
+
+@pytest.mark.parametrize("num_workers", [0, 2])
+@pytest.mark.parametrize("world_size", [1, 2, 3])
+def test_exactly_once_per_epoch_and_equal_batches(dataset, all_ids, world_size, num_workers):
+    per_rank = one_epoch_per_rank(dataset, world_size, num_workers=num_workers)
+    plan = MotionLoader(dataset, "train", opts(num_workers=num_workers), world_size=world_size).plan(0)
+    counts = {len(batches) for batches in per_rank}
+    assert counts == {plan.batches_per_rank} and plan.batches_per_rank > 0
+    ids = [i for batches in per_rank for b in batches for i in b["ids"]]
+    assert len(ids) == len(set(ids)), "a sample was seen twice in one epoch"
+    assert set(ids) <= all_ids
+    assert len(ids) == len(all_ids) - plan.samples_dropped
+    for batches in per_rank:
+        for b in batches:
+            assert b["features"].shape == (2, 24, DIM) and b["mask"].sum().item() == b["lengths"].sum().item()
+
+
+def test_dropped_remainder_rotates_across_epochs(dataset, all_ids):
+    world_size, seen, dropped = 2, set(), []
+    loaders = [MotionLoader(dataset, "train", opts(batch_size=4, num_workers=2), rank=r, world_size=world_size)
+               for r in range(world_size)]
+    streams = [loader.iter_batches() for loader in loaders]
+    for epoch in range(6):
+        epoch_ids = set()
+        for stream in streams:
+            for _ in range(loaders[0].batches_per_epoch(epoch)):
+                epoch_ids |= set(next(stream)["ids"])
+        assert len(all_ids - epoch_ids) == loaders[0].samples_dropped(epoch) > 0
+        dropped.append(frozenset(all_ids - epoch_ids))
+        seen |= epoch_ids
+    assert len(set(dropped)) > 1, "the same samples are dropped every epoch"
+    assert seen == all_ids
+
+
+def reference_stream(manifest, num_batches: int, **kw) -> list[dict]:
+    return take(MotionLoader(manifest, "train", opts(**kw), rank=1, world_size=2).iter_batches(), num_batches)
+
+
+def position_after(loader: MotionLoader, num_batches: int) -> tuple[int, int]:
+    epoch = 0
+    while num_batches >= loader.batches_per_epoch(epoch):
+        num_batches -= loader.batches_per_epoch(epoch)
+        epoch += 1
+    return epoch, num_batches
+
+
+@pytest.mark.parametrize("num_workers", [0, 2])
+def test_resume_mid_epoch_twice_and_at_epoch_boundary(dataset, num_workers):
+    kw = dict(num_workers=num_workers)
+    probe = MotionLoader(dataset, "train", opts(**kw), rank=1, world_size=2)
+    first, second = probe.batches_per_epoch(0), probe.batches_per_epoch(1)
+    assert first >= 4
+    total = first + second + 3
+    expected = reference_stream(dataset, total, **kw)
+    # Stop/resume points: mid-epoch, again in the same epoch, exactly at the epoch boundary, mid next epoch.
+    cuts = [1, 3, first, first + 2, total]
+    got, state, done = [], None, 0
+    for cut in cuts:
+        loader = MotionLoader(dataset, "train", opts(**kw), rank=1, world_size=2)
+        if state is not None:
+            loader.load_state_dict(state)
+        got += take(loader.iter_batches(), cut - done)
+        done = cut
+        state = loader.state_dict()
+        assert (state["epoch"], state["batches_in_epoch"]) == position_after(probe, cut)
+    assert_batches_equal(got, expected)
+
+
+def test_resume_refuses_changed_world_size_or_workers(dataset):
+    state = MotionLoader(dataset, "train", opts(num_workers=2), rank=0, world_size=2).state_dict()
+    with pytest.raises(ValueError, match="world_size was 2 .* is 1 now"):
+        MotionLoader(dataset, "train", opts(num_workers=2)).load_state_dict(state)
+    with pytest.raises(ValueError, match="num_workers was 2 .* is 0 now"):
+        MotionLoader(dataset, "train", opts(num_workers=0), world_size=2).load_state_dict(state)
+    with pytest.raises(ValueError, match="batch_size"):
+        MotionLoader(dataset, "train", opts(num_workers=2, batch_size=3), world_size=2).load_state_dict(state)
+
+
+def test_stale_iterator_raises_after_load_state_dict(dataset):
+    loader = MotionLoader(dataset, "train", opts())
+    batches = loader.iter_batches()
+    next(batches)
+    loader.load_state_dict(loader.state_dict())
+    with pytest.raises(RuntimeError, match="stale"):
+        next(batches)
+
+
+def test_refuses_fewer_shards_than_readers(dataset):
+    with pytest.raises(ValueError, match="8 usable shards but world_size 3 × 3 reader"):
+        MotionLoader(dataset, "train", opts(num_workers=3), world_size=3)
+
+
+def test_refuses_batch_larger_than_a_reader_share(dataset):
+    with pytest.raises(ValueError, match="fewer than batch_size 20"):
+        MotionLoader(dataset, "train", opts(batch_size=20, num_workers=2), world_size=2)
+
+
+def test_parquet_backend_gives_identical_batches(dataset):
+    kw = dict(num_workers=0)
+    tar_batches = take(MotionLoader(dataset, "train", opts(**kw), rank=0, world_size=2).iter_batches(), 12)
+    pq_loader = MotionLoader(dataset, "train", opts(backend="parquet", **kw), rank=0, world_size=2)
+    assert_batches_equal(take(pq_loader.iter_batches(), 12), tar_batches)
+    # The plan only depends on counts, so a run may even resume on the other backend.
+    tar_loader = MotionLoader(dataset, "train", opts(**kw), rank=0, world_size=2)
+    tar_loader.load_state_dict({**pq_loader.state_dict(), "epoch": 0, "batches_in_epoch": 5})
+    assert_batches_equal(take(tar_loader.iter_batches(), 7), tar_batches[5:])
+
+
+def test_parquet_backend_with_workers_is_exactly_once(dataset, all_ids):
+    per_rank = one_epoch_per_rank(dataset, 2, num_workers=2, backend="parquet")
+    ids = [i for batches in per_rank for b in batches for i in b["ids"]]
+    plan = MotionLoader(dataset, "train", opts(num_workers=2), world_size=2).plan(0)
+    assert len(ids) == len(set(ids)) == len(all_ids) - plan.samples_dropped
+    assert len(per_rank[0]) == len(per_rank[1]) == plan.batches_per_rank
+
+
+def test_batches_are_normalised_with_manifest_stats_and_cropped_inside_the_caption_span(tmp_path):
+    mean = np.linspace(-3.0, 3.0, DIM)
+    std = np.linspace(0.5, 4.0, DIM)
+    manifest = write_fixture_dataset(tmp_path, (5, 6, 7), mean=mean, std=std, action_classes=("kick", "walk"))
+    loader = MotionLoader(manifest, "train", opts(window=16, unit_length=4, shuffle_buffer=4))
+    for batch in loader.iter_epoch():
+        for i, sample_id in enumerate(batch["ids"]):
+            n, length = motion_number(sample_id), int(batch["lengths"][i])
+            motion = fixture_motion(n, ("kick", "walk"))
+            raw = batch["features"][i, :length].double().numpy() * std + mean
+            start = int(round(raw[0, 0] - 1000 * n))  # features[t, 0] = 1000 n + t
+            assert np.allclose(raw, motion["features"][start:start + length], atol=1e-3)
+            span = motion["captions"][int(batch["caption_index"][i])]
+            assert span["start_frame"] <= start and start + length <= span["end_frame"]
+            assert length <= 16 and (length % 4 == 0 or length == span["end_frame"] - span["start_frame"])
+            assert batch["captions"][i] == span["text"]
+            assert torch.equal(batch["text_emb"][i], torch.from_numpy(motion["text_emb"][int(batch["caption_index"][i])]))
+            assert int(batch["action"][i]) == ["kick", "walk"].index(motion["action"])
+            assert not batch["mask"][i, length:].any() and batch["mask"][i, :length].all()
+
+
+def test_token_features_are_batched(tmp_path):
+    manifest = write_fixture_dataset(tmp_path, (4, 4), token_features=True)
+    for backend in ("webdataset", "parquet"):
+        batch = next(MotionLoader(manifest, "train", opts(backend=backend)).iter_batches())
+        assert batch["text_tokens"].shape == (2, MAX_TOKENS, TEXT_DIM)
+        for i, sample_id in enumerate(batch["ids"]):
+            c = int(batch["caption_index"][i])
+            assert torch.all(batch["text_tokens"][i] == motion_number(sample_id) + c)
+            assert int(batch["text_token_len"][i]) == 1 + c % MAX_TOKENS
+
+
+def test_manifest_as_file_url(dataset):
+    batches = take(MotionLoader(dataset.as_uri(), "train", opts()).iter_batches(), 3)
+    assert_batches_equal(batches, take(MotionLoader(dataset, "train", opts()).iter_batches(), 3))
+    assert split_shards(open_manifest(dataset.as_uri()), "train")[0].url.startswith("file://")
+
+
+def test_iter_motions_reads_every_record_in_order(dataset, all_ids):
+    ids = [rec.id for rec in iter_motions(dataset, "train", backend="parquet")]
+    assert ids == sorted(all_ids)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Bad shards
+# ----------------------------------------------------------------------------------------------------------
+
+
+def truncate(path: Path) -> None:
+    os.truncate(path, path.stat().st_size // 2)
+
+
+def flip_byte(path: Path) -> None:
+    data = bytearray(path.read_bytes())
+    data[len(data) // 3] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def delete(path: Path) -> None:
+    path.unlink()
+
+
+@pytest.mark.parametrize("damage, reason", [(truncate, "truncated"), (flip_byte, "corrupted"), (delete, "missing")])
+def test_verify_strict_names_the_bad_shard(tmp_path, damage, reason):
+    manifest = write_fixture_dataset(tmp_path, (3, 4, 5))
+    damage(tmp_path / "train/shard-00001.tar")
+    with pytest.raises(ShardVerificationError, match=rf"shard-00001\.tar: bad shard \({reason}"):
+        verify_shards(manifest, "train", mode="strict")
+    assert verify_shards(manifest, "train", mode="off").num_checked == 0
+
+
+def test_verify_tolerant_drops_bad_shards_and_training_keeps_equal_batches(tmp_path):
+    sizes = (3, 4, 5, 6, 7, 8, 5, 4)
+    manifest = write_fixture_dataset(tmp_path, sizes)
+    truncate(tmp_path / "train/shard-00001.tar")
+    flip_byte(tmp_path / "train/shard-00003.tar")
+    delete(tmp_path / "train/shard-00006.tar")
+    parquet_report = verify_shards(manifest, "train", mode="strict", backend="parquet")
+    assert parquet_report.bad == ()  # the Parquet copy is intact
+    report = verify_shards(manifest, "train", mode="tolerant")
+    assert report.num_checked == 8
+    assert report.bad_paths == ("train/shard-00001.tar", "train/shard-00003.tar", "train/shard-00006.tar")
+    assert [b.reason.split(":")[0] for b in report.bad] == ["truncated", "corrupted", "missing"]
+    assert report.samples_lost == 4 + 6 + 5
+    lost = {motion_id(n) for shard in (1, 3, 6) for n in range(sum(sizes[:shard]), sum(sizes[:shard + 1]))}
+    per_rank = []
+    for rank in range(2):
+        loader = MotionLoader(manifest, "train", opts(num_workers=2), rank=rank, world_size=2,
+                              exclude_shards=report.bad_paths)
+        per_rank.append([i for b in loader.iter_epoch() for i in b["ids"]])
+        plan = loader.plan(0)
+    assert len(per_rank[0]) == len(per_rank[1]) == plan.batches_per_rank * 2
+    ids = per_rank[0] + per_rank[1]
+    assert len(ids) == len(set(ids)) == sum(sizes) - report.samples_lost - plan.samples_dropped
+    assert not set(ids) & lost
+
+
+def test_unverified_truncated_shard_fails_loudly_naming_it(tmp_path):
+    manifest = write_fixture_dataset(tmp_path, (4, 4))
+    truncate(tmp_path / "train/shard-00001.tar")
+    loader = MotionLoader(manifest, "train", opts(shuffle=False))
+    with pytest.raises(ShardReadError, match=r"shard-00001\.tar"):
+        list(loader.iter_epoch())
+
+
+def test_exclude_shards_must_name_known_shards(dataset):
+    with pytest.raises(ValueError, match="exclude_shards names shards"):
+        MotionLoader(dataset, "train", opts(), exclude_shards=["train/nope.tar"])
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Shards written by the real builder (preprocess/shards.py)
+# ----------------------------------------------------------------------------------------------------------
+
+
+class HashTextEncoder:
+    """A deterministic stand-in for a text encoder (the real ones take seconds to load): each caption's
+    embedding is derived from its sha256, so a batch's ``text_emb`` can be checked against its caption."""
+
+    id, dim, weights_sha256, options = "hash-test", 6, "0" * 64, {}
+
+    @staticmethod
+    def embed(text: str) -> np.ndarray:
+        return np.frombuffer(hashlib.sha256(text.encode()).digest()[:24], np.uint32).astype(np.float32) / 2**32
+
+    def encode(self, texts, *, token_features=False, max_tokens=32, batch_size=64):
+        from mfm.text import TextEncoding
+
+        pooled = np.stack([self.embed(t) for t in texts]).astype(np.float32)
+        if not token_features:
+            return TextEncoding(pooled=pooled)
+        tokens = np.repeat(pooled[:, None, :], max_tokens, axis=1)
+        return TextEncoding(pooled=pooled, tokens=tokens, token_lengths=np.full(len(texts), max_tokens, np.int32))
+
+
+@pytest.fixture(scope="module")
+def built_dataset(tmp_path_factory) -> Path:
+    from preprocess.shards import BuildConfig, build_dataset
+    from preprocess.sources.synthetic import SyntheticSource
+
+    out = tmp_path_factory.mktemp("built") / "ds"
+    config = BuildConfig(out=out, source="synthetic", shard_size=3, token_features=True, max_tokens=4,
+                         progress=False)
+    build_dataset(config, source=SyntheticSource(num_clips=40, min_seconds=2.0, max_seconds=4.0),
+                  text_encoder=HashTextEncoder())
+    return out / "manifest.json"
+
+
+def test_reads_shards_written_by_the_real_builder(built_dataset):
+    manifest = open_manifest(built_dataset)
+    assert verify_shards(manifest, "train", mode="strict").bad == ()
+    assert verify_shards(manifest, "train", mode="strict", backend="parquet").bad == ()
+    train_ids = [rec.id for rec in iter_motions(manifest, "train")]
+    assert train_ids == [rec.id for rec in iter_motions(manifest, "train", backend="parquet")]
+    options = dict(batch_size=4, num_workers=0, window=196)
+    per_rank = []
+    for rank in range(2):
+        tar_loader = MotionLoader(manifest, "train", opts(**options), rank=rank, world_size=2)
+        batches = list(tar_loader.iter_epoch())
+        pq_loader = MotionLoader(manifest, "train", opts(backend="parquet", **options), rank=rank, world_size=2)
+        assert_batches_equal(list(pq_loader.iter_epoch()), batches)
+        per_rank.append(batches)
+    assert len(per_rank[0]) == len(per_rank[1]) > 0
+    ids = [i for batches in per_rank for b in batches for i in b["ids"]]
+    assert len(ids) == len(set(ids)) == len(train_ids) - tar_loader.samples_dropped(0)
+    dim = manifest.data["feature_spec"]["dim"]
+    mean, std = manifest.mean, manifest.std
+    motions = {rec.id: rec for rec in iter_motions(manifest, "train")}
+    for batch in per_rank[0]:
+        assert batch["features"].shape == (4, 196, dim) and batch["text_tokens"].shape == (4, 4, 6)
+        for i, sample_id in enumerate(batch["ids"]):
+            caption = batch["captions"][i]
+            assert np.array_equal(batch["text_emb"][i].numpy(), HashTextEncoder.embed(caption))
+            assert batch["action"][i] == manifest.action_classes.index(motions[sample_id].action)
+            length = int(batch["lengths"][i])
+            raw = batch["features"][i, :length].numpy() * std + mean
+            features = motions[sample_id].features
+            starts = [s for s in range(len(features) - length + 1)
+                      if np.allclose(features[s:s + length], raw, atol=1e-4)]
+            assert starts, f"{sample_id}: the batch features are not a crop of the stored motion"
