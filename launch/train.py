@@ -1,0 +1,55 @@
+"""Train the MFM flow-matching Transformer.
+
+    accelerate launch launch/train.py                         # embedded default: DeepMimic clips, CPU-sized model
+    accelerate launch launch/train.py --config humanml3d data.manifest=data/hml/manifest.json
+    python launch/train.py --config tiny train.max_steps=20 model.num_layers=2
+
+Settings: a preset from configs/ (``--config NAME`` or a YAML path; default ``default``) then ``key.sub=value``
+overrides, type-checked against pipeline/config.py. The run folder (train.out_dir) gets config.yaml,
+metrics.jsonl and checkpoints/step-XXXXXXXX/ (resume=auto continues from the newest complete one).
+Exit code: 0 when train.max_steps is reached, 128 + N after a clean stop on signal N (143 SIGTERM, 130 SIGINT).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.config import TrainConfig, available_presets, load_config
+from pipeline.distributed import Dist
+from pipeline.trainer import Trainer
+from preprocess.shards import BuildConfig, build_dataset, default_out_dir
+
+EMBEDDED_MANIFEST = default_out_dir("deepmimic", "minilm") / "manifest.json"
+
+
+def ensure_embedded_dataset(manifest: str, dist: Dist) -> None:
+    """Build the embedded default dataset (DeepMimic + MiniLM) the first time it is asked for; rank 0 builds,
+    the others wait. Any other missing manifest is the user's to build: the trainer reports it."""
+    if Path(manifest) != EMBEDDED_MANIFEST or EMBEDDED_MANIFEST.exists():
+        return
+    with dist.main_process_first():
+        if dist.is_main and not EMBEDDED_MANIFEST.exists():
+            dist.print0(f"building the embedded default dataset into {EMBEDDED_MANIFEST.parent} (once, ~1 min)")
+            build_dataset(BuildConfig(out=EMBEDDED_MANIFEST.parent))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", default="default", help=f"preset name ({', '.join(available_presets())}) or YAML path")
+    parser.add_argument("overrides", nargs="*", metavar="key.sub=value", help="config overrides")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    cfg = load_config(TrainConfig, args.config, args.overrides)
+    with Dist(mixed_precision=cfg.train.mixed_precision) as dist:
+        ensure_embedded_dataset(cfg.data.manifest, dist)
+        return Trainer(cfg, dist).fit()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,561 @@
+"""Evaluation metrics as pure functions over embeddings and joint positions (numpy/scipy; torch tensors accepted).
+
+Definitions follow the reference implementations the field reports numbers with:
+
+* Text-to-motion (EricGuo5513/text-to-motion ``final_evaluations.py``, copied into MDM/MFM/FlowMDM): FID, R-precision
+  in batches of 32, MM-Dist ("Matching Score"), Diversity, MultiModality, 95% confidence intervals.
+* Editing (MFM Table 3): ADE / FDE, mean over joints of the per-joint Euclidean error.
+* Transitions (FlowMDM ``utils/metrics.py::evaluate_jerk``): per-frame jerk curve, Peak Jerk, Area Under the Jerk.
+* FLAME / TEMOS: APE / AVE (TEMOS ``ComputeMetrics``), mCLIP score, Mutual Information Divergence
+  (Kim et al. 2022, naver-ai/mid.metric ``_compute_pmi``), per-text joint variance.
+* Action-to-motion: recogniser accuracy (FID/diversity/multimodality reuse the text-to-motion functions).
+
+Randomised metrics take ``generator``: a ``numpy.random.Generator`` or an int seed (``None`` = fresh entropy), so a
+replication is reproducible without touching numpy's global state (the reference code uses ``np.random``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from scipy import linalg
+from scipy.spatial.distance import cdist
+
+logger = logging.getLogger(__name__)
+
+# T2M protocol constants (reference notes §5.3 / MDM eval_humanml.py).
+R_PRECISION_BATCH_SIZE = 32
+DIVERSITY_TIMES = 300
+MULTIMODALITY_TIMES = 10
+# "Average GT jerk of the dataset" constants hard-coded by FlowMDM (issue #5); recompute from your own ground truth
+# with dataset_average_jerk when the data or the joint recovery differs.
+FLOWMDM_GT_JERK = {"humanml3d": 0.033031363, "babel": 0.016383045}
+# Largest imaginary part of sqrtm's diagonal tolerated as round-off (as the reference FID code).
+FID_IMAGINARY_TOLERANCE = 1e-3
+
+Generator = np.random.Generator | int | None
+
+
+def _as_numpy(x: Any, name: str, dtype: type = np.float64) -> np.ndarray:
+    """Arrays, lists and (CPU or GPU, grad or not) torch tensors → numpy ``dtype``."""
+    if hasattr(x, "detach"):  # torch.Tensor without importing torch here
+        x = x.detach().cpu().numpy()
+    arr = np.asarray(x, dtype=dtype)
+    if dtype is np.float64 and not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return arr
+
+
+def _rng(generator: Generator) -> np.random.Generator:
+    return generator if isinstance(generator, np.random.Generator) else np.random.default_rng(generator)
+
+
+def _check_2d(x: np.ndarray, name: str) -> None:
+    if x.ndim != 2:
+        raise ValueError(f"{name} must be (N, E), got shape {x.shape}")
+
+
+def _check_paired(a: np.ndarray, b: np.ndarray, names: tuple[str, str]) -> None:
+    _check_2d(a, names[0])
+    _check_2d(b, names[1])
+    if a.shape[0] != b.shape[0]:
+        raise ValueError(f"{names[0]} and {names[1]} must pair row by row, got {a.shape[0]} and {b.shape[0]} rows")
+
+
+def _check_joints(x: np.ndarray, name: str) -> None:
+    if x.ndim != 4 or x.shape[-1] != 3:
+        raise ValueError(f"{name} must be (N, T, J, 3) joint positions, got shape {x.shape}")
+
+
+def _lengths_or_full(lengths: Any, n: int, t: int, name: str = "lengths", minimum: int = 1) -> np.ndarray:
+    if lengths is None:
+        return np.full(n, t, dtype=np.int64)
+    out = _as_numpy(lengths, name, dtype=np.int64).reshape(-1)
+    if out.shape[0] != n:
+        raise ValueError(f"{name} must have one entry per sequence ({n}), got {out.shape[0]}")
+    if np.any(out < minimum) or np.any(out > t):
+        raise ValueError(f"{name} must lie in [{minimum}, {t}], got min {out.min()} max {out.max()}")
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Fréchet distance (T2M calculate_activation_statistics / calculate_frechet_distance)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def embedding_stats(emb: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (E,) and covariance (E, E) of (N, E) embeddings, ``np.cov(rowvar=False)`` (ddof 1) as the reference."""
+    emb = _as_numpy(emb, "emb")
+    _check_2d(emb, "emb")
+    if emb.shape[0] < 2:
+        raise ValueError(f"emb needs at least 2 rows for a covariance, got {emb.shape[0]}")
+    return emb.mean(axis=0), np.atleast_2d(np.cov(emb, rowvar=False))
+
+
+def frechet_distance(mu1: Any, sigma1: Any, mu2: Any, sigma2: Any, eps: float = 1e-6) -> float:
+    """Fréchet distance between N(mu1, sigma1) and N(mu2, sigma2) (T2M ``calculate_frechet_distance``):
+
+    ``‖mu1 − mu2‖² + tr(sigma1 + sigma2 − 2·sqrtm(sigma1·sigma2))``.
+
+    If ``sqrtm`` of the product is not finite (near-singular product), ``eps·I`` is added to both covariances and
+    it is recomputed. Imaginary parts from round-off are dropped; an imaginary diagonal larger than 1e-3 raises.
+    """
+    mu1, mu2 = np.atleast_1d(_as_numpy(mu1, "mu1")), np.atleast_1d(_as_numpy(mu2, "mu2"))
+    sigma1, sigma2 = np.atleast_2d(_as_numpy(sigma1, "sigma1")), np.atleast_2d(_as_numpy(sigma2, "sigma2"))
+    if mu1.shape != mu2.shape:
+        raise ValueError(f"means have different shapes: {mu1.shape} vs {mu2.shape}")
+    if sigma1.shape != sigma2.shape or sigma1.shape != (mu1.shape[0], mu1.shape[0]):
+        raise ValueError(f"covariances must both be ({mu1.shape[0]}, {mu1.shape[0]}), got {sigma1.shape}, {sigma2.shape}")
+
+    diff = mu1 - mu2
+    covmean = linalg.sqrtm(sigma1.dot(sigma2))
+    if not np.isfinite(covmean).all():
+        logger.warning("FID: singular covariance product; adding %g to the diagonal of both covariances", eps)
+        offset = np.eye(sigma1.shape[0]) * eps
+        covmean = linalg.sqrtm((sigma1 + offset).dot(sigma2 + offset))
+    if np.iscomplexobj(covmean):
+        if not np.allclose(np.diagonal(covmean).imag, 0, atol=FID_IMAGINARY_TOLERANCE):
+            raise ValueError(f"FID: sqrtm has a large imaginary component {np.max(np.abs(covmean.imag)):.3g}")
+        covmean = covmean.real
+    return float(diff.dot(diff) + np.trace(sigma1) + np.trace(sigma2) - 2.0 * np.trace(covmean))
+
+
+def fid(gen_emb: Any, gt_emb: Any) -> float:
+    """FID between generated and ground-truth embeddings (each (N, E)); the GT statistics come from the whole set."""
+    mu_gt, sigma_gt = embedding_stats(gt_emb)
+    mu_gen, sigma_gen = embedding_stats(gen_emb)
+    return frechet_distance(mu_gt, sigma_gt, mu_gen, sigma_gen)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Text-motion matching (T2M calculate_R_precision / calculate_matching_score)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def r_precision(
+    text_emb: Any,
+    motion_emb: Any,
+    *,
+    batch_size: int = R_PRECISION_BATCH_SIZE,
+    top_k: int = 3,
+    generator: Generator | bool = False,
+) -> tuple[float, ...]:
+    """R-precision top-1..top-k as the T2M protocol: retrieval among ``batch_size`` = 32 (1 match + 31 others).
+
+    Row i of ``text_emb`` pairs with row i of ``motion_emb``. The rows are cut into consecutive batches of
+    ``batch_size``; in each batch the text×motion Euclidean distance matrix is argsorted per text (stable sort),
+    and text i scores a hit@k when motion i is among its k nearest. Hits are summed over batches and divided by the
+    number of samples used. An incomplete final batch is dropped (the reference GT loader has ``drop_last=True``;
+    the MDM generated set is an exact multiple of 32), so retrieval is always among exactly ``batch_size``.
+
+    ``generator=False`` (default) keeps the given order, as when the caller's loader already shuffled. Pass a
+    ``numpy.random.Generator`` or an int seed to shuffle the pairs before batching (the reference shuffles its
+    loader); ``None`` shuffles with fresh entropy.
+    """
+    text, motion = _as_numpy(text_emb, "text_emb"), _as_numpy(motion_emb, "motion_emb")
+    _check_paired(text, motion, ("text_emb", "motion_emb"))
+    if text.shape[1] != motion.shape[1]:
+        raise ValueError(f"text and motion embeddings must share a dimension, got {text.shape[1]} and {motion.shape[1]}")
+    if not 1 <= top_k <= batch_size:
+        raise ValueError(f"top_k must be in [1, batch_size={batch_size}], got {top_k}")
+    num_batches = text.shape[0] // batch_size
+    if num_batches == 0:
+        raise ValueError(f"R-precision needs at least batch_size={batch_size} pairs, got {text.shape[0]}")
+    if generator is not False:
+        order = _rng(generator).permutation(text.shape[0])
+        text, motion = text[order], motion[order]
+
+    hits = np.zeros(top_k, dtype=np.int64)
+    for b in range(num_batches):
+        rows = slice(b * batch_size, (b + 1) * batch_size)
+        ranking = np.argsort(cdist(text[rows], motion[rows]), axis=1, kind="stable")
+        # rank of the paired motion in each text's list (0 = nearest)
+        rank = np.argmax(ranking == np.arange(batch_size)[:, None], axis=1)
+        hits += np.array([(rank < k).sum() for k in range(1, top_k + 1)])
+    return tuple(float(h) / (num_batches * batch_size) for h in hits)
+
+
+def mm_dist(text_emb: Any, motion_emb: Any) -> float:
+    """MM-Dist ("Matching Score"): mean Euclidean distance between paired text and motion embeddings, over all rows
+    given (the reference averages over the samples of its full batches; pass the same rows to match it)."""
+    text, motion = _as_numpy(text_emb, "text_emb"), _as_numpy(motion_emb, "motion_emb")
+    _check_paired(text, motion, ("text_emb", "motion_emb"))
+    return float(np.linalg.norm(text - motion, axis=1).mean())
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Diversity / MultiModality / confidence interval (T2M calculate_diversity / calculate_multimodality)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def diversity(emb: Any, times: int = DIVERSITY_TIMES, generator: Generator = None) -> float:
+    """Diversity: draw ``times`` indices twice, each draw without replacement and independent of the other, and
+    average the L2 distance between the paired embeddings (a pair may be the same row, as in the reference).
+
+    Raises if there are fewer than ``times`` embeddings (the reference asserts N > times).
+    """
+    emb = _as_numpy(emb, "emb")
+    _check_2d(emb, "emb")
+    if emb.shape[0] < times:
+        raise ValueError(f"diversity needs at least times={times} embeddings, got {emb.shape[0]}")
+    rng = _rng(generator)
+    first = rng.choice(emb.shape[0], times, replace=False)
+    second = rng.choice(emb.shape[0], times, replace=False)
+    return float(np.linalg.norm(emb[first] - emb[second], axis=1).mean())
+
+
+def multimodality(emb: Any, times: int = MULTIMODALITY_TIMES, generator: Generator = None) -> float:
+    """MultiModality of (num_texts, num_repeats, E) embeddings (``num_repeats`` generations per text): choose
+    ``times`` pairs of repeats and average the L2 distance between the two generations of each pair, over pairs and
+    texts. As the reference, the two index draws are each without replacement and shared by all texts.
+    """
+    emb = _as_numpy(emb, "emb")
+    if emb.ndim != 3:
+        raise ValueError(f"emb must be (num_texts, num_repeats, E), got shape {emb.shape}")
+    if emb.shape[1] < times:
+        raise ValueError(f"multimodality needs at least times={times} repeats per text, got {emb.shape[1]}")
+    rng = _rng(generator)
+    first = rng.choice(emb.shape[1], times, replace=False)
+    second = rng.choice(emb.shape[1], times, replace=False)
+    return float(np.linalg.norm(emb[:, first] - emb[:, second], axis=2).mean())
+
+
+def confidence_interval(values: Any) -> tuple[Any, Any]:
+    """Mean and 95% half-width ``1.96·std/√reps`` over replications (axis 0; numpy std, ddof 0, as the reference).
+    Scalars for (reps,) input, arrays for (reps, ...) input (e.g. the 3 R-precision columns)."""
+    v = _as_numpy(values, "values")
+    if v.ndim == 0 or v.shape[0] == 0:
+        raise ValueError(f"values must be (reps, ...) with reps >= 1, got shape {v.shape}")
+    mean, half = v.mean(axis=0), 1.96 * v.std(axis=0) / np.sqrt(v.shape[0])
+    if v.ndim == 1:
+        return float(mean), float(half)
+    return mean, half
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Editing: ADE / FDE (MFM Table 3)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _per_joint_error(pred_joints: Any, gt_joints: Any) -> np.ndarray:
+    pred, gt = _as_numpy(pred_joints, "pred_joints"), _as_numpy(gt_joints, "gt_joints")
+    _check_joints(pred, "pred_joints")
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred_joints {pred.shape} and gt_joints {gt.shape} must have the same shape")
+    return np.linalg.norm(pred - gt, axis=-1)  # (N, T, J)
+
+
+def ade(pred_joints: Any, gt_joints: Any, lengths: Any = None, mask_frames: Any = None) -> float:
+    """Average Displacement Error: per-joint Euclidean error averaged over joints and frames.
+
+    Each sample is averaged over its frames ``< lengths[i]`` that are also True in ``mask_frames`` ((N, T) or
+    (T,) bool, e.g. the edited frames), then samples are averaged with equal weight. Inputs (N, T, J, 3).
+    """
+    err = _per_joint_error(pred_joints, gt_joints).mean(axis=-1)  # (N, T): mean over joints
+    n, t = err.shape
+    valid = np.arange(t)[None, :] < _lengths_or_full(lengths, n, t)[:, None]
+    if mask_frames is not None:
+        mask = _as_numpy(mask_frames, "mask_frames", dtype=bool)
+        try:
+            valid = valid & np.broadcast_to(mask, (n, t))
+        except ValueError:
+            raise ValueError(f"mask_frames of shape {mask.shape} does not broadcast to (N, T) = {(n, t)}") from None
+    counts = valid.sum(axis=1)
+    if np.any(counts == 0):
+        raise ValueError(f"samples {np.flatnonzero(counts == 0).tolist()} have no frame to evaluate (mask ∩ length)")
+    return float(((err * valid).sum(axis=1) / counts).mean())
+
+
+def fde(pred_joints: Any, gt_joints: Any, lengths: Any = None) -> float:
+    """Final Displacement Error: per-joint Euclidean error at each sample's last valid frame (``lengths[i] − 1``),
+    averaged over joints and samples. Inputs (N, T, J, 3)."""
+    err = _per_joint_error(pred_joints, gt_joints).mean(axis=-1)  # (N, T)
+    n, t = err.shape
+    last = _lengths_or_full(lengths, n, t) - 1
+    return float(err[np.arange(n), last].mean())
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Transitions: jerk, PJ, AUJ (FlowMDM utils/metrics.py evaluate_jerk + calculate_jerk)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def jerk_curve(joints: Any, lengths: Any = None) -> np.ndarray:
+    """Per-frame jerk (N, L − 3) of (N, L, J, 3) joint positions (FlowMDM ``calculate_jerk``).
+
+    Jerk = third finite difference of the positions (per frame, no fps scaling), L1 norm over xyz, max over joints.
+    Entry k uses frames k..k+3, so entries ``k >= lengths[i] − 3`` (touching padding) are set to 0.
+    """
+    pos = _as_numpy(joints, "joints")
+    _check_joints(pos, "joints")
+    n, length = pos.shape[:2]
+    if length < 4:
+        raise ValueError(f"jerk needs at least 4 frames, got {length}")
+    lens = _lengths_or_full(lengths, n, length)
+    jerk = np.abs(np.diff(pos, n=3, axis=1)).sum(axis=-1).max(axis=-1)  # (N, L-3)
+    jerk[np.arange(length - 3)[None, :] >= (lens - 3)[:, None]] = 0.0
+    return jerk
+
+
+def _mean_curve(curves: Any) -> np.ndarray:
+    c = _as_numpy(curves, "curves")
+    if c.ndim != 2 or c.shape[0] == 0:
+        raise ValueError(f"curves must be (num_transitions, L - 3) jerk curves, got shape {c.shape}")
+    return c.mean(axis=0)
+
+
+def peak_jerk(curves: Any) -> float:
+    """Peak Jerk: maximum over frames of the jerk curve averaged over all transitions."""
+    return float(_mean_curve(curves).max())
+
+
+def area_under_jerk(curves: Any, gt_jerk: float) -> float:
+    """Area Under the Jerk: ``Σ_frames |mean_curve − gt_jerk|`` with the dataset's average GT jerk (a constant:
+    FlowMDM issue #5 — GT jerk is homogeneous in time; see :data:`FLOWMDM_GT_JERK`, :func:`dataset_average_jerk`)."""
+    return float(np.abs(_mean_curve(curves) - gt_jerk).sum())
+
+
+def dataset_average_jerk(joints_list: Sequence[Any]) -> float:
+    """Average ground-truth jerk of a dataset: the per-frame jerk of :func:`jerk_curve` averaged over every valid
+    frame of every clip (clips (T_i, J, 3), any lengths ≥ 4). This is the constant AUJ is measured against."""
+    total, count = 0.0, 0
+    for i, clip in enumerate(joints_list):
+        c = _as_numpy(clip, f"joints_list[{i}]")
+        if c.ndim != 3 or c.shape[-1] != 3 or c.shape[0] < 4:
+            raise ValueError(f"joints_list[{i}] must be (T >= 4, J, 3), got shape {c.shape}")
+        curve = jerk_curve(c[None])[0]
+        total += float(curve.sum())
+        count += curve.shape[0]
+    if count == 0:
+        raise ValueError("joints_list is empty")
+    return total / count
+
+
+def boundaries_from_lengths(segment_lengths: Sequence[int]) -> np.ndarray:
+    """Transition frames of a composition of consecutive segments: the first frame of every segment but the first
+    (``cumsum(lengths)[:-1]``), as FlowMDM's ``mid += lengths[i]``."""
+    lens = _as_numpy(segment_lengths, "segment_lengths", dtype=np.int64).reshape(-1)
+    if np.any(lens < 1):
+        raise ValueError(f"segment lengths must be positive, got {lens.tolist()}")
+    return np.cumsum(lens)[:-1]
+
+
+def transition_windows(x: Any, boundaries: Sequence[int], window: int = 60) -> tuple[np.ndarray, np.ndarray]:
+    """Crops of ``window`` frames centred on each boundary of a (T, ...) sequence (joints or features).
+
+    The crop of boundary b covers frames [b − l, b + r) with ``l = window // 2``, ``r = window − l`` (FlowMDM's
+    ``l_margin`` / ``r_margin``; 60 for HumanML3D, 30 for Babel). Returns ``(windows (B, window, ...),
+    real (B, window) bool)``. The reference asserts every crop fits (its segments are ≥ 70 frames); here a crop that
+    runs past either end of the sequence is clipped to it and padded by repeating the first / last real frame
+    (so padded frames add no velocity), and ``real`` is False on the padded frames so callers can drop those
+    windows or restrict statistics to real frames.
+    """
+    seq = np.asarray(x.detach().cpu().numpy() if hasattr(x, "detach") else x)
+    if seq.ndim < 1 or seq.shape[0] == 0:
+        raise ValueError(f"x must be a non-empty (T, ...) sequence, got shape {seq.shape}")
+    if window < 1:
+        raise ValueError(f"window must be positive, got {window}")
+    t = seq.shape[0]
+    bounds = _as_numpy(boundaries, "boundaries", dtype=np.int64).reshape(-1)
+    if np.any(bounds < 0) or np.any(bounds > t):
+        raise ValueError(f"boundaries must lie in [0, {t}], got {bounds.tolist()}")
+    left, right = window // 2, window - window // 2
+    frames = np.arange(window)[None, :] + (bounds - left)[:, None]  # (B, window) wanted frame indices
+    real = (frames >= 0) & (frames < t)
+    return seq[np.clip(frames, 0, t - 1)], real
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# FLAME / TEMOS metrics
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _yaw_rotation(angle: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations about +y by ``angle``; applied as row vectors ``p @ R``."""
+    c, s = np.cos(angle), np.sin(angle)
+    z, o = np.zeros_like(angle), np.ones_like(angle)
+    # p @ R gives x' = c·x − s·z, z' = s·x + c·z: a rotation by −angle, which maps heading `angle` to +z.
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def _heading(joints: np.ndarray, face_joints: tuple[int, int, int, int]) -> np.ndarray:
+    """Per-frame facing angle about +y (0 = facing +z) from (r_hip, l_hip, r_shoulder, l_shoulder), (..., T)."""
+    r_hip, l_hip, r_sh, l_sh = face_joints
+    across = joints[..., r_hip, :] - joints[..., l_hip, :] + joints[..., r_sh, :] - joints[..., l_sh, :]
+    forward_x, forward_z = across[..., 2], -across[..., 0]  # up × across, up = +y (HumanML3D's convention)
+    return np.arctan2(forward_x, forward_z)
+
+
+def _canonical_parts(joints: np.ndarray, root: int, face_joints: tuple[int, int, int, int] | None):
+    """TEMOS-style decomposition of one (T, J, 3) clip: global joints, root, xz trajectory, local pose.
+
+    The clip is translated so the root's first-frame ground position is the origin and, with ``face_joints``,
+    rotated about y so the first frame faces +z. Local pose = non-root joints with the root's xz removed (height
+    kept), expressed in each frame's own heading frame when ``face_joints`` is given.
+    """
+    g = joints - np.array([joints[0, root, 0], 0.0, joints[0, root, 2]])
+    if face_joints is not None:
+        headings = _heading(g, face_joints)  # (T,)
+        g = g @ _yaw_rotation(headings[0])
+    root_pos = g[:, root]  # (T, 3)
+    local = np.delete(g, root, axis=1) - np.stack([root_pos[:, 0], np.zeros(len(g)), root_pos[:, 2]], -1)[:, None]
+    if face_joints is not None:
+        local = np.einsum("tjk,tkl->tjl", local, _yaw_rotation(_heading(g, face_joints)))
+    return g, root_pos, root_pos[:, [0, 2]], local
+
+
+def ape_ave(
+    pred_joints: Any,
+    gt_joints: Any,
+    lengths: Any = None,
+    *,
+    root: int = 0,
+    face_joints: tuple[int, int, int, int] | None = None,
+) -> dict[str, float]:
+    """Average Position Error and Average Variance Error (TEMOS ``ComputeMetrics``, reported by FLAME).
+
+    Both clips of a pair are put in canonical form independently (:func:`_canonical_parts`: root's first-frame xz
+    at the origin; with ``face_joints`` = (r_hip, l_hip, r_shoulder, l_shoulder), e.g. ``Skeleton.face_joints``,
+    first frame facing +z and the local pose in each frame's heading frame), then for each part
+
+    * root: root joint xyz; traj: root xz; mean_local: non-root joints relative to the root's ground position;
+      mean_global: all joints;
+    * APE = Euclidean error, averaged over all valid frames of all sequences (frame-weighted, as TEMOS divides by
+      Σ lengths) and, for the joint sets, over joints;
+    * AVE = ‖σ²_pred − σ²_gt‖₂ over xyz, σ² = per-coordinate variance over the sequence's frames with the T − 1
+      denominator, averaged over sequences and, for the joint sets, over joints.
+
+    Unlike TEMOS the floor height is not re-estimated (HumanML3D joints are already floor-aligned). Inputs
+    (N, T, J, 3) in metres; ``lengths`` (N,) valid frames (≥ 2). Keys: ``APE_root, APE_traj, APE_mean_local,
+    APE_mean_global, AVE_root, AVE_traj, AVE_mean_local, AVE_mean_global``.
+    """
+    pred, gt = _as_numpy(pred_joints, "pred_joints"), _as_numpy(gt_joints, "gt_joints")
+    _check_joints(pred, "pred_joints")
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred_joints {pred.shape} and gt_joints {gt.shape} must have the same shape")
+    n, t, j = pred.shape[:3]
+    if not 0 <= root < j:
+        raise ValueError(f"root index {root} out of range for {j} joints")
+    lens = _lengths_or_full(lengths, n, t, minimum=2)
+    names = ("mean_global", "root", "traj", "mean_local")
+    ape_sum = dict.fromkeys(names, 0.0)
+    ave_sum = dict.fromkeys(names, 0.0)
+    for i in range(n):
+        parts_pred = _canonical_parts(pred[i, : lens[i]], root, face_joints)
+        parts_gt = _canonical_parts(gt[i, : lens[i]], root, face_joints)
+        for name, p, g in zip(names, parts_pred, parts_gt):
+            # (T, ..., D): sum errors over frames, mean over joints (if any)
+            ape_sum[name] += np.linalg.norm(p - g, axis=-1).sum(axis=0).mean()
+            var_p, var_g = p.var(axis=0, ddof=1), g.var(axis=0, ddof=1)
+            ave_sum[name] += np.linalg.norm(var_p - var_g, axis=-1).mean()
+    total_frames = float(lens.sum())
+    out = {f"APE_{k}": ape_sum[k] / total_frames for k in ("root", "traj", "mean_local", "mean_global")}
+    out.update({f"AVE_{k}": ave_sum[k] / n for k in ("root", "traj", "mean_local", "mean_global")})
+    return {k: float(v) for k, v in out.items()}
+
+
+def mclip_score(text_emb: Any, motion_emb: Any) -> float:
+    """mCLIP score: mean cosine similarity between paired text and motion embeddings (FLAME's CLIP score on its
+    motion-CLIP evaluator)."""
+    text, motion = _as_numpy(text_emb, "text_emb"), _as_numpy(motion_emb, "motion_emb")
+    _check_paired(text, motion, ("text_emb", "motion_emb"))
+    norms = np.linalg.norm(text, axis=1) * np.linalg.norm(motion, axis=1)
+    if np.any(norms == 0):
+        raise ValueError("mclip_score: zero-norm embedding has no direction")
+    return float(((text * motion).sum(axis=1) / norms).mean())
+
+
+def _logdet_spd(m: np.ndarray, name: str) -> float:
+    sign, logdet = np.linalg.slogdet(m)
+    if sign <= 0:
+        raise ValueError(f"MID: covariance of {name} is singular; use more samples or eps > 0")
+    return float(logdet)
+
+
+def mutual_information_divergence(
+    text_emb: Any,
+    motion_emb: Any,
+    gt_motion_emb: Any = None,
+    *,
+    eps: float = 0.0,
+) -> float:
+    """Mutual Information Divergence (Kim et al. 2022; naver-ai/mid.metric ``_compute_pmi``, reduction=True).
+
+    Gaussians are fitted to the real pairs: x = ``gt_motion_emb`` (N, Ex), y = ``text_emb`` (N, Ey), z = [x; y],
+    means μ and covariances Σ (denominator N − 1). MID is the expected point-wise mutual information of the
+    generated pairs (x̂ = ``motion_emb`` (M ≤ N rows, paired with the first M texts), y) under those Gaussians:
+
+        MID = I(X; Y) + ½ E[D²_x(x̂) + D²_y(y) − D²_z([x̂; y])],   I = ½ log(det Σx · det Σy / det Σz),
+        D²_a(a) = (a − μ_a)ᵀ Σa⁻¹ (a − μ_a),
+
+    computed as traces with the generated second moments taken about the real means. With ``gt_motion_emb=None``
+    the generated pairs are their own reference, so MID is their Gaussian MI. ``eps`` adds eps·I to Σx, Σy, Σz
+    (0 as the reference default; its authors suggest 5e-4 for small sets). Computed in float64.
+    """
+    y = _as_numpy(text_emb, "text_emb")
+    x0 = _as_numpy(motion_emb, "motion_emb")
+    x = x0 if gt_motion_emb is None else _as_numpy(gt_motion_emb, "gt_motion_emb")
+    _check_paired(x, y, ("gt_motion_emb" if gt_motion_emb is not None else "motion_emb", "text_emb"))
+    _check_2d(x0, "motion_emb")
+    if x0.shape[1] != x.shape[1]:
+        raise ValueError(f"generated and real motion embeddings differ in width: {x0.shape[1]} vs {x.shape[1]}")
+    n, m = x.shape[0], x0.shape[0]
+    if m > n:
+        raise ValueError(f"motion_emb has {m} rows but only {n} texts to pair with")
+    if m < 2:
+        raise ValueError("MID needs at least 2 generated samples")
+    dz = x.shape[1] + y.shape[1]
+    if n <= dz and eps == 0:
+        raise ValueError(f"MID needs more real pairs ({n}) than the joint dimension ({dz}) for a full-rank covariance")
+
+    z = np.concatenate([x, y], axis=1)
+    z0 = np.concatenate([x0, y[:m]], axis=1)
+    mu_x, mu_y, mu_z = x.mean(0), y.mean(0), z.mean(0)
+
+    def second_moment(a: np.ndarray, mu: np.ndarray) -> np.ndarray:
+        d = a - mu
+        return d.T @ d / (a.shape[0] - 1)
+
+    def regularised(c: np.ndarray) -> np.ndarray:
+        return c + eps * np.eye(c.shape[0])
+
+    cov_x, cov_y, cov_z = (regularised(second_moment(a, mu)) for a, mu in ((x, mu_x), (y, mu_y), (z, mu_z)))
+    mom_x0, mom_z0 = second_moment(x0, mu_x), second_moment(z0, mu_z)  # about the real means, as the reference
+
+    mi = 0.5 * (_logdet_spd(cov_x, "motions") + _logdet_spd(cov_y, "texts") - _logdet_spd(cov_z, "pairs"))
+    smd = 0.5 * (
+        np.trace(np.linalg.solve(cov_x, mom_x0))
+        + np.trace(np.linalg.solve(cov_y, second_moment(y, mu_y)))
+        - np.trace(np.linalg.solve(cov_z, mom_z0))
+    )
+    return float(mi + smd)
+
+
+def joint_variance(samples: Any) -> float:
+    """Spread of the S generations of one text, (S, T, J, 3): for every frame and joint the mean squared distance of
+    the samples' positions from their across-sample mean (= sum over xyz of the variances, ddof 0), averaged over
+    frames and joints (m² for metric joints)."""
+    s = _as_numpy(samples, "samples")
+    _check_joints(s, "samples")
+    if s.shape[0] < 2:
+        raise ValueError(f"joint_variance needs at least 2 samples, got {s.shape[0]}")
+    return float(s.var(axis=0).sum(axis=-1).mean())
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Action-to-motion
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def action_accuracy(logits: Any, labels: Any) -> float:
+    """Recogniser accuracy: fraction of samples whose argmax class over (N, C) ``logits`` equals ``labels`` (N,)."""
+    lg = _as_numpy(logits, "logits")
+    lb = _as_numpy(labels, "labels", dtype=np.int64).reshape(-1)
+    if lg.ndim != 2 or lg.shape[0] != lb.shape[0] or lg.shape[0] == 0:
+        raise ValueError(f"logits must be (N, C) with N = len(labels) > 0, got {lg.shape} and {lb.shape}")
+    if np.any(lb < 0) or np.any(lb >= lg.shape[1]):
+        raise ValueError(f"labels must lie in [0, {lg.shape[1]}), got min {lb.min()} max {lb.max()}")
+    return float((lg.argmax(axis=1) == lb).mean())

@@ -1,0 +1,130 @@
+"""A trained model ready to sample from: weights (EMA by default) + everything the checkpoint knows about its data.
+
+A checkpoint carries the dataset's identity (id, feature spec, text encoder entry, action classes, normalisation,
+training lengths), so sampling and evaluation need no access to the shards: features are produced in the
+training normalisation and converted back with the checkpoint's Mean/Std, prompts are encoded with the same
+text encoder (checked by weights hash), and joints are recovered on the dataset's skeleton.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping, Sequence
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mfm.model import ModelConfig, MotionFlowTransformer
+from mfm.skeleton import Skeleton, get_skeleton
+from pipeline import checkpoint as ckpt
+
+logger = logging.getLogger(__name__)
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A complete checkpoint folder from ``path``: a ``step-XXXXXXXX`` folder itself, or a run folder /
+    ``checkpoints/`` folder, in which case its newest complete checkpoint."""
+    path = Path(path)
+    if (path / ckpt.COMPLETE_MARKER).exists():
+        return path
+    for root in (ckpt.checkpoints_dir(path), path):
+        if root.is_dir():
+            latest = ckpt.find_latest_complete(root)
+            if latest is not None:
+                return latest
+    if not path.exists():
+        raise FileNotFoundError(f"no checkpoint or run folder at {path}")
+    raise FileNotFoundError(f"{path} holds no complete checkpoint (a step-XXXXXXXX folder with a COMPLETE marker)")
+
+
+def skeleton_from_spec(feature_spec: Mapping[str, Any]) -> Skeleton:
+    """The dataset's skeleton with the bone lengths its features were extracted with (FK, BVH export)."""
+    skeleton = get_skeleton(feature_spec["skeleton"])
+    lengths = feature_spec.get("bone_lengths")
+    if lengths is not None:
+        skeleton = dataclasses.replace(skeleton, bone_lengths=np.asarray(lengths, dtype=np.float64))
+    return skeleton
+
+
+@dataclasses.dataclass
+class TrainedModel:
+    model: MotionFlowTransformer  # eval mode, on ``device``
+    model_config: ModelConfig
+    checkpoint: Path
+    step: int
+    weights: str  # "ema" or "model"
+    data: dict[str, Any]  # the checkpoint's dataset identity (see Trainer.save)
+    device: torch.device
+
+    @cached_property
+    def mean(self) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(self.data["normalization"]["mean"], dtype=np.float32), device=self.device)
+
+    @cached_property
+    def std(self) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(self.data["normalization"]["std"], dtype=np.float32), device=self.device)
+
+    @property
+    def skeleton(self) -> Skeleton:
+        return skeleton_from_spec(self.data["feature_spec"])
+
+    @property
+    def fps(self) -> float:
+        return float(self.data["feature_spec"]["fps"])
+
+    @property
+    def action_classes(self) -> list[str]:
+        return list(self.data.get("action_classes", []))
+
+    @property
+    def train_lengths(self) -> list[int]:
+        return list(self.data.get("train_lengths", []))
+
+    @property
+    def dataset_id(self) -> str:
+        return self.data["dataset_id"]
+
+    def normalize(self, features: torch.Tensor) -> torch.Tensor:
+        return (features - self.mean) / self.std
+
+    def denormalize(self, features: torch.Tensor) -> torch.Tensor:
+        return features * self.std + self.mean
+
+    def text_encoder(self, weights: str | None = None):
+        """The dataset's text encoder (verified by weights hash); CLIP needs its weights file passed again."""
+        from mfm.text import build_matching_text_encoder
+
+        return build_matching_text_encoder(self.data["text_encoder"], weights=weights, device=str(self.device))
+
+    def conditions(self, *, texts: Sequence[str] = (), actions: Sequence[str] = (), text_weights: str | None = None) -> torch.Tensor:
+        """Model conditions for the request: pooled text embeddings (N, E) or action ids (N,)."""
+        if self.model_config.is_action_model:
+            if texts:
+                raise ValueError("this is an action-to-motion model: ask with action names, not texts")
+            unknown = [a for a in actions if a not in self.action_classes]
+            if unknown:
+                raise ValueError(f"unknown action(s) {unknown}; this model knows {self.action_classes}")
+            return torch.tensor([self.action_classes.index(a) for a in actions], dtype=torch.long, device=self.device)
+        if actions:
+            raise ValueError("this is a text-to-motion model: ask with texts, not action names")
+        encoding = self.text_encoder(text_weights).encode(list(texts))
+        return torch.as_tensor(encoding.pooled, device=self.device)
+
+
+def load_trained_model(path: str | Path, *, use_ema: bool = True, device: str | torch.device = "cpu") -> TrainedModel:
+    """Load a checkpoint (or a run folder's newest complete one) for sampling/evaluation, EMA weights by default."""
+    folder = resolve_checkpoint(path)
+    model_state, ema_state, state = ckpt.load_checkpoint(folder)
+    extra = state["extra"]
+    model_config = ModelConfig(**extra["model_config"])
+    model = MotionFlowTransformer(model_config)
+    weights = "ema" if use_ema and ema_state is not None else "model"
+    model.load_state_dict(ema_state if weights == "ema" else model_state)
+    device = torch.device(device)
+    model.to(device).eval()
+    logger.info("loaded %s weights of %s (step %d)", weights, folder, state["step"])
+    return TrainedModel(model, model_config, folder, int(state["step"]), weights, dict(state["manifest"]), device)

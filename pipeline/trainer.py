@@ -1,0 +1,530 @@
+"""The training loop: ``Trainer(cfg, dist).fit()``.
+
+One object owns a run: the model (wrapped for the device by :mod:`pipeline.distributed`), its EMA, AdamW with
+linear warm-up, the self-sharded streaming loader (never passed through ``accelerator.prepare``), and one
+versioned resume state saved atomically by :mod:`pipeline.checkpoint`. ``fit`` reads top to bottom:
+
+    resume → for each optimizer step: stop requested? → train_step → maybe_log → maybe_save
+
+Decisions that every rank must take together (skip a non-finite step, stop on SIGTERM/SIGINT) come from ONE
+all-reduce of a 2-element flag vector per optimizer step; that and the ``.item()`` reading it are the only host
+syncs outside log steps.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import signal
+import time
+from collections.abc import Iterator, Mapping
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+from tqdm.auto import tqdm
+
+from mfm.flow import flow_matching_loss
+from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters, draw_cond_drop_mask
+from pipeline import checkpoint as ckpt
+from pipeline.config import TrainConfig, to_dict
+from pipeline.data import LoaderOptions, Manifest, MotionLoader, open_manifest, verify_shards
+from pipeline.distributed import Dist
+
+logger = logging.getLogger(__name__)
+
+EXIT_SIGNAL_BASE = 128  # a run stopped by signal N exits with 128 + N (143 SIGTERM, 130 SIGINT)
+
+
+class NonFiniteLossError(RuntimeError):
+    """The loss or gradient norm was not finite on some rank and the policy (or its budget) says stop."""
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Small parts of a run
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def model_config_for(manifest: Manifest, requested: ModelConfig) -> ModelConfig:
+    """The model config with the dataset-given sizes filled in: feature dim and text-embedding dim from the
+    manifest, and for an action model (``num_actions > 0`` in the config) the number of action classes."""
+    spec = manifest.data["feature_spec"]
+    text = manifest.data["text_encoder"]
+    changes: dict[str, Any] = {"feature_dim": int(spec["dim"]), "cond_dim": int(text["dim"])}
+    if requested.num_actions > 0:
+        if not manifest.action_classes:
+            raise ValueError(f"model.num_actions > 0 asks for an action model, but {manifest.location} has no action classes")
+        changes["num_actions"] = len(manifest.action_classes)
+    return dataclasses.replace(requested, **changes)
+
+
+class EMA:
+    """Exponential moving average of the weights, with the usual warm-up ``min(decay, (1 + n) / (10 + n))`` so a
+    short run's average is not dominated by its random initialisation."""
+
+    def __init__(self, model: torch.nn.Module, decay: float) -> None:
+        self.decay = decay
+        self.num_updates = 0
+        self.shadow = {name: p.detach().clone().float() for name, p in model.state_dict().items()}
+
+    @torch.no_grad()
+    def update(self, model: torch.nn.Module) -> None:
+        self.num_updates += 1
+        decay = min(self.decay, (1 + self.num_updates) / (10 + self.num_updates))
+        for name, value in model.state_dict().items():
+            if value.dtype.is_floating_point:
+                self.shadow[name].lerp_(value.detach().float(), 1.0 - decay)
+            else:
+                self.shadow[name].copy_(value)
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {name: t.detach().cpu() for name, t in self.shadow.items()}
+
+    def load_state_dict(self, state: Mapping[str, torch.Tensor], num_updates: int) -> None:
+        missing = set(self.shadow) ^ set(state)
+        if missing:
+            raise KeyError(f"EMA state does not match the model: differing keys {sorted(missing)[:5]}")
+        for name, value in state.items():
+            self.shadow[name].copy_(value)
+        self.num_updates = num_updates
+
+
+def warmup_lambda(warmup_steps: int):
+    """LR multiplier: linear warm-up from ~0 to 1 over ``warmup_steps`` optimizer steps, then constant (MFM uses
+    a constant 1e-4 with no warm-up: warmup_steps=0)."""
+
+    def factor(step: int) -> float:
+        return 1.0 if warmup_steps == 0 else min(1.0, (step + 1) / warmup_steps)
+
+    return factor
+
+
+class StopSignal:
+    """Remembers SIGTERM/SIGINT instead of dying mid-step; the loop checks it at step boundaries, all ranks agree
+    through the step's flag all-reduce, and the run stops after writing one complete checkpoint."""
+
+    def __init__(self) -> None:
+        self.signum = 0
+        self._previous: dict[int, Any] = {}
+
+    def install(self) -> None:
+        for signum in (signal.SIGTERM, signal.SIGINT):
+            self._previous[signum] = signal.signal(signum, self._handle)
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        self.signum = self.signum or signum
+
+    def restore(self) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+
+@dataclasses.dataclass
+class Draws:
+    """The random numbers of one micro-batch's loss: flow time, initial noise and which conditions are dropped."""
+
+    t: torch.Tensor  # (B,)
+    x0: torch.Tensor  # (B, T, D)
+    cond_mask: torch.Tensor  # (B,) bool
+
+    def to(self, device: torch.device) -> "Draws":
+        return Draws(self.t.to(device), self.x0.to(device), self.cond_mask.to(device))
+
+
+def draw_for_batch(batch: Mapping[str, Any], cond_drop_prob: float, generator: torch.Generator) -> Draws:
+    """Draws for ``batch`` from ``generator``, in a fixed order (t, x0, cond_mask) so resume replays them."""
+    features = batch["features"]
+    b = features.shape[0]
+    device = generator.device
+    t = torch.rand(b, generator=generator, device=device)
+    x0 = torch.randn(features.shape, generator=generator, device=device)
+    cond_mask = draw_cond_drop_mask(b, cond_drop_prob, generator, device)
+    return Draws(t, x0, cond_mask)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The trainer
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class StepResult:
+    loss: torch.Tensor  # mean loss over the step's micro-batches (device tensor; NaN when skipped)
+    grad_norm: torch.Tensor
+    skipped: bool
+    stop_signal: int  # the signal number some rank received before this step's end (0: none)
+
+
+class Trainer:
+    """A training run. Build with the resolved config and this process's :class:`Dist`; call :meth:`fit`."""
+
+    def __init__(self, cfg: TrainConfig, dist: Dist) -> None:
+        self.cfg = cfg
+        self.dist = dist
+        self.out_dir = Path(cfg.train.out_dir)
+        self.ckpt_root = ckpt.checkpoints_dir(self.out_dir)
+
+        self.manifest = open_manifest(cfg.data.manifest)
+        bad_shards = self._verified_bad_shards()
+        self.model_config = model_config_for(self.manifest, cfg.model)
+
+        torch.manual_seed(cfg.train.seed)  # identical initial weights on every rank
+        model = MotionFlowTransformer(self.model_config)
+        self.num_parameters = count_parameters(model)
+        self.ema = EMA(model, cfg.optim.ema_decay)
+        fused = dist.device.type == "cuda"
+        optimizer = torch.optim.AdamW(
+            model.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas, weight_decay=cfg.optim.weight_decay,
+            fused=fused or None,
+        )
+        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_lambda(cfg.optim.warmup_steps))
+        if cfg.train.compile:
+            model = torch.compile(model)
+        self.model, self.optimizer, self.scheduler = dist.prepare(model, optimizer, scheduler)
+        self.ema.shadow = {k: v.to(dist.device) for k, v in self.ema.shadow.items()}
+
+        self.loader = MotionLoader(
+            self.manifest,
+            "train",
+            LoaderOptions(
+                batch_size=cfg.data.batch_size,
+                num_workers=cfg.data.num_workers,
+                seed=cfg.data.seed,
+                window=cfg.data.window,
+                unit_length=cfg.data.unit_length,
+                shuffle_buffer=cfg.data.shuffle_buffer,
+                backend="parquet" if cfg.data.format == "parquet" else "webdataset",
+            ),
+            rank=dist.rank,
+            world_size=dist.world_size,
+            exclude_shards=bad_shards,
+        )
+        # Per-rank stream of loss draws (t, noise, dropped conditions); its state is part of the resume state.
+        self.generator = torch.Generator(device=dist.device).manual_seed(cfg.train.seed * 1_000_003 + dist.rank)
+        self.step = 0
+        self.samples_seen = 0
+        self.skipped_steps = 0
+        self.consecutive_skips = 0
+        self.stop_signal = StopSignal()
+        self._last_saved_step = -1
+
+    # -- setup ------------------------------------------------------------------------------------------------
+
+    def _verified_bad_shards(self) -> tuple[str, ...]:
+        """Rank 0 checks every train shard against the manifest (strict: raises naming the shard, before any
+        training); the list of bad shards it found is broadcast so every rank drops the same ones."""
+        mode = self.cfg.data.verify
+        backend = "parquet" if self.cfg.data.format == "parquet" else "webdataset"
+        report = None
+        error: Exception | None = None
+        if self.dist.is_main:
+            try:
+                report = verify_shards(self.manifest, "train", mode=mode, backend=backend)
+            except Exception as err:  # re-raised on every rank below, so no rank waits forever
+                error = err
+        error_text = self.dist.broadcast_object(None if error is None else f"{type(error).__name__}: {error}")
+        if error_text is not None:
+            if error is not None:
+                raise error
+            raise RuntimeError(f"rank 0 failed verifying the shards: {error_text}")
+        bad = self.dist.broadcast_object(tuple(report.bad_paths) if report is not None else ())
+        if bad:
+            self.dist.log0(
+                "tolerant shard verification: skipping %d bad shard(s) (%d samples): %s",
+                len(bad), report.samples_lost if report else -1, ", ".join(bad), level=logging.WARNING,
+            )
+        self.shard_report = report.as_dict() if report is not None else {"bad": list(bad)}
+        return bad
+
+    # -- one optimizer step -----------------------------------------------------------------------------------
+
+    def _condition(self, batch: Mapping[str, Any]) -> torch.Tensor:
+        if self.model_config.is_action_model:
+            return batch["action"].to(self.dist.device)
+        return batch["text_emb"].to(self.dist.device)
+
+    def train_step(self, micro_batches: list[Mapping[str, Any]], draws: list[Draws] | None = None) -> StepResult:
+        """Forward/backward over the micro-batches (gradient accumulation), clip, and one AdamW + EMA update —
+        unless the loss or gradient norm is non-finite on ANY rank, in which case every rank skips the update.
+        ``draws`` replaces the generator's draws (tests slice a global batch's draws across ranks)."""
+        model, device = self.model, self.dist.device
+        accum = len(micro_batches)
+        loss_sum = torch.zeros((), device=device)
+        for i, batch in enumerate(micro_batches):
+            d = draws[i].to(device) if draws is not None else draw_for_batch(batch, self.model_config.cond_drop_prob, self.generator)
+            features = batch["features"].to(device, non_blocking=True)
+            lengths = batch["lengths"].to(device, non_blocking=True)
+            sync = i == accum - 1
+            with nullcontext() if sync else self.dist.no_sync(model):
+                loss, _ = flow_matching_loss(
+                    model, features, self._condition(batch), lengths, cond_mask=d.cond_mask, t=d.t, x0=d.x0
+                )
+                self.dist.backward(loss / accum)
+            loss_sum += loss.detach()
+        loss_mean = loss_sum / accum
+        if self.cfg.optim.grad_clip > 0:
+            grad_norm = self.dist.clip_grad_norm_(model.parameters(), self.cfg.optim.grad_clip)
+        else:
+            grad_norm = torch.linalg.vector_norm(
+                torch.stack([p.grad.detach().norm() for p in model.parameters() if p.grad is not None])
+            )
+        nonfinite = ~(torch.isfinite(loss_mean) & torch.isfinite(grad_norm))
+        flags = torch.stack([nonfinite.float(), torch.tensor(float(self.stop_signal.signum), device=device)])
+        flags = self.dist.all_reduce_max(flags)
+        skip, stop_signum = (int(v) for v in flags.tolist())  # the one host sync per step: every rank decides alike
+        if skip:
+            self.optimizer.zero_grad(set_to_none=True)
+        else:
+            self.optimizer.step()
+            self.scheduler.step()
+            self.optimizer.zero_grad(set_to_none=True)
+            if self.step % self.cfg.optim.ema_every == 0:
+                self.ema.update(self.dist.unwrap(model))
+        return StepResult(loss_mean, grad_norm, bool(skip), stop_signum)
+
+    def _handle_nonfinite(self, result: StepResult) -> None:
+        if not result.skipped:
+            self.consecutive_skips = 0
+            return
+        self.skipped_steps += 1
+        self.consecutive_skips += 1
+        policy, budget = self.cfg.train.nonfinite, self.cfg.train.nonfinite_budget
+        message = f"non-finite loss or gradient norm at step {self.step} on at least one rank"
+        if policy == "stop":
+            raise NonFiniteLossError(f"{message}; train.nonfinite=stop: stopping before the optimizer update")
+        if self.consecutive_skips > budget:
+            raise NonFiniteLossError(
+                f"{message}; {self.consecutive_skips} consecutive skipped steps exceed train.nonfinite_budget={budget}"
+            )
+        self.dist.log0("%s: update skipped on every rank (%d in a row)", message, self.consecutive_skips, level=logging.WARNING)
+
+    # -- state ------------------------------------------------------------------------------------------------
+
+    def save(self) -> Path | None:
+        """Write one complete checkpoint of the current step (rank 0 writes; every rank contributes its RNG)."""
+        rank_state = {"rng": ckpt.capture_rng_state(), "generator": self.generator.get_state().cpu()}
+        rank_states = self.dist.all_gather_object(rank_state)
+        data_states = self.dist.all_gather_object(self.loader.state_dict())
+        path = None
+        if self.dist.is_main:
+            path = ckpt.save_checkpoint(
+                self.ckpt_root,
+                self.step,
+                model_state={k: v.detach().cpu() for k, v in self.dist.unwrap(self.model).state_dict().items()},
+                ema_state=self.ema.state_dict(),
+                optimizer_state=self.optimizer.state_dict(),
+                scheduler_state=self.scheduler.state_dict(),
+                rng_states=rank_states,
+                data_states=data_states,
+                config=to_dict(self.cfg),
+                manifest={"dataset_id": self.manifest.dataset_id, "location": str(self.manifest.location),
+                          "feature_spec": self.manifest.data["feature_spec"],
+                          "text_encoder": self.manifest.data["text_encoder"],
+                          "action_classes": list(self.manifest.action_classes),
+                          "normalization": self.manifest.data["normalization"],
+                          "train_lengths": list(self.manifest.split("train")["lengths"])},
+                extra={"samples_seen": self.samples_seen, "skipped_steps": self.skipped_steps,
+                       "ema_updates": self.ema.num_updates, "model_config": dataclasses.asdict(self.model_config)},
+            )
+            ckpt.prune_checkpoints(self.ckpt_root, self.cfg.train.keep_last)
+        self.dist.barrier()
+        self._last_saved_step = self.step
+        return path
+
+    def resume(self) -> Path | None:
+        """Restore the newest complete checkpoint (train.resume), chosen by rank 0 and broadcast to all ranks."""
+        path = None
+        if self.dist.is_main:
+            path = ckpt.resolve_resume(self.cfg.train.resume, self.ckpt_root)
+        path = self.dist.broadcast_object(None if path is None else str(path))
+        if path is None:
+            return None
+        model_state, ema_state, state = ckpt.load_checkpoint(path)
+        if state["world_size"] != self.dist.world_size:
+            raise RuntimeError(
+                f"{path} was written by {state['world_size']} rank(s); this run has {self.dist.world_size}: "
+                "exact resume needs the same world size (the data order and RNG streams are per rank)"
+            )
+        if state["manifest"]["dataset_id"] != self.manifest.dataset_id:
+            raise RuntimeError(
+                f"{path} was trained on dataset {state['manifest']['dataset_id']}, this run reads "
+                f"{self.manifest.dataset_id} ({self.manifest.location})"
+            )
+        self.dist.unwrap(self.model).load_state_dict(model_state)
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        extra = state["extra"]
+        self.ema.load_state_dict({k: v.to(self.dist.device) for k, v in ema_state.items()}, extra["ema_updates"])
+        self.loader.load_state_dict(state["data"][self.dist.rank])
+        own = state["rng"][self.dist.rank]
+        ckpt.restore_rng_state(own["rng"])
+        self.generator.set_state(own["generator"])
+        self.step = state["step"]
+        self.samples_seen = extra["samples_seen"]
+        self.skipped_steps = extra["skipped_steps"]
+        self._last_saved_step = self.step
+        self.dist.log0("resumed from %s at step %d", path, self.step)
+        return Path(path)
+
+    # -- the loop ---------------------------------------------------------------------------------------------
+
+    def fit(self) -> int:
+        """Train to ``train.max_steps``; returns the process exit code (0, or 128 + signal after a clean stop)."""
+        cfg = self.cfg
+        self._write_run_files()
+        self.resume()
+        logger_sink = MetricsSink(self.out_dir, cfg, self.dist, self.model_config, self.num_parameters)
+        self.stop_signal.install()
+        batches = self.loader.iter_batches()
+        window = WindowStats(self.dist.device)
+        progress = tqdm(total=cfg.train.max_steps, initial=self.step, disable=not self.dist.is_main,
+                        desc="train", dynamic_ncols=True)
+        try:
+            while self.step < cfg.train.max_steps:
+                micro_batches = window.timed_next(batches, cfg.optim.grad_accum)
+                result = self.train_step(micro_batches)
+                self.step += 1
+                self.samples_seen += cfg.data.batch_size * cfg.optim.grad_accum * self.dist.world_size
+                self._handle_nonfinite(result)
+                window.add(result.loss, cfg.data.batch_size * cfg.optim.grad_accum)
+                progress.update(1)
+                if self.step % cfg.train.log_every == 0 or self.step == cfg.train.max_steps:
+                    logger_sink.log(self._log_record(window, result), progress)
+                if self.step % cfg.train.save_every == 0 or self.step == cfg.train.max_steps:
+                    self.save()
+                if result.stop_signal:
+                    return self._stop_on_signal(result.stop_signal)
+            return 0
+        finally:
+            progress.close()
+            logger_sink.close()
+            self.stop_signal.restore()
+
+    def _stop_on_signal(self, signum: int) -> int:
+        """Some rank saw SIGTERM/SIGINT before this step ended: every rank learnt it from the same all-reduce, so
+        all are here after the same completed step. Write one checkpoint (unless this step was just saved) and
+        return 128 + N."""
+        if self._last_saved_step != self.step:
+            self.save()
+        self.dist.log0("stopped by signal %d at step %d after writing a checkpoint", signum, self.step)
+        return EXIT_SIGNAL_BASE + signum
+
+    def _log_record(self, window: "WindowStats", result: StepResult) -> dict[str, Any]:
+        stats = window.flush()
+        return {
+            "step": self.step,
+            "loss": stats["loss"],
+            "grad_norm": float(result.grad_norm),
+            "lr": self.scheduler.get_last_lr()[0],
+            "samples_per_s": stats["samples_per_s"] * self.dist.world_size,
+            "data_wait_frac": stats["data_wait_frac"],
+            "epoch": self.loader.epoch,
+            "samples_seen": self.samples_seen,
+            "skipped_steps": self.skipped_steps,
+        }
+
+    def _write_run_files(self) -> None:
+        if self.dist.is_main:
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            (self.out_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(self.cfg), sort_keys=False))
+        self.dist.barrier()
+
+
+class WindowStats:
+    """Loss, throughput and data-wait fraction since the last log line; the loss stays on the device (summed
+    there) until :meth:`flush`, which is the log step's host sync."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+        self._reset()
+
+    def _reset(self) -> None:
+        self.loss_sum = torch.zeros((), device=self.device)
+        self.steps = 0
+        self.samples = 0
+        self.data_wait = 0.0
+        self.started = time.perf_counter()
+
+    def timed_next(self, batches: Iterator[dict[str, Any]], count: int) -> list[dict[str, Any]]:
+        start = time.perf_counter()
+        out = [next(batches) for _ in range(count)]
+        self.data_wait += time.perf_counter() - start
+        return out
+
+    def add(self, loss: torch.Tensor, samples: int) -> None:
+        # A skipped (non-finite) step would poison the window's mean: count it as zero loss, reported separately.
+        self.loss_sum += torch.nan_to_num(loss.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+        self.steps += 1
+        self.samples += samples
+
+    def flush(self) -> dict[str, float]:
+        elapsed = max(time.perf_counter() - self.started, 1e-9)
+        out = {
+            "loss": float(self.loss_sum.item()) / max(self.steps, 1),
+            "samples_per_s": self.samples / elapsed,
+            "data_wait_frac": self.data_wait / elapsed,
+        }
+        self._reset()
+        return out
+
+
+class MetricsSink:
+    """Rank 0's outputs: the tqdm postfix, ``metrics.jsonl`` in the run folder, and W&B (offline by default;
+    ``WANDB_MODE`` wins; a W&B failure is logged and never stops training)."""
+
+    def __init__(self, out_dir: Path, cfg: TrainConfig, dist: Dist, model_config: ModelConfig, num_parameters: int):
+        self.enabled = dist.is_main
+        self.jsonl = None
+        self.wandb_run = None
+        if not self.enabled:
+            return
+        self.jsonl = open(out_dir / "metrics.jsonl", "a", encoding="utf-8")
+        dist.log0("model: %.2f M parameters; world size %d; device %s; precision %s",
+                  num_parameters / 1e6, dist.world_size, dist.device, dist.mixed_precision)
+        mode = os.environ.get("WANDB_MODE", cfg.train.wandb)
+        if mode != "disabled":
+            try:
+                import wandb
+
+                os.environ.setdefault("WANDB_DIR", str(out_dir))
+                self.wandb_run = wandb.init(
+                    project=cfg.train.wandb_project, mode=mode, dir=str(out_dir), config=to_dict(cfg),
+                    name=out_dir.name, resume="allow", id=_wandb_run_id(out_dir),
+                )
+            except Exception as err:  # logging must never take the run down
+                logger.warning("W&B disabled for this run: %s", err)
+                self.wandb_run = None
+
+    def log(self, record: dict[str, Any], progress: tqdm) -> None:
+        if not self.enabled:
+            return
+        progress.set_postfix(loss=f"{record['loss']:.4f}", sps=f"{record['samples_per_s']:.0f}",
+                             wait=f"{record['data_wait_frac']:.0%}")
+        self.jsonl.write(json.dumps(record) + "\n")
+        self.jsonl.flush()
+        if self.wandb_run is not None:
+            self.wandb_run.log({f"train/{k}": v for k, v in record.items() if k != "step"}, step=record["step"])
+
+    def close(self) -> None:
+        if self.jsonl is not None:
+            self.jsonl.close()
+        if self.wandb_run is not None:
+            self.wandb_run.finish()
+
+
+def _wandb_run_id(out_dir: Path) -> str:
+    """A stable W&B id per run folder so a resumed run continues the same W&B run."""
+    id_file = out_dir / "wandb_id.txt"
+    if id_file.exists():
+        return id_file.read_text().strip()
+    import uuid
+
+    run_id = uuid.uuid4().hex[:12]
+    id_file.write_text(run_id)
+    return run_id
