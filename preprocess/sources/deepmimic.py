@@ -439,6 +439,10 @@ class DeepMimicSource:
 
     name = "deepmimic"
     skeleton = "humanml3d"
+    # The kick take is 1.5 s (30 feature frames) and does not loop, so it cannot be tiled: with HumanML3D's
+    # 40-frame minimum the embedded dataset would lose the "kick" action entirely. Builds of this source
+    # default to 24 frames (KIT-ML's minimum) instead; --min-frames still overrides it.
+    default_min_frames = 24
 
     def __init__(
         self,

@@ -1,0 +1,155 @@
+"""End to end: the build_shards CLI on the synthetic source and on the embedded default (DeepMimic + MiniLM)."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import webdataset as wds
+
+from mfm.features import FeatureStats
+from mfm.layout import FeatureLayout
+from mfm.skeleton import HUMANML3D
+from preprocess.build_shards import main
+from preprocess.shards import load_manifest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = REPO_ROOT / "preprocess" / "build_shards.py"
+pytestmark = pytest.mark.slow
+
+
+def run_cli(args: list[str], cwd: Path, *, module: bool = False) -> subprocess.CompletedProcess:
+    entry = ["-m", "preprocess.build_shards"] if module else [str(SCRIPT)]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
+    return subprocess.run([sys.executable, *entry, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+
+
+def files_of(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def read_tar_records(root: Path, entries: list[dict]) -> list[dict]:
+    return list(wds.WebDataset([str(root / e["path"]) for e in entries], shardshuffle=False, empty_check=False))
+
+
+SYNTHETIC = ["--source", "synthetic", "--num-clips", "40", "--seed", "3", "--shard-size", "8", "--quiet",
+             "--source-option", "corrupt=nan,bad_shape,short,long,no_captions"]
+
+
+@pytest.fixture(scope="module")
+def synthetic_build(tmp_path_factory):
+    cwd = tmp_path_factory.mktemp("cli")
+    result = run_cli([*SYNTHETIC, "--out", "syn", "--workers", "2"], cwd)
+    assert result.returncode == 0, result.stderr
+    return cwd / "syn", result
+
+
+def test_synthetic_cli_artifacts(synthetic_build):
+    out, result = synthetic_build
+    manifest = load_manifest(out, verify="sha256")
+    assert result.stdout.startswith("syn: train")  # the summary line
+
+    report = manifest["skip_report"]
+    assert report["by_reason"] == {"bad_shape": 1, "nan_frames": 1, "no_captions": 1, "too_long": 1, "too_short": 1}
+    assert [i["id"] for i in report["items"]] == ["corrupt_bad_shape", "corrupt_long", "corrupt_nan",
+                                                  "corrupt_no_captions", "corrupt_short"]
+    splits = manifest["splits"]
+    assert sum(s["num_motions"] for s in splits.values()) == 40  # every generated clip is 2-10 s: all kept
+    assert set(splits) <= {"train", "val", "test"} and "train" in splits
+    assert manifest["builder"]["command"].startswith("python -m preprocess.build_shards --source synthetic")
+    assert "--out" not in manifest["builder"]["command"] and "--workers" not in manifest["builder"]["command"]
+    assert manifest["builder"]["options"]["source_options"] == {
+        "corrupt": "nan,bad_shape,short,long,no_captions", "num_clips": 40, "seed": 3}
+    every_file = [e for s in splits.values() for e in s["shards"] + s["parquet"]]
+    assert manifest["dataset_id"] == hashlib.sha256("\n".join(sorted(e["sha256"] for e in every_file)).encode()).hexdigest()
+
+    stats = FeatureStats()
+    action_classes = set()
+    for name, split in splits.items():
+        assert [e["num_motions"] for e in split["shards"]][:-1] == [8] * (len(split["shards"]) - 1)
+        samples = read_tar_records(out, split["shards"])
+        table = pa.concat_tables([pq.read_table(out / e["path"]) for e in split["parquet"]])
+        assert [s["__key__"] for s in samples] == table.column("id").to_pylist()
+        assert [s["__key__"] for s in samples] == sorted(s["__key__"] for s in samples)  # list_items order
+        lengths = []
+        for row, sample in enumerate(samples):
+            meta = json.loads(sample["meta.json"])
+            features = np.load(io.BytesIO(sample["features.npy"]))
+            assert features.shape == (meta["length"], 263) and meta["split"] == name
+            assert 40 <= meta["length"] <= 199 and meta["captions"]
+            parquet_features = np.asarray(table.column("features")[row].values.flatten(), np.float32)
+            assert parquet_features.tobytes() == features.tobytes()
+            emb = np.load(io.BytesIO(sample["text_emb.npy"]))
+            assert emb.shape == (len(meta["captions"]), 384)
+            np.testing.assert_allclose(np.linalg.norm(emb, axis=1), 1.0, atol=1e-5)  # MiniLM is L2-normalised
+            lengths.append(meta["length"])
+            action_classes.add(meta["action"])
+            if name == "train":
+                stats.update(features)
+        assert split["lengths"] == lengths and split["num_frames"] == sum(lengths)
+    assert manifest["action_classes"] == sorted(action_classes)
+    mean, std = stats.mean_std(FeatureLayout(HUMANML3D))
+    assert manifest["normalization"]["mean"] == mean.tolist() and manifest["normalization"]["std"] == std.tolist()
+
+
+def test_rebuild_in_process_with_one_worker_is_byte_identical(synthetic_build, tmp_path):
+    out, _ = synthetic_build
+    assert main([*SYNTHETIC, "--out", str(tmp_path / "again"), "--workers", "1"]) == 0
+    assert files_of(tmp_path / "again") == files_of(out)
+
+
+def test_strict_names_the_first_bad_file(tmp_path, capsys):
+    assert main([*SYNTHETIC, "--out", str(tmp_path / "strict"), "--strict"]) != 0
+    # corrupt_bad_shape is the first bad item in list order
+    assert "synthetic:3:corrupt_bad_shape: bad_shape" in capsys.readouterr().err
+    assert not (tmp_path / "strict" / "manifest.json").exists()
+
+
+def test_module_entry_point(tmp_path):
+    result = run_cli(["--help"], tmp_path, module=True)
+    assert result.returncode == 0 and "--source-option" in result.stdout, result.stderr
+
+
+def test_help_explains_every_option(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    for option in ("--source", "--root", "--out", "--text-encoder", "--text-weights", "--token-features",
+                   "--max-tokens", "--shard-size", "--format", "--workers", "--min-frames", "--max-frames",
+                   "--long-clips", "--strict", "--overwrite", "--compat", "--no-compat", "--num-clips", "--seed",
+                   "--body-model", "--source-option"):
+        assert option in text
+
+
+def test_default_build_without_arguments(tmp_path, monkeypatch, capsys):
+    result = run_cli([], tmp_path)
+    assert result.returncode == 0, result.stderr
+    out = tmp_path / "data" / "deepmimic-minilm"
+    manifest = load_manifest(out, verify="sha256")
+    assert manifest["builder"]["options"]["source"] == "deepmimic"
+    assert manifest["builder"]["options"]["min_frames"] == 24  # DeepMimic's floor: keeps the 1.5 s kick take
+    assert manifest["text_encoder"]["id"] == "minilm" and manifest["text_encoder"]["dim"] == 384
+    assert manifest["feature_spec"]["skeleton"] == "humanml3d" and manifest["feature_spec"]["fps"] == 20.0
+    assert list(manifest["splits"]) == ["train", "val", "test"]
+    # Every one of DeepMimic's 15 humanoid clips is in the dataset, each its own action class.
+    assert manifest["skip_report"]["total"] == 0, manifest["skip_report"]
+    assert len(manifest["action_classes"]) == 15 and {"backflip", "kick"} <= set(manifest["action_classes"])
+    train = read_tar_records(out, manifest["splits"]["train"]["shards"])
+    assert sorted(json.loads(s["meta.json"])["action"] for s in train) == manifest["action_classes"]
+    assert all(np.isfinite(manifest["normalization"]["std"])) and min(manifest["normalization"]["std"]) > 0
+
+    before = files_of(out)
+    monkeypatch.chdir(tmp_path)
+    assert main([]) != 0  # a complete dataset is never overwritten silently
+    assert "--overwrite" in capsys.readouterr().err
+    assert files_of(out) == before

@@ -1,0 +1,409 @@
+"""The clip → record stage, the shard writers, the manifest and the two-pass build (preprocess/)."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+import webdataset as wds
+
+from mfm.features import FeatureStats, joints_to_features
+from mfm.layout import FeatureLayout
+from mfm.skeleton import HUMANML3D
+from preprocess.clip import Caption, Clip, SkippedInput
+from preprocess.processing import Record, RecordCaption, process_clip, split_into_windows
+from preprocess.shards import (
+    BadInputError,
+    BuildConfig,
+    DatasetExistsError,
+    ManifestError,
+    SplitShardWriter,
+    TextFeatures,
+    build_dataset,
+    load_manifest,
+    parquet_schema,
+)
+
+FPS = HUMANML3D.fps
+
+
+def make_joints(frames: int, seed: int = 0, fps: float = FPS) -> np.ndarray:
+    """A plausible (frames, 22, 3) clip: the target skeleton's rest pose walking forward along +Z with a
+    per-joint wobble, so every feature group varies."""
+    rng = np.random.default_rng(seed)
+    offsets, parents = HUMANML3D.target_offsets(), HUMANML3D.parents
+    rest = np.zeros((HUMANML3D.num_joints, 3))
+    for j in range(1, HUMANML3D.num_joints):
+        rest[j] = rest[parents[j]] + offsets[j]
+    rest[:, 1] -= rest[:, 1].min()
+    t = np.arange(frames)[:, None, None] / fps
+    wobble = 0.03 * np.sin(2 * np.pi * (t * rng.uniform(0.5, 2.0, (1, 22, 3)) + rng.uniform(0, 1, (1, 22, 3))))
+    joints = rest[None] + wobble
+    joints[..., 2] += rng.uniform(0.5, 1.5) * t[..., 0]
+    return joints.astype(np.float32)
+
+
+def make_clip(cid: str, frames: int = 81, *, split: str = "train", seed: int = 0, fps: float = FPS,
+              captions: list[Caption] | None = None, action: str | None = "walk", joints=None) -> Clip:
+    return Clip(
+        id=cid,
+        joints=make_joints(frames, seed, fps) if joints is None else joints,
+        fps=fps,
+        skeleton="humanml3d",
+        captions=[Caption(f"a person walks, take {seed % 3}")] if captions is None else captions,
+        split=split,
+        source="listsource",
+        action=action,
+        path=f"/data/listsource/{cid}.npy",
+    )
+
+
+class ListSource:
+    """A source over a fixed dict of items: a Clip, a SkippedInput, or an exception that ``load`` raises.
+    Module level and plain data, so it pickles into worker processes."""
+
+    name = "listsource"
+    skeleton = "humanml3d"
+
+    def __init__(self, items: dict) -> None:
+        self.items = items
+
+    def list_items(self) -> list[str]:
+        return sorted(self.items)
+
+    def load(self, item: str):
+        value = self.items[item]
+        if isinstance(value, Exception):
+            raise value
+        return value
+
+
+def good_items(n: int = 9) -> dict:
+    splits = ["train", "train", "train", "val", "test"]
+    return {
+        f"m{i:03d}": make_clip(f"m{i:03d}", frames=60 + 7 * i, split=splits[i % 5], seed=i,
+                               action=["walk", "run", None][i % 3],
+                               captions=[Caption(f"a person walks, take {i % 3}", ("a/DET", "person/NOUN")),
+                                         Caption("someone moves forward", start=0.5, end=3.0)]
+                               + [Caption("  ")] * (i == 0))
+        for i in range(n)
+    }
+
+
+def bad_items() -> dict:
+    nan = make_joints(81, 1)
+    nan[10, 3, 1] = np.nan
+    inf = make_joints(81, 2)
+    inf[20, 0, 0] = np.inf
+    return {
+        "b_nan": make_clip("b_nan", joints=nan),
+        "b_inf": make_clip("b_inf", joints=inf),
+        "b_joints": make_clip("b_joints", joints=make_joints(81)[:, :21]),
+        "b_ndim": make_clip("b_ndim", joints=make_joints(81).reshape(81, -1)),
+        "b_short": make_clip("b_short", frames=30),
+        "b_long": make_clip("b_long", frames=260),
+        "b_nocap": make_clip("b_nocap", captions=[]),
+        "b_emptycap": make_clip("b_emptycap", captions=[Caption(""), Caption("   ")]),
+        "b_unreadable": SkippedInput("b_unreadable", "/data/listsource/b_unreadable.npy", "unreadable", "truncated file"),
+        "b_raises": OSError("disk read error"),
+    }
+
+
+EXPECTED_REASONS = {
+    "b_nan": "nan_frames", "b_inf": "nan_frames", "b_joints": "bad_shape", "b_ndim": "bad_shape",
+    "b_short": "too_short", "b_long": "too_long", "b_nocap": "no_captions", "b_emptycap": "no_captions",
+    "b_unreadable": "unreadable", "b_raises": "unreadable",
+}
+
+
+@pytest.fixture(scope="module")
+def encoder():
+    from mfm.text import build_text_encoder
+
+    return build_text_encoder("minilm")
+
+
+# --- process_clip ---------------------------------------------------------------------------------------
+
+
+def test_process_clip_features_and_caption_spans():
+    clip = make_clip("c1", frames=101, captions=[
+        Caption("whole clip"), Caption("  padded  ", ("p/ADJ",), start=1.0, end=4.0),
+        Caption("hml3d zero tags", start=0.0, end=0.0), Caption("past the end", start=2.0, end=99.0),
+        Caption("too short", start=1.0, end=2.0), Caption(""),
+    ])
+    record = process_clip(clip, HUMANML3D)
+    assert isinstance(record, Record)
+    assert record.features.dtype == np.float32 and record.features.shape == (100, 263)
+    np.testing.assert_array_equal(record.features, joints_to_features(clip.joints, HUMANML3D, compat=True))
+    spans = [(c.text, c.tokens, c.start_frame, c.end_frame) for c in record.captions]
+    assert spans == [("whole clip", (), 0, 100), ("padded", ("p/ADJ",), 20, 80), ("hml3d zero tags", (), 0, 100),
+                     ("past the end", (), 40, 100)]
+    assert record.dropped_captions == {"span_too_short": 1, "empty": 1}
+    assert (record.id, record.split, record.skeleton, record.fps, record.action) == ("c1", "train", "humanml3d", 20.0, "walk")
+
+
+def test_process_clip_resamples_to_skeleton_fps():
+    # 60 fps -> 20 fps: an integer ratio keeps every third frame exactly.
+    clip = make_clip("c60", frames=241, fps=60.0)
+    record = process_clip(clip, HUMANML3D)
+    assert record.length == 80
+    np.testing.assert_array_equal(record.features, joints_to_features(clip.joints[::3], HUMANML3D))
+
+
+@pytest.mark.parametrize("item", [k for k in EXPECTED_REASONS if k not in ("b_unreadable", "b_raises")])
+def test_process_clip_skip_reasons(item):
+    clip = bad_items()[item]
+    skipped = process_clip(clip, HUMANML3D)
+    assert isinstance(skipped, SkippedInput)
+    assert (skipped.id, skipped.path, skipped.reason) == (item, clip.path, EXPECTED_REASONS[item])
+    assert skipped.detail
+
+
+def test_length_limits_are_inclusive_feature_frames():
+    assert isinstance(process_clip(make_clip("a", frames=41), HUMANML3D, min_frames=40), Record)
+    assert process_clip(make_clip("a", frames=40), HUMANML3D, min_frames=40).reason == "too_short"
+    assert isinstance(process_clip(make_clip("a", frames=200), HUMANML3D, max_frames=199), Record)
+    assert process_clip(make_clip("a", frames=201), HUMANML3D, max_frames=199).reason == "too_long"
+
+
+def test_long_clip_windows():
+    clip = make_clip("long", frames=451, captions=[Caption("all of it"), Caption("the start", start=0.0, end=3.0)])
+    record = process_clip(clip, HUMANML3D, max_frames=196, long_clips="window")
+    assert record.length == 450
+    windows = split_into_windows(record, window=196, min_frames=40)
+    # 450 = 196 + 196 + 58: the tail is long enough to keep.
+    assert [w.id for w in windows] == ["long-w000", "long-w001", "long-w002"]
+    assert [w.length for w in windows] == [196, 196, 58]
+    np.testing.assert_array_equal(np.concatenate([w.features for w in windows]), record.features)
+    assert [(c.text, c.start_frame, c.end_frame) for c in windows[0].captions] == [("all of it", 0, 196), ("the start", 0, 60)]
+    assert [(c.text, c.start_frame, c.end_frame) for c in windows[2].captions] == [("all of it", 0, 58)]
+
+
+# --- writers ----------------------------------------------------------------------------------------------
+
+
+def hand_made_records(n: int, dim: int = 263, text_dim: int = 8, tokens: int = 0):
+    rng = np.random.default_rng(7)
+    out = []
+    for i in range(n):
+        captions = [RecordCaption(f"caption {i} {k} ünïcode", ("w/NOUN",) * k, k, 10 + i) for k in range(1 + i % 3)]
+        record = Record(id=f"r{i:02d}", split="train", source="hand", skeleton="humanml3d", fps=20.0,
+                        features=rng.standard_normal((10 + i, dim)).astype(np.float32), captions=captions,
+                        action=None if i % 2 else "jump")
+        c = len(captions)
+        text = TextFeatures(
+            pooled=rng.standard_normal((c, text_dim)).astype(np.float32),
+            tokens=rng.standard_normal((c, tokens, text_dim)).astype(np.float32) if tokens else None,
+            token_lengths=rng.integers(1, tokens + 1, c).astype(np.int32) if tokens else None,
+        )
+        out.append((record, text))
+    return out
+
+
+@pytest.mark.parametrize("tokens", [0, 5])
+def test_writers_round_trip_bit_exact(tmp_path, tokens):
+    items = hand_made_records(5, tokens=tokens)
+    writer = SplitShardWriter(tmp_path, "train", shard_size=2, formats=("tar", "parquet"),
+                              schema=parquet_schema(263, 8, token_features=bool(tokens)))
+    for record, text in items:
+        writer.write(record, text)
+    shards = writer.close()
+    assert [s.num_motions for s in shards["tar"]] == [2, 2, 1] == [s.num_motions for s in shards["parquet"]]
+    assert [s.path for s in shards["tar"]] == [f"train/shard-0000{i}.tar" for i in range(3)]
+    for info in shards["tar"] + shards["parquet"]:
+        data = (tmp_path / info.path).read_bytes()
+        assert (len(data), hashlib.sha256(data).hexdigest()) == (info.bytes, info.sha256)
+
+    # tarfile: fixed headers, sorted members.
+    with tarfile.open(tmp_path / "train/shard-00000.tar") as tar:
+        members = tar.getmembers()
+    suffixes = ["features.npy", "meta.json", "text_emb.npy"] + (["text_token_len.npy", "text_tokens.npy"] if tokens else [])
+    assert [m.name for m in members] == [f"r{i:02d}.{s}" for i in range(2) for s in suffixes]
+    assert {(m.mtime, m.uid, m.gid, m.uname, m.gname, m.mode) for m in members} == {(0, 0, 0, "", "", 0o444)}
+
+    # webdataset: the reader the training pipeline uses.
+    urls = [str(tmp_path / s.path) for s in shards["tar"]]
+    samples = list(wds.WebDataset(urls, shardshuffle=False, empty_check=False))
+    assert [s["__key__"] for s in samples] == [r.id for r, _ in items]
+    for sample, (record, text) in zip(samples, items):
+        features = np.load(io.BytesIO(sample["features.npy"]))
+        assert features.dtype == np.float32 and features.tobytes() == record.features.tobytes()
+        assert np.load(io.BytesIO(sample["text_emb.npy"])).tobytes() == text.pooled.tobytes()
+        meta = json.loads(sample["meta.json"])
+        assert meta["length"] == record.length and meta["action"] == record.action
+        assert [(c["text"], tuple(c["tokens"]), c["start_frame"], c["end_frame"]) for c in meta["captions"]] == [
+            (c.text, c.tokens, c.start_frame, c.end_frame) for c in record.captions]
+        if tokens:
+            assert np.load(io.BytesIO(sample["text_tokens.npy"])).tobytes() == text.tokens.tobytes()
+            np.testing.assert_array_equal(np.load(io.BytesIO(sample["text_token_len.npy"])), text.token_lengths)
+
+    # Parquet: same records, same order, bit-exact arrays.
+    table = pa.concat_tables([pq.read_table(tmp_path / s.path) for s in shards["parquet"]])
+    assert table.column("id").to_pylist() == [r.id for r, _ in items]
+    for row, (record, text) in enumerate(items):
+        features = np.asarray(table.column("features")[row].values.flatten(), dtype=np.float32).reshape(-1, 263)
+        assert features.tobytes() == record.features.tobytes()
+        emb = np.asarray(table.column("text_emb")[row].values.flatten(), dtype=np.float32).reshape(-1, 8)
+        assert emb.tobytes() == text.pooled.tobytes()
+        assert table.column("span_start")[row].as_py() == [c.start_frame for c in record.captions]
+        assert table.column("caption_tokens")[row].as_py() == [list(c.tokens) for c in record.captions]
+        assert table.column("action")[row].as_py() == record.action
+        if tokens:
+            tok = np.asarray(table.column("text_tokens")[row].values.flatten().flatten(), dtype=np.float32)
+            assert tok.tobytes() == text.tokens.tobytes()
+
+
+# --- the build ------------------------------------------------------------------------------------------
+
+
+def dataset_bytes(root: Path) -> dict[str, bytes]:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory, encoder):
+    """One build of good + bad items (shard size 2), and its config."""
+    out = tmp_path_factory.mktemp("build") / "ds"
+    config = BuildConfig(out=out, source="listsource", shard_size=2, progress=False)
+    source = ListSource({**good_items(), **bad_items()})
+    manifest = build_dataset(config, source=source, text_encoder=encoder)
+    return out, manifest, source, config
+
+
+def test_manifest_counts_checksums_and_normalisation(built):
+    out, manifest, source, _ = built
+    assert manifest == load_manifest(out, verify="sha256")
+    good = good_items()
+    for split in ("train", "val", "test"):
+        ids = [k for k, clip in sorted(good.items()) if clip.split == split]
+        entry = manifest["splits"][split]
+        assert entry["num_motions"] == len(ids) == sum(s["num_motions"] for s in entry["shards"])
+        assert [s["num_motions"] for s in entry["parquet"]] == [s["num_motions"] for s in entry["shards"]]
+        assert entry["lengths"] == [len(good[i].joints) - 1 for i in ids]
+        assert entry["num_frames"] == sum(entry["lengths"])
+        assert entry["num_captions"] == 2 * len(ids)  # the second caption's span 0.5-3.0 s is 50 frames
+        for shard in entry["shards"] + entry["parquet"]:
+            data = (out / shard["path"]).read_bytes()
+            assert shard["bytes"] == len(data) and shard["sha256"] == hashlib.sha256(data).hexdigest()
+    assert list(manifest["splits"]) == ["train", "val", "test"]
+    assert manifest["action_classes"] == ["run", "walk"]
+    assert manifest["feature_spec"]["dim"] == 263 and manifest["feature_spec"]["groups"]["contacts"] == [259, 263]
+    assert manifest["text_encoder"]["id"] == "minilm" and manifest["text_encoder"]["dim"] == 384
+    assert manifest["text_encoder"]["num_distinct_captions"] == 4
+
+    # Normalisation = FeatureStats over every frame of the train records, read back from the shards.
+    stats = FeatureStats()
+    urls = [str(out / s["path"]) for s in manifest["splits"]["train"]["shards"]]
+    for sample in wds.WebDataset(urls, shardshuffle=False, empty_check=False):
+        stats.update(np.load(io.BytesIO(sample["features.npy"])))
+    mean, std = stats.mean_std(FeatureLayout(HUMANML3D))
+    assert np.array(manifest["normalization"]["mean"], np.float32).tobytes() == mean.tobytes()
+    assert np.array(manifest["normalization"]["std"], np.float32).tobytes() == std.tobytes()
+    assert not (out / ".build-tmp").exists()
+
+
+def test_skip_report_names_every_bad_item(built):
+    _, manifest, _, _ = built
+    report = manifest["skip_report"]
+    assert report["total"] == len(EXPECTED_REASONS)
+    assert {item["id"]: item["reason"] for item in report["items"]} == EXPECTED_REASONS
+    assert [item["id"] for item in report["items"]] == sorted(EXPECTED_REASONS)  # list_items order
+    assert report["by_reason"] == {"bad_shape": 2, "nan_frames": 2, "no_captions": 2, "too_long": 1,
+                                   "too_short": 1, "unreadable": 2}
+    by_id = {item["id"]: item for item in report["items"]}
+    assert by_id["b_nan"]["path"] == "/data/listsource/b_nan.npy" and "frame 10" in by_id["b_nan"]["detail"]
+    assert "disk read error" in by_id["b_raises"]["detail"]
+    assert report["dropped_captions"] == {"empty": 1}  # from m000; skipped clips count in their detail
+
+
+def test_text_embeddings_match_the_encoder(built, encoder):
+    out, manifest, _, _ = built
+    sample = next(iter(wds.WebDataset([str(out / manifest["splits"]["val"]["shards"][0]["path"])],
+                                      shardshuffle=False, empty_check=False)))
+    texts = [c["text"] for c in json.loads(sample["meta.json"])["captions"]]
+    emb = np.load(io.BytesIO(sample["text_emb.npy"]))
+    np.testing.assert_allclose(emb, encoder.encode(texts).pooled, atol=1e-5)
+
+
+def test_two_builds_are_byte_identical_whatever_the_worker_count(built, tmp_path, encoder):
+    out, manifest, source, config = built
+    again = tmp_path / "again"
+    from dataclasses import replace
+
+    build_dataset(replace(config, out=again, workers=2), source=source, text_encoder=encoder)
+    assert dataset_bytes(again) == dataset_bytes(out)
+
+
+def test_strict_names_the_first_bad_file(tmp_path, encoder):
+    source = ListSource({**good_items(3), **bad_items()})
+    with pytest.raises(BadInputError, match=r"/data/listsource/b_emptycap\.npy: no_captions"):
+        build_dataset(BuildConfig(out=tmp_path / "ds", strict=True, progress=False), source=source, text_encoder=encoder)
+    assert not (tmp_path / "ds" / "manifest.json").exists()
+    assert not (tmp_path / "ds" / ".build-tmp").exists()
+
+
+def test_refuses_to_overwrite_and_overwrite_removes_stale_shards(tmp_path, encoder):
+    out = tmp_path / "ds"
+    config = BuildConfig(out=out, shard_size=1, progress=False)
+    build_dataset(config, source=ListSource(good_items(6)), text_encoder=encoder)
+    assert (out / "train" / "shard-00003.tar").exists()
+    with pytest.raises(DatasetExistsError, match="--overwrite"):
+        build_dataset(config, source=ListSource(good_items(3)), text_encoder=encoder)
+    (out / "notes.txt").write_text("mine")
+    from dataclasses import replace
+
+    manifest = build_dataset(replace(config, overwrite=True), source=ListSource(good_items(3)), text_encoder=encoder)
+    listed = {e["path"] for s in manifest["splits"].values() for e in s["shards"] + s["parquet"]}
+    on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.suffix in (".tar", ".parquet")}
+    assert on_disk == listed and len(listed) == 2 * 3
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_load_manifest_rejects_bad_versions_and_files(built, tmp_path):
+    out, manifest, _, _ = built
+    copy = tmp_path / "copy"
+    for rel, data in dataset_bytes(out).items():
+        (copy / rel).parent.mkdir(parents=True, exist_ok=True)
+        (copy / rel).write_bytes(data)
+    with pytest.raises(ManifestError, match="no manifest"):
+        load_manifest(tmp_path / "nowhere")
+    shard = copy / manifest["splits"]["train"]["shards"][1]["path"]
+    data = bytearray(shard.read_bytes())
+    data[700] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    load_manifest(copy, verify="size")  # same size: only the hash notices
+    with pytest.raises(ManifestError, match=f"{shard.name}: sha256"):
+        load_manifest(copy, verify="sha256")
+    shard.write_bytes(bytes(data[:1000]))
+    with pytest.raises(ManifestError, match=f"{shard.name}: 1000 bytes"):
+        load_manifest(copy)
+    (copy / "manifest.json").write_text(json.dumps({**manifest, "format_version": 99}))
+    with pytest.raises(ManifestError, match="format_version 99"):
+        load_manifest(copy, verify="none")
+
+
+def test_token_features_tar_only(tmp_path, encoder):
+    out = tmp_path / "tok"
+    config = BuildConfig(out=out, token_features=True, max_tokens=8, formats=("tar",), progress=False)
+    manifest = build_dataset(config, source=ListSource(good_items(5)), text_encoder=encoder)
+    assert manifest["text_encoder"]["token_features"] is True and manifest["text_encoder"]["max_tokens"] == 8
+    assert "--token-features --max-tokens 8" in manifest["builder"]["command"]
+    assert all(split["parquet"] == [] for split in manifest["splits"].values())
+    assert not list(out.rglob("*.parquet"))
+    for sample in wds.WebDataset([str(out / manifest["splits"]["train"]["shards"][0]["path"])],
+                                 shardshuffle=False, empty_check=False):
+        texts = [c["text"] for c in json.loads(sample["meta.json"])["captions"]]
+        tokens = np.load(io.BytesIO(sample["text_tokens.npy"]))
+        lengths = np.load(io.BytesIO(sample["text_token_len.npy"]))
+        expected = encoder.encode(texts, token_features=True, max_tokens=8)
+        assert tokens.shape == (len(texts), 8, 384) and lengths.dtype == np.int32
+        np.testing.assert_array_equal(lengths, expected.token_lengths)
+        np.testing.assert_allclose(tokens, expected.tokens, atol=1e-5)
