@@ -1,0 +1,21 @@
+"""Results people can look at: BVH files for Blender, stick-figure videos, and plots of the x̂1
+estimates along an ODE trajectory (MFM Figure 4)."""
+
+from mfm.export.bvh import BVHJoint, BVHMotion, read_bvh, write_bvh
+from mfm.export.plots import estimates_to_joints, plot_x1_trajectory
+from mfm.export.render import ffmpeg_available, render_motion
+from mfm.export.stick import EDITED_COLOR, KEPT_COLOR, Camera
+
+__all__ = [
+    "BVHJoint",
+    "BVHMotion",
+    "Camera",
+    "EDITED_COLOR",
+    "KEPT_COLOR",
+    "estimates_to_joints",
+    "ffmpeg_available",
+    "plot_x1_trajectory",
+    "read_bvh",
+    "render_motion",
+    "write_bvh",
+]
