@@ -46,7 +46,20 @@ AXES_HEIGHT = 0.86  # fraction of the frame under the caption
 
 
 def ffmpeg_available() -> bool:
-    """Whether matplotlib's FFMpegWriter can run (``rcParams['animation.ffmpeg_path']`` on PATH)."""
+    """Whether matplotlib's FFMpegWriter can run (``rcParams['animation.ffmpeg_path']`` on PATH).
+
+    When the configured name is matplotlib's default ``"ffmpeg"`` and none is on PATH, the static ffmpeg
+    shipped in the ``imageio-ffmpeg`` wheel (a dependency) is used, so MP4 works on a bare machine.
+    """
+    if shutil.which(rcParams["animation.ffmpeg_path"]) is not None:
+        return True
+    if rcParams["animation.ffmpeg_path"] != "ffmpeg":
+        return False  # the user chose a binary on purpose: do not substitute another
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        return False
+    rcParams["animation.ffmpeg_path"] = imageio_ffmpeg.get_ffmpeg_exe()
     return shutil.which(rcParams["animation.ffmpeg_path"]) is not None
 
 
