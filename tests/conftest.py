@@ -2,11 +2,17 @@ import os
 from pathlib import Path
 
 import pytest
+import torch
 
 # No model hub or dataset site at run time: fail fast instead of retrying downloads.
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 os.environ.setdefault("WANDB_MODE", "disabled")
+# Tiny models on 2 cores: one intra-op thread per process is faster than two fighting over the cores, and the
+# multi-rank tests start several processes (they inherit this).
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = Path(os.environ.get("MFM_SHARED_DIR", REPO_ROOT.parent / "shared"))
