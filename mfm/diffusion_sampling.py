@@ -1,0 +1,231 @@
+"""Reverse-diffusion sampling (DDPM ancestral, DDIM) and FLAME's replacement editing.
+
+Every sampler runs :func:`reverse_diffusion` over the (optionally respaced) schedule of a
+:class:`mfm.diffusion.GaussianDiffusion`, from index N−1 down to 0, one denoiser evaluation per step:
+
+* ``ddpm``: ``x_{s−1} = mean + σ·z`` with the model's variance (fixed β̃ or learned), no noise at step 0
+  (FLAME's and FlowMDM's sampler; both run all 1000 steps).
+* ``ddim``: Song et al.'s update with ``eta`` (0 = deterministic); step 0 returns the x_0 estimate.
+
+Results are :class:`mfm.solvers.SolveResult` so evaluation code treats flow and diffusion samples alike: ``x1`` is the
+sample, ``nfe`` the number of denoiser evaluations (a classifier-free-guided evaluation is one batched pass of size 2B,
+as in mfm.solvers), ``grid`` the float64 ``t_model`` of each step in the order taken (descending), and with
+``return_trajectory`` ``x1_hat`` (K, B, T, D) holds the x_0 estimate of every step at ``x1_hat_times`` (= grid).
+
+Randomness: the initial noise and every step's noise come, in that order, from one generator (default: a CPU
+generator seeded with ``seed``), drawn on the generator's device and moved, so a seed gives the same samples on every
+device. Padded frames (``>= lengths``) of the state are zeroed after every step, so they are exactly zero in the output.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from mfm.diffusion import GaussianDiffusion, classifier_free_guidance
+from mfm.editing import _as_bool_mask
+from mfm.model import valid_frame_mask
+from mfm.solvers import SolveResult, _feature_dim, _model_device, check_lengths, initial_noise
+
+logger = logging.getLogger(__name__)
+
+DenoiseFn = Callable[[Tensor, Tensor], Tensor]
+"""``(x_s (B, T, D), t_model (B,)) -> output (B, T, D) or (B, T, 2D)``, e.g. from
+:func:`mfm.diffusion.classifier_free_guidance`."""
+
+BeforeStep = Callable[[Tensor, int], Tensor]
+"""``(x_s, schedule index s) -> x_s``, applied before the denoiser call of each step (replacement editing)."""
+
+SAMPLERS = ("ddpm", "ddim")
+
+
+def _schedule_for(diffusion: GaussianDiffusion, steps: int | str | Sequence[int] | None) -> GaussianDiffusion:
+    return diffusion if steps is None else diffusion.respaced(steps)
+
+
+def _draw_generator(seed: int, generator: torch.Generator | None) -> torch.Generator:
+    return torch.Generator().manual_seed(seed) if generator is None else generator
+
+
+@torch.no_grad()
+def reverse_diffusion(
+    denoise_fn: DenoiseFn,
+    diffusion: GaussianDiffusion,
+    x_start: Tensor,
+    *,
+    generator: torch.Generator,
+    sampler: str = "ddpm",
+    eta: float = 0.0,
+    clip_denoised: float | None = None,
+    frame_mask: Tensor | None = None,
+    before_step: BeforeStep | None = None,
+    return_trajectory: bool = False,
+) -> SolveResult:
+    """Run the reverse chain of ``diffusion`` (every index, N−1 → 0) from ``x_start`` (the noisiest state).
+
+    frame_mask: (B, T) valid frames; the state is zeroed elsewhere after every step.
+    before_step: maps the state before each step's denoiser call (see :func:`replacement_edit`).
+    """
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; known: {list(SAMPLERS)}")
+    if sampler == "ddpm" and eta != 0.0:
+        raise ValueError("eta is a DDIM parameter; the DDPM sampler takes none")
+    if not eta >= 0.0:
+        raise ValueError(f"eta must be >= 0, got {eta}")
+    valid = None if frame_mask is None else frame_mask.unsqueeze(-1).to(x_start.dtype)
+    x = x_start
+    nfe = 0
+    estimates: list[Tensor] = []
+    times: list[float] = []
+    for index in reversed(range(diffusion.num_steps)):
+        if before_step is not None:
+            x = before_step(x, index)
+        step = torch.full((x.shape[0],), index, dtype=torch.long, device=x.device)
+        t_model = diffusion.model_time(step).to(x.dtype)
+        output = denoise_fn(x, t_model)
+        nfe += 1
+        prediction = diffusion.p_mean_variance(output, x, step, clip_denoised=clip_denoised)
+        if sampler == "ddpm":
+            mean, std = prediction.mean, (0.5 * prediction.log_variance).exp()
+        else:
+            mean, std = diffusion.ddim_step(prediction.x0, x, step, eta)
+        # No noise at step 0 (the reference multiplies it by zero; not drawing it changes no result).
+        if index > 0 and (sampler == "ddpm" or eta > 0.0):
+            x = mean + std * initial_noise(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+        else:
+            x = mean
+        if valid is not None:
+            x = x * valid
+        times.append(float(t_model[0]))
+        if return_trajectory:
+            estimates.append(prediction.x0)
+    grid = torch.tensor(times, dtype=torch.float64)
+    x1_hat = torch.stack(estimates) if return_trajectory else None
+    return SolveResult(x1=x, nfe=nfe, x1_hat=x1_hat, x1_hat_times=grid.clone() if return_trajectory else None,
+                       grid=grid)
+
+
+@torch.no_grad()
+def sample_diffusion(
+    model: Callable[..., Tensor],
+    diffusion: GaussianDiffusion,
+    cond: Tensor,
+    lengths: Sequence[int] | Tensor,
+    *,
+    num_frames: int,
+    feature_dim: int | None = None,
+    sampler: str = "ddpm",
+    steps: int | str | Sequence[int] | None = None,
+    eta: float = 0.0,
+    guidance: float = 2.5,
+    null_cond: Tensor | None = None,
+    clip_denoised: float | None = None,
+    seed: int = 0,
+    generator: torch.Generator | None = None,
+    return_trajectory: bool = False,
+) -> SolveResult:
+    """Generate B = len(lengths) motions (B, num_frames, D) with a diffusion denoiser, as :func:`mfm.solvers.sample`.
+
+    model: the denoiser, ``model(x, t_model, cond, lengths, cond_mask=...)``, in eval mode.
+    steps: None = every training step (FLAME / FlowMDM: 1000); otherwise respaced
+        (:func:`mfm.diffusion.space_timesteps`: an int K, ``"ddimK"`` or section counts).
+    guidance: classifier-free scale (FLAME 8.0, FlowMDM 2.5); mixes the prediction channels only, a learned variance
+        comes from the conditional half (FLAME).
+    clip_denoised: clamp x_0 estimates to [−c, c] (FLAME's True = 1.0 on raw SMPL features; None for normalised ones).
+    feature_dim defaults to ``model.config.feature_dim``.
+    """
+    if getattr(model, "training", False):
+        logger.warning("sampling from a model in training mode: dropout makes the denoiser random")
+    device = _model_device(model, cond)
+    lengths = check_lengths(lengths, num_frames).to(device)
+    cond = cond.to(device)
+    if cond.shape[0] != lengths.shape[0]:
+        raise ValueError(f"cond has batch {cond.shape[0]} but {lengths.shape[0]} lengths were given")
+    dim = _feature_dim(model, feature_dim)
+    generator = _draw_generator(seed, generator)
+    frame_mask = valid_frame_mask(lengths, num_frames)
+    x_start = initial_noise((lengths.shape[0], num_frames, dim), generator=generator, device=device)
+    x_start = x_start * frame_mask.unsqueeze(-1)
+    denoise_fn = classifier_free_guidance(model, cond, scale=guidance, lengths=lengths, null_cond=null_cond,
+                                          guided_channels=dim)
+    return reverse_diffusion(denoise_fn, _schedule_for(diffusion, steps), x_start, generator=generator,
+                             sampler=sampler, eta=eta, clip_denoised=clip_denoised, frame_mask=frame_mask,
+                             return_trajectory=return_trajectory)
+
+
+def ddpm_sample(*args, **kwargs) -> SolveResult:
+    """:func:`sample_diffusion` with the ancestral DDPM sampler."""
+    return sample_diffusion(*args, sampler="ddpm", **kwargs)
+
+
+def ddim_sample(*args, eta: float = 0.0, **kwargs) -> SolveResult:
+    """:func:`sample_diffusion` with the DDIM sampler (``eta = 0``: deterministic)."""
+    return sample_diffusion(*args, sampler="ddim", eta=eta, **kwargs)
+
+
+@torch.no_grad()
+def replacement_edit(
+    denoise_fn: DenoiseFn,
+    diffusion: GaussianDiffusion,
+    x1_known: Tensor,
+    keep_mask: Tensor | np.ndarray,
+    *,
+    steps: int | str | Sequence[int] | None = None,
+    sampler: str = "ddpm",
+    eta: float = 0.0,
+    lengths: Sequence[int] | Tensor | None = None,
+    clip_denoised: float | None = None,
+    restore_known: bool = True,
+    seed: int = 0,
+    generator: torch.Generator | None = None,
+    return_trajectory: bool = False,
+) -> SolveResult:
+    """FLAME's editing: regenerate ``x1_known`` (B, T, D) where ``keep_mask`` is False.
+
+    Before the denoiser call of **every** reverse step s (N−1 → 0), the kept part of the state is overwritten with
+    ``q_sample(x1_known, s, fresh noise)`` (FLAME ``edit_noise`` in ``p_sample_loop_progressive``); with a respaced
+    schedule ᾱ is the respaced one, i.e. the original ᾱ at the kept step.
+
+    What the kept part of the output is: after the last (step 0) replacement the state's kept part is
+    ``√ᾱ[0]·x1_known + √(1 − ᾱ[0])·z`` and the DDPM step 0 returns the posterior mean, which at step 0 is the x_0
+    estimate itself (``posterior_mean_coef2[0] = 0``); DDIM's step 0 returns it too. So FLAME's raw output keeps the
+    known part only approximately (exactly for a denoiser that recovers it); FLAME then overwrites the translation with
+    the reference when ``use_reference_translation`` but leaves the kept joints as generated.
+    ``restore_known=True`` (default) copies ``x1_known`` into the kept part of the output, so it equals the source
+    exactly; ``False`` returns the raw chain output (FLAME's joints).
+
+    denoise_fn: guided or unconditional (:func:`mfm.diffusion.classifier_free_guidance`).
+    keep_mask: bool, broadcastable (B or 1, T, D), True = keep (mfm.editing presets).
+    lengths: valid frames; the state is zeroed beyond them after every step and in the output.
+    """
+    if x1_known.dim() != 3:
+        raise ValueError(f"x1_known must be (B, T, D), got {tuple(x1_known.shape)}")
+    keep = _as_bool_mask(keep_mask, x1_known.shape, x1_known.device)
+    schedule = _schedule_for(diffusion, steps)
+    generator = _draw_generator(seed, generator)
+    frame_mask = None
+    if lengths is not None:
+        lengths = check_lengths(lengths, x1_known.shape[1]).to(x1_known.device)
+        frame_mask = valid_frame_mask(lengths, x1_known.shape[1])
+    x_start = initial_noise(x1_known.shape, generator=generator, device=x1_known.device, dtype=x1_known.dtype)
+    if frame_mask is not None:
+        x_start = x_start * frame_mask.unsqueeze(-1).to(x_start.dtype)
+
+    def replace_known(x: Tensor, index: int) -> Tensor:
+        step = torch.full((x.shape[0],), index, dtype=torch.long, device=x.device)
+        noise = initial_noise(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+        return torch.where(keep, schedule.q_sample(x1_known, step, noise), x)
+
+    result = reverse_diffusion(denoise_fn, schedule, x_start, generator=generator, sampler=sampler, eta=eta,
+                               clip_denoised=clip_denoised, frame_mask=frame_mask, before_step=replace_known,
+                               return_trajectory=return_trajectory)
+    if restore_known:
+        x = torch.where(keep, x1_known, result.x1)
+        if frame_mask is not None:
+            x = x * frame_mask.unsqueeze(-1).to(x.dtype)
+        result.x1 = x
+    return result
