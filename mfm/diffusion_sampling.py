@@ -26,16 +26,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mfm.diffusion import GaussianDiffusion, classifier_free_guidance
-from mfm.editing import _as_bool_mask
+from mfm.diffusion import GaussianDiffusion
+from mfm.guidance import classifier_free_guidance
+from mfm.editing import as_bool_mask
 from mfm.model import valid_frame_mask
-from mfm.solvers import SolveResult, _feature_dim, _model_device, check_lengths, initial_noise
+from mfm.solvers import SolveResult, model_feature_dim, model_device, check_lengths, initial_noise
 
 logger = logging.getLogger(__name__)
 
 DenoiseFn = Callable[[Tensor, Tensor], Tensor]
 """``(x_s (B, T, D), t_model (B,)) -> output (B, T, D) or (B, T, 2D)``, e.g. from
-:func:`mfm.diffusion.classifier_free_guidance`."""
+:func:`mfm.guidance.classifier_free_guidance`."""
 
 BeforeStep = Callable[[Tensor, int], Tensor]
 """``(x_s, schedule index s) -> x_s``, applied before the denoiser call of each step (replacement editing)."""
@@ -140,12 +141,12 @@ def sample_diffusion(
     """
     if getattr(model, "training", False):
         logger.warning("sampling from a model in training mode: dropout makes the denoiser random")
-    device = _model_device(model, cond)
+    device = model_device(model, cond)
     lengths = check_lengths(lengths, num_frames).to(device)
     cond = cond.to(device)
     if cond.shape[0] != lengths.shape[0]:
         raise ValueError(f"cond has batch {cond.shape[0]} but {lengths.shape[0]} lengths were given")
-    dim = _feature_dim(model, feature_dim)
+    dim = model_feature_dim(model, feature_dim)
     generator = _draw_generator(seed, generator)
     frame_mask = valid_frame_mask(lengths, num_frames)
     x_start = initial_noise((lengths.shape[0], num_frames, dim), generator=generator, device=device)
@@ -198,13 +199,13 @@ def replacement_edit(
     ``restore_known=True`` (default) copies ``x1_known`` into the kept part of the output, so it equals the source
     exactly; ``False`` returns the raw chain output (FLAME's joints).
 
-    denoise_fn: guided or unconditional (:func:`mfm.diffusion.classifier_free_guidance`).
+    denoise_fn: guided or unconditional (:func:`mfm.guidance.classifier_free_guidance`).
     keep_mask: bool, broadcastable (B or 1, T, D), True = keep (mfm.editing presets).
     lengths: valid frames; the state is zeroed beyond them after every step and in the output.
     """
     if x1_known.dim() != 3:
         raise ValueError(f"x1_known must be (B, T, D), got {tuple(x1_known.shape)}")
-    keep = _as_bool_mask(keep_mask, x1_known.shape, x1_known.device)
+    keep = as_bool_mask(keep_mask, x1_known.shape, x1_known.device)
     schedule = _schedule_for(diffusion, steps)
     generator = _draw_generator(seed, generator)
     frame_mask = None

@@ -42,7 +42,7 @@ from mfm.solvers import (
 REWRITE_TIME_TOLERANCE = 1e-9
 
 
-def _as_bool_mask(keep_mask: Tensor | np.ndarray, shape: torch.Size, device: torch.device) -> Tensor:
+def as_bool_mask(keep_mask: Tensor | np.ndarray, shape: torch.Size, device: torch.device) -> Tensor:
     mask = torch.as_tensor(keep_mask, device=device)
     if mask.dtype != torch.bool:
         raise ValueError(f"keep_mask must be a bool tensor (True = keep), got {mask.dtype}")
@@ -88,7 +88,7 @@ def edit(
         raise ValueError(f"rewrite_until must be in [0, 1], got {rewrite_until}")
     if solver not in FIXED_STEP_SOLVERS:
         raise ValueError(f"trajectory rewriting needs a fixed-step solver {sorted(FIXED_STEP_SOLVERS)}, got {solver!r}")
-    keep = _as_bool_mask(keep_mask, x1_known.shape, x1_known.device)
+    keep = as_bool_mask(keep_mask, x1_known.shape, x1_known.device)
     if x0 is None:
         x0 = initial_noise(x1_known.shape, seed=seed, generator=generator, device=x1_known.device,
                            dtype=x1_known.dtype)

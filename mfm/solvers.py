@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from mfm.guidance import classifier_free_guidance
 from mfm.model import valid_frame_mask
 
 logger = logging.getLogger(__name__)
@@ -286,33 +287,7 @@ def guided_velocity(
     null_cond: what the unconditional half receives as ``cond`` (default: ``cond`` itself, which the model drops
         because of ``cond_mask``); for models whose null condition is an explicit input. Broadcast to cond's shape.
     """
-    batch = cond.shape[0]
-    uncond = cond if null_cond is None else null_cond.to(cond.device, cond.dtype).expand_as(cond)
-
-    keep = torch.zeros(batch, dtype=torch.bool, device=cond.device)
-    drop = torch.ones(batch, dtype=torch.bool, device=cond.device)
-
-    def conditional(x: Tensor, t: Tensor) -> Tensor:
-        return model(x, t, cond, lengths, cond_mask=keep)
-
-    def unconditional(x: Tensor, t: Tensor) -> Tensor:
-        return model(x, t, uncond, lengths, cond_mask=drop)
-
-    if scale == 1.0:
-        return conditional
-    if scale == 0.0:
-        return unconditional
-
-    both_cond = torch.cat([cond, uncond])
-    both_mask = torch.cat([keep, drop])
-    both_lengths = None if lengths is None else torch.cat([lengths, lengths])
-
-    def guided(x: Tensor, t: Tensor) -> Tensor:
-        v_cond, v_uncond = model(torch.cat([x, x]), torch.cat([t, t]), both_cond, both_lengths,
-                                 cond_mask=both_mask).chunk(2)
-        return v_uncond + scale * (v_cond - v_uncond)
-
-    return guided
+    return classifier_free_guidance(model, cond, scale=scale, lengths=lengths, null_cond=null_cond)
 
 
 def initial_noise(
@@ -333,7 +308,7 @@ def initial_noise(
     return noise.to(device=device, dtype=dtype)
 
 
-def _model_device(model: Callable[..., Tensor], fallback: Tensor) -> torch.device:
+def model_device(model: Callable[..., Tensor], fallback: Tensor) -> torch.device:
     if isinstance(model, nn.Module):
         parameter = next(model.parameters(), None)
         if parameter is not None:
@@ -341,7 +316,7 @@ def _model_device(model: Callable[..., Tensor], fallback: Tensor) -> torch.devic
     return fallback.device
 
 
-def _feature_dim(model: Callable[..., Tensor], feature_dim: int | None) -> int:
+def model_feature_dim(model: Callable[..., Tensor], feature_dim: int | None) -> int:
     if feature_dim is not None:
         return feature_dim
     config = getattr(model, "config", None)
@@ -390,12 +365,12 @@ def sample(
     """
     if getattr(model, "training", False):
         logger.warning("sampling from a model in training mode: dropout makes the velocity field random")
-    device = _model_device(model, cond)
+    device = model_device(model, cond)
     lengths = check_lengths(lengths, num_frames).to(device)
     cond = cond.to(device)
     if cond.shape[0] != lengths.shape[0]:
         raise ValueError(f"cond has batch {cond.shape[0]} but {lengths.shape[0]} lengths were given")
-    shape = (lengths.shape[0], num_frames, _feature_dim(model, feature_dim))
+    shape = (lengths.shape[0], num_frames, model_feature_dim(model, feature_dim))
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)
     x0 = initial_noise(shape, seed=seed, generator=generator, device=device) * valid
     velocity = zero_padded_frames(

@@ -6,7 +6,6 @@ import torch
 from mfm.diffusion import (
     DIFFUSION_PRESETS,
     GaussianDiffusion,
-    classifier_free_guidance,
     cosine_alpha_bar,
     diffusion_from_preset,
     discretized_gaussian_log_likelihood,
@@ -17,6 +16,7 @@ from mfm.diffusion import (
 )
 from mfm.diffusion_sampling import ddim_sample, ddpm_sample, replacement_edit, reverse_diffusion, sample_diffusion
 from mfm.editing import edit_mask
+from mfm.guidance import classifier_free_guidance
 from mfm.flow import masked_mse
 from mfm.layout import FeatureLayout
 from mfm.model import ModelConfig, valid_frame_mask
