@@ -1,6 +1,7 @@
-"""The MFM velocity-field Transformer (MDM's ``trans_enc`` backbone, batch-first, padding-aware).
+"""The MFM velocity-field Transformer (MDM's ``trans_enc`` backbone, batch-first, padding-aware), with FlowMDM's
+blended positional encodings / pose-centric conditioning and FLAME's cross-attention decoder as options.
 
-Token sequence seen by the encoder, batch-first ``(B, P + T, latent)``::
+Token sequence seen by the encoder (default, ``conditioning='prefix'``), batch-first ``(B, P + T, latent)``::
 
     [length token]?  [time ⊕ condition token]  [motion frame 1 … T]
     └─ FLAME option ┘ └─ MFM/MDM prefix token ┘
@@ -16,7 +17,38 @@ Token sequence seen by the encoder, batch-first ``(B, P + T, latent)``::
   boolean key-padding mask and their outputs are zeroed, so a clip's velocity does not depend on how it was padded.
 
 The HumanML3D preset (263, 512, 1024, 8 layers, 4 heads, CLIP cond 512, post-norm) has exactly 17,880,327
-parameters, the same as MFM's ``MDM_Flow`` without CLIP (17.88 M).
+parameters, the same as MFM's ``MDM_Flow`` without CLIP (17.88 M). Every option below is off by default and adds
+nothing to that model.
+
+Conditioning (``ModelConfig.conditioning``):
+
+* ``'prefix'``: MFM's single time ⊕ condition token (above).
+* ``'pccat'``: FlowMDM's pose-centric cross-attention. No condition token; every frame ``i`` has its own condition
+  ``c_i = time embedding + Linear(text embedding of the segment frame i belongs to)`` (``frame_cond``), and each layer
+  forms its queries from ``Linear_{2d→d}([h_i ; c_i])`` while keys and values come from the pose stream ``h`` alone,
+  so what a frame offers to the others never depends on its text — the property that lets FlowMDM compose segments
+  with different texts smoothly.
+* ``'cross_attention'``: FLAME's decoder. Self-attention over ``[length]? [time] [pooled text] [frames]`` plus, in
+  every layer, cross-attention to the memory ``[length]? [time] [pooled text] [Linear(token-level text features)]``
+  with the text's padding mask. FLAME's exact layout is ``conditioning='cross_attention', length_token=True``.
+
+Positional encoding (``ModelConfig.positional``):
+
+* ``'absolute'``: MDM's sinusoidal table added to the whole token sequence (default).
+* ``'bpe'``: FlowMDM's blended positional encodings. Each sample runs in one of two modes (``positional_mode``,
+  True = relative): *absolute* adds the sinusoidal positions restarting at every segment (``segments``) and confines
+  the frames' attention to their own segment (block-diagonal); *relative* adds no position, rotates the first
+  ``rope_dims`` channels of every head's frame queries/keys (RoPE) and lets frames attend to frames at most
+  ``attention_horizon`` apart, across segments. Training draws the mode per sample (``bpe_train_relative_prob``);
+  samplers pass it (see :mod:`mfm.composition`). The auxiliary tokens (length, time, condition) carry no position
+  and attend only to each other, so in both modes they are a read-only memory for the frames: a segment in absolute
+  mode cannot see another segment through them, and in relative mode nothing bypasses the horizon. In relative mode
+  their keys' rotary channels are zeroed, so a frame scores them on position-free channels only (translation
+  invariance). With ``attention_chunk`` the frame attention is computed blockwise over a band (memory linear in the
+  number of frames, FlowMDM's ``--use_chunked_att``), giving the same result as the dense mask.
+
+All attention runs through ``F.scaled_dot_product_attention`` with boolean masks (True = may attend), which is safe
+under bf16 autocast; no softmax row is ever empty.
 """
 
 from __future__ import annotations
@@ -26,12 +58,16 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from torch import nn
+from torch import Tensor, nn
 
 ACTIVATIONS = {"gelu": F.gelu, "relu": F.relu, "silu": F.silu}
+POSITIONAL_ENCODINGS = ("absolute", "bpe")
+CONDITIONINGS = ("prefix", "pccat", "cross_attention")
 
 # MFM feeds the sinusoidal table with t*1000 (its diffusion-step scale); keep the scale so the embedding matches.
 TIME_SCALE = 1000.0
+ROPE_BASE = 10000.0
+"""Base of the rotary frequencies (x-transformers' / RoFormer's default, used by FlowMDM)."""
 
 
 @dataclass
@@ -62,9 +98,24 @@ class ModelConfig:
     max_frames: int = 196
     """Largest motion length the length token can embed (table of max_frames + 1 rows)."""
     max_len: int = 5000
-    """Rows of the sinusoidal positional table: prefix tokens + frames must fit."""
+    """Rows of the sinusoidal positional table: prefix tokens + frames (bpe: + the longest segment) must fit."""
     norm_first: bool = False
     """False: post-norm like MDM's nn.TransformerEncoder (parity); True: pre-norm with a final LayerNorm."""
+    output_dim: int | None = None
+    """Per-frame output size; None = feature_dim (a velocity). 2·feature_dim for FLAME's ε + learned variance."""
+    positional: str = "absolute"
+    """One of POSITIONAL_ENCODINGS: 'absolute' (MFM) or 'bpe' (FlowMDM's blended positional encodings)."""
+    rope_dims: int | None = None
+    """bpe: channels of each head rotated in relative mode (even); None = half the head dim (FlowMDM: 32 of 64)."""
+    attention_horizon: int = 150
+    """bpe relative mode: frames further apart than this do not attend to each other (FlowMDM: 150 HumanML3D,
+    100 Babel)."""
+    bpe_train_relative_prob: float = 0.5
+    """bpe: probability that a training sample runs in relative mode (FlowMDM's ``bpe_training_ratio``)."""
+    conditioning: str = "prefix"
+    """One of CONDITIONINGS: 'prefix' (MFM), 'pccat' (FlowMDM), 'cross_attention' (FLAME)."""
+    token_dim: int | None = None
+    """cross_attention: size of the token-level text features (manifest ``text_encoder.dim``); None = cond_dim."""
 
     def __post_init__(self) -> None:
         positive = {
@@ -75,7 +126,11 @@ class ModelConfig:
             "num_heads": self.num_heads,
             "max_len": self.max_len,
             "max_frames": self.max_frames,
+            "attention_horizon": self.attention_horizon,
         }
+        for name in ("output_dim", "rope_dims", "token_dim"):
+            if getattr(self, name) is not None:
+                positive[name] = getattr(self, name)
         for name, value in positive.items():
             if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
                 raise ValueError(f"ModelConfig.{name} must be a positive int, got {value!r}")
@@ -95,8 +150,31 @@ class ModelConfig:
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
                 raise ValueError(f"ModelConfig.{name} must be in [0, 1), got {value!r}")
+        if not 0.0 <= self.bpe_train_relative_prob <= 1.0:
+            raise ValueError(
+                f"ModelConfig.bpe_train_relative_prob must be in [0, 1], got {self.bpe_train_relative_prob!r}"
+            )
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"ModelConfig.activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
+        if self.positional not in POSITIONAL_ENCODINGS:
+            raise ValueError(f"ModelConfig.positional must be one of {POSITIONAL_ENCODINGS}, got {self.positional!r}")
+        if self.conditioning not in CONDITIONINGS:
+            raise ValueError(f"ModelConfig.conditioning must be one of {CONDITIONINGS}, got {self.conditioning!r}")
+        if self.conditioning != "prefix" and self.is_action_model:
+            raise ValueError(
+                f"ModelConfig.conditioning={self.conditioning!r} needs a text model; action models (num_actions > 0) "
+                "use 'prefix'"
+            )
+        if self.conditioning == "pccat" and self.length_token:
+            raise ValueError(
+                "ModelConfig.length_token is not available with conditioning='pccat' (FlowMDM has no auxiliary tokens)"
+            )
+        if self.positional == "bpe":
+            rotary = self.rotary_dims
+            if rotary <= 0 or rotary % 2 != 0 or rotary > self.head_dim:
+                raise ValueError(
+                    f"ModelConfig.rope_dims must be even and in [2, head dim {self.head_dim}], got {rotary}"
+                )
         if self.length_token and self.max_frames + self.num_prefix_tokens > self.max_len:
             raise ValueError(
                 f"ModelConfig.max_frames ({self.max_frames}) + prefix tokens must fit in max_len ({self.max_len})"
@@ -104,12 +182,31 @@ class ModelConfig:
 
     @property
     def num_prefix_tokens(self) -> int:
-        """Tokens before the motion frames: the time/condition token, plus the length token if enabled."""
-        return 1 + int(self.length_token)
+        """Auxiliary tokens before the motion frames: prefix = time/condition token (+ length token); pccat = none;
+        cross_attention = time token + pooled-text token (+ length token)."""
+        base = {"prefix": 1, "pccat": 0, "cross_attention": 2}[self.conditioning]
+        return base + int(self.length_token)
 
     @property
     def is_action_model(self) -> bool:
         return self.num_actions > 0
+
+    @property
+    def head_dim(self) -> int:
+        return self.latent_dim // self.num_heads
+
+    @property
+    def rotary_dims(self) -> int:
+        """Rotated channels per head in bpe relative mode (default: half the head dim, rounded down to even)."""
+        return self.rope_dims if self.rope_dims is not None else 2 * (self.head_dim // 4)
+
+    @property
+    def output_size(self) -> int:
+        return self.output_dim if self.output_dim is not None else self.feature_dim
+
+    @property
+    def text_token_dim(self) -> int:
+        return self.token_dim if self.token_dim is not None else self.cond_dim
 
 
 def sinusoidal_embedding(positions: torch.Tensor, dim: int) -> torch.Tensor:
@@ -132,6 +229,14 @@ def valid_frame_mask(lengths: torch.Tensor, num_frames: int) -> torch.Tensor:
     return frames.unsqueeze(0) < lengths.unsqueeze(1)
 
 
+def _draw_bernoulli(
+    batch: int, prob: float, generator: torch.Generator | None, device: torch.device | None
+) -> torch.Tensor:
+    # Drawn on the generator's device (a CPU generator works with a GPU model), then moved to ``device``.
+    draw_device = generator.device if generator is not None else device
+    return (torch.rand(batch, generator=generator, device=draw_device) < prob).to(device)
+
+
 def draw_cond_drop_mask(
     batch: int, prob: float, generator: torch.Generator | None = None, device: torch.device | None = None
 ) -> torch.Tensor:
@@ -139,8 +244,195 @@ def draw_cond_drop_mask(
 
     Drawn on the generator's device (so a CPU generator works with a GPU model), then moved to ``device``.
     """
-    draw_device = generator.device if generator is not None else device
-    return (torch.rand(batch, generator=generator, device=draw_device) < prob).to(device)
+    return _draw_bernoulli(batch, prob, generator, device)
+
+
+def draw_positional_mode(
+    batch: int, relative_prob: float, generator: torch.Generator | None = None, device: torch.device | None = None
+) -> torch.Tensor:
+    """(batch,) bool BPE modes, True = relative with probability ``relative_prob`` (FlowMDM: 0.5 per sample).
+
+    The model draws it in training right after the condition-dropout draw, from the same generator; a trainer
+    that draws ``cond_mask`` itself should draw this too and pass it as ``positional_mode``.
+    """
+    return _draw_bernoulli(batch, relative_prob, generator, device)
+
+
+def segment_runs(
+    segments: torch.Tensor | None, batch: int, num_frames: int, device: torch.device
+) -> tuple[Tensor, Tensor]:
+    """Segment structure of (B, T) per-frame segment indices (None: one segment).
+
+    A segment is a maximal run of equal values. Returns ``runs`` (B, T) long, the run number of each frame
+    (0, 1, ... along the sequence) and ``offsets`` (B, T) long, each frame's index within its run (the absolute
+    position that restarts at every segment).
+    """
+    frames = torch.arange(num_frames, device=device)
+    if segments is None:
+        return torch.zeros(batch, num_frames, dtype=torch.long, device=device), frames.expand(batch, num_frames)
+    starts = torch.ones(batch, num_frames, dtype=torch.bool, device=device)
+    starts[:, 1:] = segments[:, 1:] != segments[:, :-1]
+    runs = starts.long().cumsum(dim=1) - 1
+    run_start = torch.where(starts, frames, torch.zeros_like(frames)).cummax(dim=1).values
+    return runs, frames - run_start
+
+
+def rotary_tables(positions: torch.Tensor, dim: int) -> tuple[Tensor, Tensor]:
+    """RoPE tables ``cos, sin`` of shape (..., dim) for real positions (...,), fp32.
+
+    Half-split convention (x-transformers): channel ``k`` and ``k + dim/2`` form a pair rotated by ``p·ω_k`` with
+    ``ω_k = ROPE_BASE^(-2k/dim)``.
+    """
+    frequencies = ROPE_BASE ** (-torch.arange(0, dim, 2, device=positions.device, dtype=torch.float32) / dim)
+    angles = positions.float().unsqueeze(-1) * frequencies
+    angles = torch.cat((angles, angles), dim=-1)
+    return angles.cos(), angles.sin()
+
+
+def apply_rotary(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
+    """Rotate the first ``cos.shape[-1]`` channels of ``x`` (..., S, head_dim) by the (S, r) tables; the rest pass.
+
+    ``⟨R(p)q, R(p')k⟩`` then depends on ``p − p'`` only. Computed in fp32, returned in ``x``'s dtype.
+    """
+    dim = cos.shape[-1]
+    rotated, rest = x[..., :dim].float(), x[..., dim:]
+    first, second = rotated.chunk(2, dim=-1)
+    rotated = rotated * cos + torch.cat((-second, first), dim=-1) * sin
+    return torch.cat((rotated.to(x.dtype), rest), dim=-1)
+
+
+class DenseAttention:
+    """Plain attention over the whole token sequence with an optional boolean mask (True = may attend), broadcast
+    to (B, heads, S, S): MFM's key-padding mask (B, 1, 1, S) or None."""
+
+    def __init__(self, mask: torch.Tensor | None) -> None:
+        self.mask = mask
+
+    def position(self, q: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+        return q, k
+
+    def attend(self, q: Tensor, k: Tensor, v: Tensor, dropout_p: float) -> Tensor:
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=self.mask, dropout_p=dropout_p)
+
+
+class BlendedAttention:
+    """FlowMDM's blended positional attention for one forward pass (built once, shared by every layer).
+
+    Token layout: ``num_aux`` auxiliary tokens, then T frames. Per sample (``relative`` (B,) bool):
+
+    * relative: RoPE on the first ``rotary_dims`` channels of the frames' queries and keys at ``positions`` (T,);
+      frame i may attend to frame j iff ``|i − j| <= horizon``; the auxiliary keys' rotary channels are zeroed.
+    * absolute: no rotation; frame i may attend to frame j iff both lie in the same segment run (``runs``).
+
+    In both modes frames attend to every auxiliary token, auxiliary tokens only to each other, padded frames
+    (``frame_valid`` False) are never attended, and every frame may attend to itself (a padded query then has a
+    non-empty softmax row; its output is discarded).
+
+    chunk: None computes one dense (B, 1, S, S) mask; an int computes the frames' attention in query blocks of
+    ``chunk`` frames against a key band of ``window`` frames either side (memory O(T·(chunk + 2·window)) instead
+    of O(T²)); ``window`` must cover every allowed pair (relative: horizon; absolute: longest segment − 1).
+    """
+
+    def __init__(
+        self,
+        *,
+        num_aux: int,
+        runs: Tensor,
+        relative: Tensor,
+        horizon: int,
+        rotary_dims: int,
+        positions: Tensor,
+        frame_valid: Tensor | None = None,
+        chunk: int | None = None,
+        window: int | None = None,
+    ) -> None:
+        if chunk is not None and (window is None or window < 0):
+            raise ValueError("chunked attention needs the key window (frames either side of a query block)")
+        self.num_aux = num_aux
+        self.runs = runs
+        self.relative = relative
+        self.horizon = horizon
+        self.rotary_dims = rotary_dims
+        self.rotary = rotary_tables(positions, rotary_dims)
+        self.frame_valid = frame_valid
+        self.chunk = chunk
+        self.window = window
+        self.mask = self.dense_mask() if chunk is None else None
+
+    @property
+    def num_frames(self) -> int:
+        return self.runs.shape[1]
+
+    def frame_mask(self, q_lo: int, q_hi: int, k_lo: int, k_hi: int) -> Tensor:
+        """(B, 1, q_hi − q_lo, k_hi − k_lo) bool: which frames of [k_lo, k_hi) the frames of [q_lo, q_hi) attend."""
+        device = self.runs.device
+        i = torch.arange(q_lo, q_hi, device=device).unsqueeze(1)
+        j = torch.arange(k_lo, k_hi, device=device).unsqueeze(0)
+        near = (i - j).abs() <= self.horizon
+        same_segment = self.runs[:, q_lo:q_hi, None] == self.runs[:, None, k_lo:k_hi]
+        allowed = torch.where(self.relative[:, None, None], near, same_segment)
+        if self.frame_valid is not None:
+            allowed = allowed & self.frame_valid[:, None, k_lo:k_hi]
+        return (allowed | (i == j)).unsqueeze(1)
+
+    def dense_mask(self) -> Tensor:
+        """(B, 1, S, S) bool over auxiliary tokens + frames."""
+        batch, frames, aux = self.runs.shape[0], self.num_frames, self.num_aux
+        mask = self.frame_mask(0, frames, 0, frames)
+        if aux == 0:
+            return mask
+        device = mask.device
+        aux_rows = torch.cat(
+            [torch.ones(batch, 1, aux, aux, dtype=torch.bool, device=device),
+             torch.zeros(batch, 1, aux, frames, dtype=torch.bool, device=device)], dim=-1
+        )
+        frame_rows = torch.cat([torch.ones(batch, 1, frames, aux, dtype=torch.bool, device=device), mask], dim=-1)
+        return torch.cat([aux_rows, frame_rows], dim=2)
+
+    def position(self, q: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+        """Rotate the frames' queries/keys of relative samples; zero their auxiliary keys' rotary channels."""
+        aux = self.num_aux
+        cos, sin = self.rotary
+        relative = self.relative[:, None, None, None]
+        q_frames = torch.where(relative, apply_rotary(q[:, :, aux:], cos, sin), q[:, :, aux:])
+        k_frames = torch.where(relative, apply_rotary(k[:, :, aux:], cos, sin), k[:, :, aux:])
+        if aux == 0:
+            return q_frames, k_frames
+        k_aux = k[:, :, :aux]
+        positionless = torch.cat((torch.zeros_like(k_aux[..., : self.rotary_dims]), k_aux[..., self.rotary_dims :]), -1)
+        k_aux = torch.where(relative, positionless, k_aux)
+        return torch.cat((q[:, :, :aux], q_frames), dim=2), torch.cat((k_aux, k_frames), dim=2)
+
+    def attend(self, q: Tensor, k: Tensor, v: Tensor, dropout_p: float) -> Tensor:
+        if self.chunk is None:
+            return F.scaled_dot_product_attention(q, k, v, attn_mask=self.mask, dropout_p=dropout_p)
+        return self._attend_chunked(q, k, v, dropout_p)
+
+    def _attend_chunked(self, q: Tensor, k: Tensor, v: Tensor, dropout_p: float) -> Tensor:
+        aux, frames, chunk, window = self.num_aux, self.num_frames, self.chunk, self.window
+        batch = q.shape[0]
+        k_aux, v_aux = k[:, :, :aux], v[:, :, :aux]
+        outputs = []
+        if aux:
+            outputs.append(F.scaled_dot_product_attention(q[:, :, :aux], k_aux, v_aux, dropout_p=dropout_p))
+        for q_lo in range(0, frames, chunk):
+            q_hi = min(frames, q_lo + chunk)
+            k_lo, k_hi = max(0, q_lo - window), min(frames, q_hi + window)
+            mask = self.frame_mask(q_lo, q_hi, k_lo, k_hi)
+            if aux:
+                always = torch.ones(batch, 1, q_hi - q_lo, aux, dtype=torch.bool, device=mask.device)
+                mask = torch.cat([always, mask], dim=-1)
+            keys = torch.cat([k_aux, k[:, :, aux + k_lo : aux + k_hi]], dim=2)
+            values = torch.cat([v_aux, v[:, :, aux + k_lo : aux + k_hi]], dim=2)
+            outputs.append(
+                F.scaled_dot_product_attention(
+                    q[:, :, aux + q_lo : aux + q_hi], keys, values, attn_mask=mask, dropout_p=dropout_p
+                )
+            )
+        return torch.cat(outputs, dim=2)
+
+
+Attention = DenseAttention | BlendedAttention
 
 
 class FP32LayerNorm(nn.LayerNorm):
@@ -153,51 +445,123 @@ class FP32LayerNorm(nn.LayerNorm):
         return F.layer_norm(x.float(), self.normalized_shape, weight, bias, self.eps).to(x.dtype)
 
 
+def _init_split_projection(query: nn.Linear, key_value: nn.Linear) -> None:
+    """nn.MultiheadAttention's init (xavier over the stacked (3d, d) in-projection, zero bias) for separate query
+    and key/value Linears, so their scale matches the fused ``qkv`` of the default layer."""
+    weight = torch.empty(query.out_features + key_value.out_features, query.in_features)
+    nn.init.xavier_uniform_(weight)
+    with torch.no_grad():
+        query.weight.copy_(weight[: query.out_features])
+        key_value.weight.copy_(weight[query.out_features :])
+    nn.init.zeros_(query.bias)
+    nn.init.zeros_(key_value.bias)
+
+
 class EncoderLayer(nn.Module):
     """nn.TransformerEncoderLayer's computation, batch-first, with attention through
     ``F.scaled_dot_product_attention`` (fused kernels on GPU) and a boolean key-padding mask.
 
     Same parameters as ``nn.TransformerEncoderLayer(d, heads, ff, dropout)``, so counts and init match MDM.
+
+    pose_centric (FlowMDM PCCAT): the query comes from ``query_cond([h ; condition])`` then ``q_proj``; keys and
+    values from ``kv_proj(h)`` only. cross_attention (FLAME, nn.TransformerDecoderLayer's order): a cross-attention
+    block to ``memory`` between self-attention and feed-forward, with its own LayerNorm ``norm_cross``.
     """
 
-    def __init__(self, config: ModelConfig) -> None:
+    def __init__(self, config: ModelConfig, *, pose_centric: bool = False, cross_attention: bool = False) -> None:
         super().__init__()
         d = config.latent_dim
         self.num_heads = config.num_heads
         self.dropout = config.dropout
         self.norm_first = config.norm_first
         self.activation = ACTIVATIONS[config.activation]
-        self.qkv = nn.Linear(d, 3 * d)
+        self.pose_centric = pose_centric
+        self.has_cross_attention = cross_attention
+        if pose_centric:
+            self.query_cond = nn.Linear(2 * d, d)
+            self.q_proj = nn.Linear(d, d)
+            self.kv_proj = nn.Linear(d, 2 * d)
+        else:
+            self.qkv = nn.Linear(d, 3 * d)
         self.out_proj = nn.Linear(d, d)
         self.linear1 = nn.Linear(d, config.ff_dim)
         self.linear2 = nn.Linear(config.ff_dim, d)
         self.norm1 = FP32LayerNorm(d)
         self.norm2 = FP32LayerNorm(d)
         # nn.MultiheadAttention's initialisation, for parity with MDM.
-        nn.init.xavier_uniform_(self.qkv.weight)
-        nn.init.zeros_(self.qkv.bias)
+        if pose_centric:
+            _init_split_projection(self.q_proj, self.kv_proj)
+        else:
+            nn.init.xavier_uniform_(self.qkv.weight)
+            nn.init.zeros_(self.qkv.bias)
         nn.init.zeros_(self.out_proj.bias)
+        if cross_attention:
+            self.cross_q = nn.Linear(d, d)
+            self.cross_kv = nn.Linear(d, 2 * d)
+            self.cross_out = nn.Linear(d, d)
+            self.norm_cross = FP32LayerNorm(d)
+            _init_split_projection(self.cross_q, self.cross_kv)
+            nn.init.zeros_(self.cross_out.bias)
 
-    def _attention(self, x: torch.Tensor, attn_mask: torch.Tensor | None) -> torch.Tensor:
-        batch, seq, d = x.shape
-        q, k, v = (
-            self.qkv(x).view(batch, seq, 3, self.num_heads, d // self.num_heads).permute(2, 0, 3, 1, 4).unbind(0)
-        )
+    def _split_heads(self, x: Tensor, parts: int) -> tuple[Tensor, ...]:
+        """(B, S, parts·d) → ``parts`` tensors (B, heads, S, d/heads)."""
+        batch, seq, width = x.shape
+        head_dim = width // (parts * self.num_heads)
+        return x.view(batch, seq, parts, self.num_heads, head_dim).permute(2, 0, 3, 1, 4).unbind(0)
+
+    def _merge_heads(self, x: Tensor) -> Tensor:
+        batch, _, seq, _ = x.shape
+        return x.transpose(1, 2).reshape(batch, seq, -1)
+
+    def _attention(self, x: Tensor, attention: Attention, condition: Tensor | None) -> Tensor:
         dropout_p = self.dropout if self.training else 0.0
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, dropout_p=dropout_p)
-        out = out.transpose(1, 2).reshape(batch, seq, d)
+        if self.pose_centric:
+            if condition is None:
+                raise ValueError("a pose-centric (PCCAT) layer needs the per-token condition")
+            (q,) = self._split_heads(self.q_proj(self.query_cond(torch.cat([x, condition.to(x.dtype)], dim=-1))), 1)
+            k, v = self._split_heads(self.kv_proj(x), 2)
+        else:
+            q, k, v = self._split_heads(self.qkv(x), 3)
+        q, k = attention.position(q, k)
+        out = self._merge_heads(attention.attend(q, k, v, dropout_p))
         return F.dropout(self.out_proj(out), self.dropout, self.training)
+
+    def _cross_attention(self, x: Tensor, memory: Tensor, memory_mask: Tensor | None) -> Tensor:
+        dropout_p = self.dropout if self.training else 0.0
+        (q,) = self._split_heads(self.cross_q(x), 1)
+        k, v = self._split_heads(self.cross_kv(memory), 2)
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=memory_mask, dropout_p=dropout_p)
+        return F.dropout(self.cross_out(self._merge_heads(out)), self.dropout, self.training)
 
     def _feed_forward(self, x: torch.Tensor) -> torch.Tensor:
         hidden = F.dropout(self.activation(self.linear1(x)), self.dropout, self.training)
         return F.dropout(self.linear2(hidden), self.dropout, self.training)
 
-    def forward(self, x: torch.Tensor, attn_mask: torch.Tensor | None = None) -> torch.Tensor:
-        """x: (B, S, d); attn_mask: (B, 1, 1, S) bool, True = key may be attended, or None (attend to all)."""
+    def forward(
+        self,
+        x: torch.Tensor,
+        attn_mask: torch.Tensor | Attention | None = None,
+        *,
+        condition: Tensor | None = None,
+        memory: Tensor | None = None,
+        memory_mask: Tensor | None = None,
+    ) -> torch.Tensor:
+        """x: (B, S, d). attn_mask: (B, 1, 1, S) bool, True = key may be attended, or None (attend to all), or an
+        attention plan (:class:`DenseAttention`, :class:`BlendedAttention`).
+        condition: (B, S, d) per-token query condition (pose-centric layers). memory: (B, M, d) and memory_mask
+        (B, 1, 1, M) bool (cross-attention layers)."""
+        plans = (DenseAttention, BlendedAttention)
+        attention = attn_mask if isinstance(attn_mask, plans) else DenseAttention(attn_mask)
+        if self.has_cross_attention and memory is None:
+            raise ValueError("a cross-attention layer needs the memory")
         if self.norm_first:
-            x = x + self._attention(self.norm1(x), attn_mask)
+            x = x + self._attention(self.norm1(x), attention, condition)
+            if self.has_cross_attention:
+                x = x + self._cross_attention(self.norm_cross(x), memory, memory_mask)
             return x + self._feed_forward(self.norm2(x))
-        x = self.norm1(x + self._attention(x, attn_mask))
+        x = self.norm1(x + self._attention(x, attention, condition))
+        if self.has_cross_attention:
+            x = self.norm_cross(x + self._cross_attention(x, memory, memory_mask))
         return self.norm2(x + self._feed_forward(x))
 
 
@@ -233,10 +597,20 @@ class MotionFlowTransformer(nn.Module):
         self.register_buffer(
             "positional_table", sinusoidal_embedding(torch.arange(config.max_len), d), persistent=False
         )
-        self.layers = nn.ModuleList(EncoderLayer(config) for _ in range(config.num_layers))
+        self.layers = nn.ModuleList(
+            EncoderLayer(
+                config,
+                pose_centric=config.conditioning == "pccat",
+                cross_attention=config.conditioning == "cross_attention",
+            )
+            for _ in range(config.num_layers)
+        )
         # Pre-norm leaves the residual stream un-normalised; post-norm (MDM) already ends in a LayerNorm.
         self.final_norm = FP32LayerNorm(d) if config.norm_first else nn.Identity()
-        self.output_proj = nn.Linear(d, config.feature_dim)
+        self.output_proj = nn.Linear(d, config.output_size)
+        if config.conditioning == "cross_attention":
+            # FLAME: Linear(768 → 768) of RoBERTa's last hidden states, the cross-attention memory.
+            self.text_proj = nn.Linear(config.text_token_dim, d)
 
     def forward(
         self,
@@ -247,60 +621,179 @@ class MotionFlowTransformer(nn.Module):
         *,
         cond_mask: torch.Tensor | None = None,
         generator: torch.Generator | None = None,
+        segments: torch.Tensor | None = None,
+        frame_cond: torch.Tensor | None = None,
+        text_tokens: torch.Tensor | None = None,
+        text_token_len: torch.Tensor | None = None,
+        positional_mode: torch.Tensor | None = None,
+        attention_chunk: int | None = None,
     ) -> torch.Tensor:
         """Velocity at ``x`` (B, T, D) and times ``t`` (B,) in [0, 1].
 
         cond: (B, cond_dim) float text embeddings, or (B,) long action ids for an action model.
-        lengths: (B,) valid frames per sample; frames beyond are padding, hidden from attention and zeroed in the
-            output. None: every frame is valid (and attention runs unmasked, the fastest kernel).
-        cond_mask: (B,) bool, True = drop that sample's condition. Overrides the random training-time dropout, so
-            one batched call can hold a sampler's conditional and unconditional halves.
-        generator: RNG for the training-time condition dropout (global RNG if None).
-        Returns the velocity (B, T, D) in ``x``'s dtype (fp32 under bf16 autocast, for the ODE solver).
+        lengths: (B,) valid frames per sample (>= 1); frames beyond are padding, hidden from attention and zeroed in
+            the output. None: every frame is valid (and attention runs unmasked, the fastest kernel).
+        cond_mask: (B,) bool, True = drop that sample's condition (pooled, per-frame and token features alike).
+            Overrides the random training-time dropout, so one batched call can hold a sampler's conditional and
+            unconditional halves.
+        generator: RNG for the training-time draws, in this order: condition dropout (unless ``cond_mask``), then
+            the BPE mode (unless ``positional_mode``). Global RNG if None.
+        segments: bpe only; (B, T) integer segment index of every frame (a segment = a run of equal values);
+            None = one segment. Absolute positions restart and absolute-mode attention stays inside each segment.
+        frame_cond: pccat only; (B, T, cond_dim) text embedding of the segment each frame belongs to; None =
+            ``cond`` for every frame.
+        text_tokens, text_token_len: cross_attention only (required); (B, L, token_dim) token-level text features
+            zero-padded beyond (B,) valid counts (the shards' ``text_tokens`` / ``text_token_len``).
+        positional_mode: bpe only; (B,) bool, True = relative mode. None: drawn per sample in training
+            (``bpe_train_relative_prob``), all absolute in eval.
+        attention_chunk: bpe only; compute the frames' attention blockwise in query blocks of this many frames
+            (memory linear in T, same result). None: one dense mask.
+        Returns (B, T, output_size) in ``x``'s dtype (fp32 under bf16 autocast, for the ODE solver).
         """
+        config = self.config
         batch, num_frames, _ = self._check_inputs(x, t, cond, lengths, cond_mask)
-        if cond_mask is None and self.training and self.config.cond_drop_prob > 0:
-            cond_mask = draw_cond_drop_mask(batch, self.config.cond_drop_prob, generator, x.device)
+        self._check_variant_inputs(
+            batch, num_frames, segments, frame_cond, text_tokens, text_token_len, positional_mode, attention_chunk
+        )
+        if cond_mask is None and self.training and config.cond_drop_prob > 0:
+            cond_mask = draw_cond_drop_mask(batch, config.cond_drop_prob, generator, x.device)
 
         if lengths is not None:
             lengths = lengths.to(x.device, non_blocking=True)
         frame_mask = None if lengths is None else valid_frame_mask(lengths, num_frames)
+        if config.length_token and lengths is None:
+            lengths = torch.full((batch,), num_frames, dtype=torch.long, device=x.device)
 
-        prefix = [self._time_condition_token(t, cond, cond_mask)]
-        if self.config.length_token:
-            if lengths is None:
-                lengths = torch.full((batch,), num_frames, dtype=torch.long, device=x.device)
-            prefix.insert(0, self.length_embedding(lengths.long()))
+        time = self.time_embedding(t)
+        aux = self._auxiliary_tokens(time, cond, cond_mask, lengths)
         motion = self.input_proj(x)
-        tokens = torch.cat([token.unsqueeze(1).to(motion.dtype) for token in prefix] + [motion], dim=1)
-        # The fp32 table promotes the residual stream to fp32 under autocast; only the matmuls run in bf16.
-        tokens = tokens + self.positional_table[: tokens.shape[1]]
-        tokens = F.dropout(tokens, self.config.dropout, self.training)
+        tokens = torch.cat([token.unsqueeze(1).to(motion.dtype) for token in aux] + [motion], dim=1)
+        if config.positional == "bpe":
+            if positional_mode is None:
+                positional_mode = (
+                    draw_positional_mode(batch, config.bpe_train_relative_prob, generator, x.device)
+                    if self.training
+                    else torch.zeros(batch, dtype=torch.bool, device=x.device)
+                )
+            relative = positional_mode.to(x.device)
+            runs, offsets = segment_runs(
+                None if segments is None else segments.to(x.device), batch, num_frames, x.device
+            )
+            tokens = tokens + self._segment_positions(offsets, len(aux)) * (~relative).to(tokens.dtype)[:, None, None]
+            attention: Attention = self._blended_attention(
+                len(aux), runs, offsets, relative, frame_mask, attention_chunk
+            )
+        else:
+            # The fp32 table promotes the residual stream to fp32 under autocast; only the matmuls run in bf16.
+            tokens = tokens + self.positional_table[: tokens.shape[1]]
+            key_mask = None
+            if frame_mask is not None:
+                aux_valid = torch.ones(batch, len(aux), dtype=torch.bool, device=x.device)
+                key_mask = torch.cat([aux_valid, frame_mask], dim=1)[:, None, None, :]
+            attention = DenseAttention(key_mask)
+        tokens = F.dropout(tokens, config.dropout, self.training)
 
-        attn_mask = None
-        if frame_mask is not None:
-            prefix_valid = torch.ones(batch, len(prefix), dtype=torch.bool, device=x.device)
-            attn_mask = torch.cat([prefix_valid, frame_mask], dim=1)[:, None, None, :]
+        condition = None
+        if config.conditioning == "pccat":
+            condition = self._frame_conditions(time, cond, frame_cond, cond_mask, num_frames)
+        memory = memory_mask = None
+        if config.conditioning == "cross_attention":
+            memory, memory_mask = self._text_memory(aux, text_tokens, text_token_len, cond_mask)
+
         for layer in self.layers:
-            tokens = layer(tokens, attn_mask)
-        velocity = self.output_proj(self.final_norm(tokens[:, len(prefix) :]))
+            tokens = layer(tokens, attention, condition=condition, memory=memory, memory_mask=memory_mask)
+        velocity = self.output_proj(self.final_norm(tokens[:, len(aux) :]))
         if frame_mask is not None:
             velocity = velocity * frame_mask.unsqueeze(-1)
         return velocity.to(x.dtype)
 
-    def _time_condition_token(
-        self, t: torch.Tensor, cond: torch.Tensor, cond_mask: torch.Tensor | None
-    ) -> torch.Tensor:
-        """(B, latent): time embedding + condition embedding (MFM's single prefix token)."""
+    # -- conditioning ------------------------------------------------------------------------------------------
+
+    def _pooled_condition(self, cond: Tensor, cond_mask: Tensor | None) -> Tensor:
+        """(B, latent) embedding of the pooled text (or action), zeroed before the projection when dropped."""
         keep = None if cond_mask is None else (~cond_mask).unsqueeze(1)
         if self.config.is_action_model:
             cond_embedding = self.action_embedding(cond)
-            if keep is not None:
-                cond_embedding = cond_embedding * keep
-        else:
-            # Zero the raw embedding before the projection, as MDM's mask_cond: the null condition is the bias.
-            cond_embedding = self.cond_proj(cond if keep is None else cond * keep)
-        return self.time_embedding(t) + cond_embedding
+            return cond_embedding if keep is None else cond_embedding * keep
+        # Zero the raw embedding before the projection, as MDM's mask_cond: the null condition is the bias.
+        return self.cond_proj(cond if keep is None else cond * keep)
+
+    def _auxiliary_tokens(
+        self, time: Tensor, cond: Tensor, cond_mask: Tensor | None, lengths: Tensor | None
+    ) -> list[Tensor]:
+        """The (B, latent) tokens before the frames, in order (see ModelConfig.num_prefix_tokens)."""
+        config = self.config
+        tokens: list[Tensor] = []
+        if config.length_token:
+            tokens.append(self.length_embedding(lengths.long()))
+        if config.conditioning == "prefix":
+            tokens.append(time + self._pooled_condition(cond, cond_mask))  # MFM's time ⊕ condition token
+        elif config.conditioning == "cross_attention":
+            tokens += [time, self._pooled_condition(cond, cond_mask)]  # FLAME's TS and pooled-text tokens
+        return tokens
+
+    def _frame_conditions(
+        self, time: Tensor, cond: Tensor, frame_cond: Tensor | None, cond_mask: Tensor | None, num_frames: int
+    ) -> Tensor:
+        """PCCAT's (B, T, latent) per-frame conditions: time embedding + projected text of each frame's segment."""
+        if frame_cond is None:
+            frame_cond = cond.unsqueeze(1).expand(-1, num_frames, -1)
+        if cond_mask is not None:
+            frame_cond = frame_cond * (~cond_mask)[:, None, None].to(frame_cond.dtype)
+        return time.unsqueeze(1) + self.cond_proj(frame_cond)
+
+    def _text_memory(
+        self, aux: list[Tensor], text_tokens: Tensor, text_token_len: Tensor, cond_mask: Tensor | None
+    ) -> tuple[Tensor, Tensor]:
+        """FLAME's cross-attention memory [aux tokens, Linear(text tokens)] and its (B, 1, 1, M) key mask; a dropped
+        condition hides every text token (only the auxiliary tokens, with the null pooled text, remain)."""
+        projected = self.text_proj(text_tokens)
+        memory = torch.cat([torch.stack(aux, dim=1).to(projected.dtype), projected], dim=1)
+        num_tokens = text_tokens.shape[1]
+        token_valid = torch.arange(num_tokens, device=projected.device) < text_token_len.to(projected.device)[:, None]
+        if cond_mask is not None:
+            token_valid = token_valid & ~cond_mask[:, None]
+        aux_valid = torch.ones(projected.shape[0], len(aux), dtype=torch.bool, device=projected.device)
+        return memory, torch.cat([aux_valid, token_valid], dim=1)[:, None, None, :]
+
+    # -- blended positional encodings -------------------------------------------------------------------------
+
+    def _segment_positions(self, offsets: Tensor, num_aux: int) -> Tensor:
+        """(B, P + T, latent) absolute positions: the auxiliary tokens at 0 … P−1, each frame at P + its index in
+        its segment (one segment = MFM's table exactly)."""
+        table = self.positional_table
+        batch = offsets.shape[0]
+        aux = table[:num_aux].unsqueeze(0).expand(batch, -1, -1)
+        return torch.cat([aux, table[num_aux + offsets]], dim=1)
+
+    def _blended_attention(
+        self,
+        num_aux: int,
+        runs: Tensor,
+        offsets: Tensor,
+        relative: Tensor,
+        frame_mask: Tensor | None,
+        chunk: int | None,
+    ) -> BlendedAttention:
+        config = self.config
+        window = None
+        if chunk is not None:
+            # The band must hold every allowed pair: the horizon (relative) and a whole segment (absolute).
+            longest_segment = int(offsets.max()) + 1
+            window = max(config.attention_horizon, longest_segment - 1)
+        return BlendedAttention(
+            num_aux=num_aux,
+            runs=runs,
+            relative=relative,
+            horizon=config.attention_horizon,
+            rotary_dims=config.rotary_dims,
+            positions=torch.arange(runs.shape[1], device=runs.device),
+            frame_valid=frame_mask,
+            chunk=chunk,
+            window=window,
+        )
+
+    # -- input checks -----------------------------------------------------------------------------------------
 
     def _check_inputs(
         self,
@@ -315,7 +808,8 @@ class MotionFlowTransformer(nn.Module):
         if x.dim() != 3 or x.shape[2] != config.feature_dim:
             raise ValueError(f"x must be (B, T, {config.feature_dim}), got {tuple(x.shape)}")
         batch, num_frames, dim = x.shape
-        if num_frames + config.num_prefix_tokens > config.max_len:
+        # bpe positions restart at every segment: its own check bounds the longest segment instead.
+        if config.positional == "absolute" and num_frames + config.num_prefix_tokens > config.max_len:
             raise ValueError(
                 f"{num_frames} frames + {config.num_prefix_tokens} prefix tokens exceed max_len={config.max_len}"
             )
@@ -334,6 +828,64 @@ class MotionFlowTransformer(nn.Module):
         if cond_mask is not None and (cond_mask.shape != (batch,) or cond_mask.dtype != torch.bool):
             raise ValueError(f"cond_mask must be bool ({batch},), got {tuple(cond_mask.shape)} {cond_mask.dtype}")
         return batch, num_frames, dim
+
+    def _check_variant_inputs(
+        self,
+        batch: int,
+        num_frames: int,
+        segments: Tensor | None,
+        frame_cond: Tensor | None,
+        text_tokens: Tensor | None,
+        text_token_len: Tensor | None,
+        positional_mode: Tensor | None,
+        attention_chunk: int | None,
+    ) -> None:
+        """Checks of the options' inputs; syncs with the device only to bound a bpe model's longest segment when
+        the whole sequence would not fit in the positional table."""
+        config = self.config
+        bpe_inputs = {"segments": segments, "positional_mode": positional_mode, "attention_chunk": attention_chunk}
+        for name, value in bpe_inputs.items():
+            if value is not None and config.positional != "bpe":
+                raise ValueError(f"{name} needs ModelConfig.positional='bpe'; this model is {config.positional!r}")
+        if frame_cond is not None and config.conditioning != "pccat":
+            raise ValueError(f"frame_cond needs ModelConfig.conditioning='pccat'; this model is {config.conditioning!r}")
+        given_tokens = text_tokens is not None or text_token_len is not None
+        if config.conditioning == "cross_attention":
+            if text_tokens is None or text_token_len is None:
+                raise ValueError("a cross_attention model needs text_tokens (B, L, E) and text_token_len (B,)")
+        elif given_tokens:
+            raise ValueError(f"text_tokens need ModelConfig.conditioning='cross_attention'; this model is "
+                             f"{config.conditioning!r}")
+        if segments is not None and (segments.shape != (batch, num_frames) or segments.is_floating_point()
+                                     or segments.dtype == torch.bool):
+            raise ValueError(f"segments must be integer ({batch}, {num_frames}), got {tuple(segments.shape)} "
+                             f"{segments.dtype}")
+        if positional_mode is not None and (positional_mode.shape != (batch,) or positional_mode.dtype != torch.bool):
+            raise ValueError(f"positional_mode must be bool ({batch},), got {tuple(positional_mode.shape)} "
+                             f"{positional_mode.dtype}")
+        if attention_chunk is not None and (
+            not isinstance(attention_chunk, int) or isinstance(attention_chunk, bool) or attention_chunk <= 0
+        ):
+            raise ValueError(f"attention_chunk must be a positive int, got {attention_chunk!r}")
+        if frame_cond is not None and (frame_cond.shape != (batch, num_frames, config.cond_dim)
+                                       or not frame_cond.is_floating_point()):
+            raise ValueError(f"frame_cond must be float ({batch}, {num_frames}, {config.cond_dim}), got "
+                             f"{tuple(frame_cond.shape)} {frame_cond.dtype}")
+        if text_tokens is not None:
+            if (text_tokens.dim() != 3 or text_tokens.shape[0] != batch or text_tokens.shape[1] == 0
+                    or text_tokens.shape[2] != config.text_token_dim or not text_tokens.is_floating_point()):
+                raise ValueError(f"text_tokens must be float ({batch}, L >= 1, {config.text_token_dim}), got "
+                                 f"{tuple(text_tokens.shape)} {text_tokens.dtype}")
+            if text_token_len.shape != (batch,) or text_token_len.is_floating_point():
+                raise ValueError(f"text_token_len must be integer ({batch},), got {tuple(text_token_len.shape)} "
+                                 f"{text_token_len.dtype}")
+        if config.positional == "bpe" and num_frames + config.num_prefix_tokens > config.max_len:
+            longest = num_frames
+            if segments is not None:
+                longest = int(segment_runs(segments, batch, num_frames, segments.device)[1].max()) + 1
+            if longest + config.num_prefix_tokens > config.max_len:
+                raise ValueError(f"a segment of {longest} frames + {config.num_prefix_tokens} prefix tokens exceeds "
+                                 f"max_len={config.max_len}")
 
 
 def count_parameters(model: nn.Module) -> int:
