@@ -40,12 +40,13 @@ Differences between the two references, both selectable:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from mfm.flow import VelocityModel, masked_mse, sample_noise
 from mfm.model import ModelConfig, MotionFlowTransformer, valid_frame_mask
@@ -459,16 +460,7 @@ def diffusion_from_preset(name: str, **overrides) -> GaussianDiffusion:
 
 def learned_variance_transformer(config: ModelConfig) -> MotionFlowTransformer:
     """FLAME's denoiser shape on the MFM backbone: the final Linear maps the latent to 2·D channels [ε ; v]
-    (FLAME: Linear(768 → 2·147)), the rest of the network is unchanged (padded frames are still zeroed).
-
-    Interim construction until ``ModelConfig`` has an ``output_dim`` field; it replaces ``output_proj`` and fails
-    loudly if the backbone no longer has that layer. Build the model the same way before loading its checkpoint.
-    """
-    model = MotionFlowTransformer(config)
-    head = getattr(model, "output_proj", None)
-    if not isinstance(head, nn.Linear) or head.out_features != config.feature_dim:
-        raise TypeError("MotionFlowTransformer no longer has an output_proj Linear(latent, feature_dim) to widen")
-    model.output_proj = nn.Linear(head.in_features, 2 * config.feature_dim)
-    return model
+    (FLAME: Linear(768 → 2·147)); the rest of the network is unchanged (padded frames are still zeroed)."""
+    return MotionFlowTransformer(dataclasses.replace(config, output_dim=2 * config.feature_dim))
 
 
