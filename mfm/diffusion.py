@@ -42,8 +42,8 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -408,13 +408,15 @@ class GaussianDiffusion:
         cond_mask: Tensor | None = None,
         step: Tensor | None = None,
         noise: Tensor | None = None,
+        model_kwargs: Mapping[str, Any] | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """Diffusion training loss on a padded batch x1 (B, T, D) of clean motions (the :class:`Objective` call).
 
         Draws, in this order and all from ``generator`` if given: step (B,) uniform in [0, N), noise (B, T, D), then
         the model's condition dropout (unless ``cond_mask`` is given). ``step`` / ``noise`` replace the draws (e.g. a
         data-parallel slice of the global batch's draws). The model sees ``x_s = q_sample(x1, step, noise)`` and
-        ``t_model = step / N``.
+        ``t_model = step / N``. ``model_kwargs`` go to the model (per-frame conditions, token features, positional
+        mode of the model variants).
         Returns the loss and detached stats ``{"loss", "mse", "vb" (learn_sigma only), "valid_frames"}``.
         """
         if x1.dim() != 3:
@@ -430,7 +432,8 @@ class GaussianDiffusion:
         x_t = self.q_sample(x1, step, noise)
         # As flow_matching_loss: with an explicit cond_mask the model draws nothing (no generator, no graph break).
         model_generator = generator if cond_mask is None else None
-        output = model(x_t, self.model_time(step), cond, lengths, cond_mask=cond_mask, generator=model_generator)
+        output = model(x_t, self.model_time(step), cond, lengths, cond_mask=cond_mask, generator=model_generator,
+                       **(model_kwargs or {}))
         prediction, variance_values = self.split_output(output, x_t)
         frame_mask = valid_frame_mask(lengths, x1.shape[1])
         target = noise if self.prediction == "eps" else x1

@@ -12,7 +12,8 @@ The diffusion objective (FLAME / FlowMDM baselines) can live beside this one beh
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
+from collections.abc import Mapping
+from typing import Any, Protocol
 
 import torch
 
@@ -34,6 +35,7 @@ class VelocityModel(Protocol):
         *,
         cond_mask: torch.Tensor | None = None,
         generator: torch.Generator | None = None,
+        **model_kwargs: Any,
     ) -> torch.Tensor: ...
 
 
@@ -49,6 +51,7 @@ class Objective(Protocol):
         *,
         generator: torch.Generator | None = None,
         cond_mask: torch.Tensor | None = None,
+        model_kwargs: Mapping[str, Any] | None = None,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]: ...
 
 
@@ -110,6 +113,7 @@ def flow_matching_loss(
     cond_mask: torch.Tensor | None = None,
     t: torch.Tensor | None = None,
     x0: torch.Tensor | None = None,
+    model_kwargs: Mapping[str, Any] | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch.
 
@@ -118,7 +122,8 @@ def flow_matching_loss(
     t (B,), noise x0 (B, T, D), then the model's condition dropout (unless ``cond_mask`` is given). A compiled
     training step should draw ``cond_mask`` itself (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
     ``t`` (B,) and ``x0`` (B, T, D), when given, replace the draws (a data-parallel step slices them from the
-    global batch's draws so that any world size computes the same thing).
+    global batch's draws so that any world size computes the same thing). ``model_kwargs`` go to the model
+    (per-frame conditions, token features, positional mode of the FlowMDM/FLAME variants).
     Returns the scalar loss and ``{"loss": detached loss, "valid_frames": number of frames averaged}``.
     """
     if x1.dim() != 3:
@@ -134,7 +139,7 @@ def flow_matching_loss(
     # With an explicit cond_mask the model draws nothing; not passing the generator then keeps a torch.compile'd
     # model free of a graph break (a Generator argument breaks the graph).
     model_generator = generator if cond_mask is None else None
-    velocity = model(x_t, t, cond, lengths, cond_mask=cond_mask, generator=model_generator)
+    velocity = model(x_t, t, cond, lengths, cond_mask=cond_mask, generator=model_generator, **(model_kwargs or {}))
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
     loss = masked_mse(velocity, target_velocity(x0, x1, sigma_min), frame_mask)
     return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
@@ -159,7 +164,11 @@ class FlowMatchingObjective:
         *,
         generator: torch.Generator | None = None,
         cond_mask: torch.Tensor | None = None,
+        t: torch.Tensor | None = None,
+        x0: torch.Tensor | None = None,
+        model_kwargs: Mapping[str, Any] | None = None,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         return flow_matching_loss(
-            model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask
+            model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask,
+            t=t, x0=x0, model_kwargs=model_kwargs,
         )
