@@ -7,8 +7,13 @@ versioned resume state saved atomically by :mod:`pipeline.checkpoint`. ``fit`` r
     resume → for each optimizer step: stop requested? → train_step → maybe_log → maybe_save
 
 Decisions that every rank must take together (skip a non-finite step, stop on SIGTERM/SIGINT) come from ONE
-all-reduce of a 2-element flag vector per optimizer step; that and the ``.item()`` reading it are the only host
-syncs outside log steps.
+all-reduce (SUM) of a small flag vector per optimizer step, which also carries the loss, so the logged loss is
+the mean over all ranks at no extra cost; that and the ``.tolist()`` reading it are the only host syncs outside
+log steps.
+
+Exact resume: a run killed at any point and resumed with ``train.resume=auto`` continues bit-identically to an
+uninterrupted one (weights, EMA, optimizer, scheduler, Python/NumPy/torch RNGs, the per-rank draw generator,
+the data position, counters), and metrics.jsonl holds every step once.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import json
 import logging
 import math
 import os
+import random
 import signal
 import time
 from collections.abc import Iterator, Mapping
@@ -25,6 +31,7 @@ from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import yaml
 from tqdm.auto import tqdm
@@ -106,23 +113,61 @@ def warmup_lambda(warmup_steps: int):
 
 class StopSignal:
     """Remembers SIGTERM/SIGINT instead of dying mid-step; the loop checks it at step boundaries, all ranks agree
-    through the step's flag all-reduce, and the run stops after writing one complete checkpoint."""
+    through the step's flag all-reduce, and the run stops after writing one complete checkpoint.
+
+    A second signal means "now": the previous handlers come back and the signal is delivered to them
+    (KeyboardInterrupt for SIGINT, death for SIGTERM), e.g. when a data read hangs. DataLoader workers forked
+    after :meth:`install` inherit the handler; there it ignores the signal (their rank process shuts them down).
+    """
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
     def __init__(self) -> None:
         self.signum = 0
         self._previous: dict[int, Any] = {}
+        self._pid = os.getpid()
 
     def install(self) -> None:
-        for signum in (signal.SIGTERM, signal.SIGINT):
+        self._pid = os.getpid()
+        for signum in self.SIGNALS:
             self._previous[signum] = signal.signal(signum, self._handle)
 
     def _handle(self, signum: int, frame: Any) -> None:
-        self.signum = self.signum or signum
+        if os.getpid() != self._pid:
+            return
+        if not self.signum:
+            self.signum = signum
+            logger.warning("received %s: stopping after this step with a checkpoint (send it again to stop at once)",
+                           signal.Signals(signum).name)
+            return
+        previous = self._previous.get(signum, signal.SIG_DFL)
+        self.restore()
+        if callable(previous):
+            previous(signum, frame)
+        elif previous == signal.SIG_DFL:
+            signal.raise_signal(signum)
+
+    def flags(self) -> list[float]:
+        """One slot per handled signal (1.0 if it was received): summed over ranks, any non-zero slot stops all."""
+        return [float(self.signum == s) for s in self.SIGNALS]
+
+    @classmethod
+    def from_flags(cls, summed: list[float]) -> int:
+        """The signal every rank stops for (SIGTERM first), from the rank-summed :meth:`flags`; 0 for none."""
+        return next((int(s) for s, count in zip(cls.SIGNALS, summed) if count > 0), 0)
 
     def restore(self) -> None:
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
         self._previous.clear()
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python's, NumPy's (legacy global) and torch's RNGs (all devices): the states a checkpoint captures
+    then start from the same point in every run with this seed, not from the OS entropy of each process."""
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
 
 
 @dataclasses.dataclass
@@ -155,9 +200,9 @@ def draw_for_batch(batch: Mapping[str, Any], cond_drop_prob: float, generator: t
 
 @dataclasses.dataclass
 class StepResult:
-    loss: torch.Tensor  # mean loss over the step's micro-batches (device tensor; NaN when skipped)
-    grad_norm: torch.Tensor
-    skipped: bool
+    loss: float  # mean loss over the step's micro-batches and all ranks (NaN when some rank's was not finite)
+    grad_norm: torch.Tensor  # global gradient norm before clipping (device tensor: read it on log steps only)
+    skipped: bool  # the update was skipped on every rank (non-finite loss or gradient norm on some rank)
     stop_signal: int  # the signal number some rank received before this step's end (0: none)
 
 
@@ -174,7 +219,7 @@ class Trainer:
         bad_shards = self._verified_bad_shards()
         self.model_config = model_config_for(self.manifest, cfg.model)
 
-        torch.manual_seed(cfg.train.seed)  # identical initial weights on every rank
+        seed_everything(cfg.train.seed)  # identical initial weights on every rank
         model = MotionFlowTransformer(self.model_config)
         self.num_parameters = count_parameters(model)
         self.ema = EMA(model, cfg.optim.ema_decay)
@@ -275,9 +320,11 @@ class Trainer:
                 torch.stack([p.grad.detach().norm() for p in model.parameters() if p.grad is not None])
             )
         nonfinite = ~(torch.isfinite(loss_mean) & torch.isfinite(grad_norm))
-        flags = torch.stack([nonfinite.float(), torch.tensor(float(self.stop_signal.signum), device=device)])
-        flags = self.dist.all_reduce_max(flags)
-        skip, stop_signum = (int(v) for v in flags.tolist())  # the one host sync per step: every rank decides alike
+        signals = torch.tensor(self.stop_signal.flags(), device=device)
+        flags = self.dist.all_reduce_sum(torch.cat([nonfinite.float().view(1), signals, loss_mean.float().view(1)]))
+        # The one host sync per step: every rank reads the same sums, so every rank decides alike.
+        nonfinite_ranks, *signal_counts, loss_sum = flags.tolist()
+        skip = nonfinite_ranks > 0
         if skip:
             self.optimizer.zero_grad(set_to_none=True)
         else:
@@ -286,7 +333,8 @@ class Trainer:
             self.optimizer.zero_grad(set_to_none=True)
             if self.step % self.cfg.optim.ema_every == 0:
                 self.ema.update(self.dist.unwrap(model))
-        return StepResult(loss_mean, grad_norm, bool(skip), stop_signum)
+        loss = loss_sum / self.dist.world_size
+        return StepResult(loss, grad_norm, skip, StopSignal.from_flags(signal_counts))
 
     def _handle_nonfinite(self, result: StepResult) -> None:
         if not result.skipped:
@@ -330,7 +378,8 @@ class Trainer:
                           "normalization": self.manifest.data["normalization"],
                           "train_lengths": list(self.manifest.split("train")["lengths"])},
                 extra={"samples_seen": self.samples_seen, "skipped_steps": self.skipped_steps,
-                       "ema_updates": self.ema.num_updates, "model_config": dataclasses.asdict(self.model_config)},
+                       "consecutive_skips": self.consecutive_skips, "ema_updates": self.ema.num_updates,
+                       "model_config": dataclasses.asdict(self.model_config)},
             )
             ckpt.prune_checkpoints(self.ckpt_root, self.cfg.train.keep_last)
         self.dist.barrier()
@@ -368,6 +417,7 @@ class Trainer:
         self.step = state["step"]
         self.samples_seen = extra["samples_seen"]
         self.skipped_steps = extra["skipped_steps"]
+        self.consecutive_skips = extra.get("consecutive_skips", 0)
         self._last_saved_step = self.step
         self.dist.log0("resumed from %s at step %d", path, self.step)
         return Path(path)
@@ -379,10 +429,13 @@ class Trainer:
         cfg = self.cfg
         self._write_run_files()
         self.resume()
-        logger_sink = MetricsSink(self.out_dir, cfg, self.dist, self.model_config, self.num_parameters)
+        logger_sink = MetricsSink(self.out_dir, cfg, self.dist, self.model_config, self.num_parameters, self.step)
         self.stop_signal.install()
-        batches = self.loader.iter_batches()
-        window = WindowStats(self.dist.device)
+        # Creating the DataLoader iterator (num_workers > 0) draws the workers' base seed from the global torch
+        # RNG; fork it, or a resumed run's dropout stream would be one draw ahead of the uninterrupted run's.
+        with torch.random.fork_rng(devices=[]):
+            batches = self.loader.iter_batches()
+        window = WindowStats()
         progress = tqdm(total=cfg.train.max_steps, initial=self.step, disable=not self.dist.is_main,
                         desc="train", dynamic_ncols=True)
         try:
@@ -392,7 +445,7 @@ class Trainer:
                 self.step += 1
                 self.samples_seen += cfg.data.batch_size * cfg.optim.grad_accum * self.dist.world_size
                 self._handle_nonfinite(result)
-                window.add(result.loss, cfg.data.batch_size * cfg.optim.grad_accum)
+                window.add(result, cfg.data.batch_size * cfg.optim.grad_accum)
                 progress.update(1)
                 if self.step % cfg.train.log_every == 0 or self.step == cfg.train.max_steps:
                     logger_sink.log(self._log_record(window, result), progress)
@@ -417,10 +470,11 @@ class Trainer:
 
     def _log_record(self, window: "WindowStats", result: StepResult) -> dict[str, Any]:
         stats = window.flush()
+        grad_norm = float(result.grad_norm)
         return {
             "step": self.step,
-            "loss": stats["loss"],
-            "grad_norm": float(result.grad_norm),
+            "loss": stats["loss"],  # None (JSON null) when every step of the window was skipped
+            "grad_norm": grad_norm if math.isfinite(grad_norm) else None,
             "lr": self.scheduler.get_last_lr()[0],
             "samples_per_s": stats["samples_per_s"] * self.dist.world_size,
             "data_wait_frac": stats["data_wait_frac"],
@@ -430,23 +484,23 @@ class Trainer:
         }
 
     def _write_run_files(self) -> None:
+        """config.yaml (the resolved config) and shard_report.json (what verification found and skipped)."""
         if self.dist.is_main:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             (self.out_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(self.cfg), sort_keys=False))
+            (self.out_dir / "shard_report.json").write_text(json.dumps(self.shard_report, indent=1) + "\n")
         self.dist.barrier()
 
 
 class WindowStats:
-    """Loss, throughput and data-wait fraction since the last log line; the loss stays on the device (summed
-    there) until :meth:`flush`, which is the log step's host sync."""
+    """Loss, throughput and data-wait fraction since the last log line."""
 
-    def __init__(self, device: torch.device) -> None:
-        self.device = device
+    def __init__(self) -> None:
         self._reset()
 
     def _reset(self) -> None:
-        self.loss_sum = torch.zeros((), device=self.device)
-        self.steps = 0
+        self.loss_sum = 0.0
+        self.loss_steps = 0
         self.samples = 0
         self.data_wait = 0.0
         self.started = time.perf_counter()
@@ -457,16 +511,17 @@ class WindowStats:
         self.data_wait += time.perf_counter() - start
         return out
 
-    def add(self, loss: torch.Tensor, samples: int) -> None:
-        # A skipped (non-finite) step would poison the window's mean: count it as zero loss, reported separately.
-        self.loss_sum += torch.nan_to_num(loss.detach(), nan=0.0, posinf=0.0, neginf=0.0)
-        self.steps += 1
+    def add(self, result: StepResult, samples: int) -> None:
+        # A skipped (non-finite) step has no loss to average: it is counted in skipped_steps instead.
+        if not result.skipped:
+            self.loss_sum += result.loss
+            self.loss_steps += 1
         self.samples += samples
 
-    def flush(self) -> dict[str, float]:
+    def flush(self) -> dict[str, float | None]:
         elapsed = max(time.perf_counter() - self.started, 1e-9)
         out = {
-            "loss": float(self.loss_sum.item()) / max(self.steps, 1),
+            "loss": self.loss_sum / self.loss_steps if self.loss_steps else None,
             "samples_per_s": self.samples / elapsed,
             "data_wait_frac": self.data_wait / elapsed,
         }
@@ -478,13 +533,16 @@ class MetricsSink:
     """Rank 0's outputs: the tqdm postfix, ``metrics.jsonl`` in the run folder, and W&B (offline by default;
     ``WANDB_MODE`` wins; a W&B failure is logged and never stops training)."""
 
-    def __init__(self, out_dir: Path, cfg: TrainConfig, dist: Dist, model_config: ModelConfig, num_parameters: int):
+    def __init__(self, out_dir: Path, cfg: TrainConfig, dist: Dist, model_config: ModelConfig, num_parameters: int,
+                 start_step: int = 0):
         self.enabled = dist.is_main
         self.jsonl = None
         self.wandb_run = None
         if not self.enabled:
             return
-        self.jsonl = open(out_dir / "metrics.jsonl", "a", encoding="utf-8")
+        metrics_path = out_dir / "metrics.jsonl"
+        drop_records_after(metrics_path, start_step)
+        self.jsonl = open(metrics_path, "a", encoding="utf-8")
         dist.log0("model: %.2f M parameters; world size %d; device %s; precision %s",
                   num_parameters / 1e6, dist.world_size, dist.device, dist.mixed_precision)
         mode = os.environ.get("WANDB_MODE", cfg.train.wandb)
@@ -504,18 +562,37 @@ class MetricsSink:
     def log(self, record: dict[str, Any], progress: tqdm) -> None:
         if not self.enabled:
             return
-        progress.set_postfix(loss=f"{record['loss']:.4f}", sps=f"{record['samples_per_s']:.0f}",
-                             wait=f"{record['data_wait_frac']:.0%}")
+        loss = "skipped" if record["loss"] is None else f"{record['loss']:.4f}"
+        progress.set_postfix(loss=loss, sps=f"{record['samples_per_s']:.0f}", wait=f"{record['data_wait_frac']:.0%}")
         self.jsonl.write(json.dumps(record) + "\n")
         self.jsonl.flush()
         if self.wandb_run is not None:
-            self.wandb_run.log({f"train/{k}": v for k, v in record.items() if k != "step"}, step=record["step"])
+            scalars = {f"train/{k}": v for k, v in record.items() if k != "step" and v is not None}
+            self.wandb_run.log(scalars, step=record["step"])
 
     def close(self) -> None:
         if self.jsonl is not None:
             self.jsonl.close()
         if self.wandb_run is not None:
             self.wandb_run.finish()
+
+
+def drop_records_after(metrics_path: Path, step: int) -> None:
+    """Keep only the records of steps <= ``step`` (the step a run starts or resumes from): the steps after it are
+    about to be trained (again), and a killed run may have logged some of them, or left a torn last line."""
+    if not metrics_path.exists():
+        return
+    kept = []
+    for line in metrics_path.read_text(encoding="utf-8").splitlines():
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(record, dict) and isinstance(record.get("step"), int) and record["step"] <= step:
+            kept.append(line + "\n")
+    tmp = metrics_path.with_name(metrics_path.name + ".tmp")
+    tmp.write_text("".join(kept), encoding="utf-8")
+    os.replace(tmp, metrics_path)
 
 
 def _wandb_run_id(out_dir: Path) -> str:

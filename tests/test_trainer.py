@@ -1,0 +1,410 @@
+"""The training loop's promises at one rank (CPU, tiny model): it learns, its run folder is complete, a hard-killed
+run resumes bit-exactly (weights, EMA, optimizer, RNG, data order, per-step losses), signals stop it cleanly with
+128 + N, non-finite losses are skipped within a budget, and bad shards are refused or skipped as configured.
+
+Runs that are compared bit for bit run as separate processes through tests/trainer_worker.py (same thread count
+in every run); the rest run in this process through launch/train.py's ``main``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+import yaml
+
+import pipeline.trainer as trainer_module
+from conftest import REPO_ROOT
+from pipeline import checkpoint as ckpt
+from pipeline.config import TrainConfig, from_dict, load_config
+from pipeline.data import ShardVerificationError
+from pipeline.distributed import Dist
+from pipeline.trainer import NonFiniteLossError, Trainer
+
+
+def _load_entry_point():
+    spec = importlib.util.spec_from_file_location("launch_train", REPO_ROOT / "launch" / "train.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+train_entry = _load_entry_point()  # launch/train.py, whose main() the in-process tests call
+
+WORKER = REPO_ROOT / "tests" / "trainer_worker.py"
+LAUNCH_VARS = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT", "GROUP_RANK",
+               "ROLE_RANK", "ROLE_WORLD_SIZE", "TORCHELASTIC_RUN_ID", "ACCELERATE_USE_CPU",
+               "ACCELERATE_MIXED_PRECISION")
+
+# Resume scenario: checkpoints every 5 steps, killed in the middle of step 12 (so steps 11-12 are replayed from
+# checkpoint 10), 16 steps in all. At one rank an epoch is 13 batches (checkpoint 10 lies inside epoch 0 and the
+# resumed run crosses into epoch 1); with 2 workers it is 10 (checkpoint 10 lies on the epoch boundary).
+MAX_STEPS, SAVE_EVERY, KILL_STEP = 16, 5, 12
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Shared helpers (also used by test_trainer_multirank.py)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def build_dataset_once(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """60 synthetic clips (53 train in 6 shards of <= 10), MiniLM captions; built once per test session."""
+    root = tmp_path_factory.getbasetemp() / "trainer-dataset"
+    manifest = root / "manifest.json"
+    if not manifest.exists():
+        building = root.with_name("trainer-dataset.building")
+        shutil.rmtree(building, ignore_errors=True)
+        subprocess.run(
+            [sys.executable, str(REPO_ROOT / "preprocess" / "build_shards.py"), "--source", "synthetic",
+             "--num-clips", "60", "--shard-size", "10", "--out", str(building), "--quiet"],
+            cwd=REPO_ROOT, env=clean_env(), check=True, capture_output=True, timeout=300,
+        )
+        os.rename(building, root)
+    return manifest
+
+
+@pytest.fixture(scope="session")
+def dataset(tmp_path_factory) -> Path:
+    return build_dataset_once(tmp_path_factory)
+
+
+def clean_env() -> dict[str, str]:
+    """This environment without any launcher variables, one intra-op thread, offline, no W&B."""
+    env = {k: v for k, v in os.environ.items() if k not in LAUNCH_VARS}
+    env.update(OMP_NUM_THREADS="1", HF_HUB_OFFLINE="1", WANDB_MODE="disabled", PYTHONUNBUFFERED="1")
+    return env
+
+
+def base_overrides(manifest: Path, out_dir: Path, *extra: str) -> list[str]:
+    return [f"data.manifest={manifest}", f"train.out_dir={out_dir}", "train.log_every=1", *extra]
+
+
+def resume_overrides(manifest: Path, out_dir: Path, *extra: str) -> list[str]:
+    return base_overrides(manifest, out_dir, f"train.max_steps={MAX_STEPS}", f"train.save_every={SAVE_EVERY}",
+                          "train.keep_last=2", *extra)
+
+
+def run_worker(launcher: list[str], scenarios: list[dict[str, Any]], spec_dir: Path, timeout: float = 240,
+               env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Run tests/trainer_worker.py under ``launcher`` (e.g. [python] or [python, -m, torch.distributed.run, ...])."""
+    spec_dir.mkdir(parents=True, exist_ok=True)
+    spec = spec_dir / "spec.json"
+    spec.write_text(json.dumps(scenarios))
+    return subprocess.run(launcher + [str(WORKER), str(spec)], cwd=REPO_ROOT, env=env or clean_env(),
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def output_of(proc: subprocess.CompletedProcess) -> str:
+    return f"exit {proc.returncode}\n--- stdout\n{proc.stdout[-4000:]}\n--- stderr\n{proc.stderr[-6000:]}"
+
+
+def fit_scenario(out: Path, overrides: list[str], **faults: Any) -> dict[str, Any]:
+    return {"kind": "fit", "out": str(out), "overrides": overrides, "record_ids": True, **faults}
+
+
+def results(out: Path, ranks: int) -> list[dict[str, Any]]:
+    return [json.loads((out / f"result-rank{r}.json").read_text()) for r in range(ranks)]
+
+
+def metrics_by_step(run_dir: Path) -> dict[int, dict[str, Any]]:
+    """metrics.jsonl as {step: record}; fails if a step was logged twice (a resumed run must not duplicate)."""
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    steps = [r["step"] for r in records]
+    assert steps == sorted(set(steps)), f"metrics.jsonl steps not strictly increasing: {steps}"
+    return {r["step"]: r for r in records}
+
+
+def ids_by_step(out: Path, rank: int) -> dict[int, list[list[str]]]:
+    """Sample ids each step consumed on ``rank``; a step recorded twice (replayed after a kill) must agree."""
+    seen: dict[int, list[list[str]]] = {}
+    for line in (out / f"ids-rank{rank}.jsonl").read_text().splitlines():
+        record = json.loads(line)
+        if record["step"] in seen:
+            assert seen[record["step"]] == record["ids"], f"step {record['step']} replayed with different samples"
+        seen[record["step"]] = record["ids"]
+    return seen
+
+
+def complete_steps(run_dir: Path) -> list[int]:
+    return [step for step, _ in ckpt.list_complete(ckpt.checkpoints_dir(run_dir))]
+
+
+def assert_identical(a: Any, b: Any, where: str = "state") -> None:
+    """Recursive equality with tensors compared by dtype, shape and every bit (atol = rtol = 0)."""
+    if isinstance(a, torch.Tensor):
+        assert isinstance(b, torch.Tensor) and a.dtype == b.dtype, f"{where}: {b!r} is not a {a.dtype} tensor"
+        identical = a.shape == b.shape and torch.equal(a, b)
+        assert identical, f"{where} differs" + (f" (max |a - b| {(a - b).abs().max()})" if a.shape == b.shape else "")
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and a.keys() == b.keys(), f"{where}: keys differ"
+        for key in a:
+            assert_identical(a[key], b[key], f"{where}.{key}")
+    elif isinstance(a, (list, tuple)):
+        assert isinstance(b, (list, tuple)) and len(a) == len(b), f"{where}: lengths differ"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_identical(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, f"{where}: {a!r} != {b!r}"
+
+
+def assert_runs_identical(run_a: Path, run_b: Path, step: int) -> None:
+    """Final checkpoints equal bit for bit (model, EMA, optimizer, scheduler, per-rank RNG and data position,
+    counters) and the same per-step metrics; only the run folder differs."""
+    model_a, ema_a, state_a = ckpt.load_checkpoint(ckpt.checkpoints_dir(run_a) / ckpt.step_dir_name(step))
+    model_b, ema_b, state_b = ckpt.load_checkpoint(ckpt.checkpoints_dir(run_b) / ckpt.step_dir_name(step))
+    assert_identical(model_a, model_b, "model")
+    assert_identical(ema_a, ema_b, "ema")
+    for state in (state_a, state_b):
+        del state["config"]["train"]["out_dir"]
+    assert_identical(state_a, state_b, "state.pt")
+    metrics_a, metrics_b = metrics_by_step(run_a), metrics_by_step(run_b)
+    assert sorted(metrics_a) == sorted(metrics_b) == list(range(1, step + 1))
+    deterministic = ("loss", "grad_norm", "lr", "epoch", "samples_seen", "skipped_steps")
+    for s in metrics_a:
+        assert {k: metrics_a[s][k] for k in deterministic} == {k: metrics_b[s][k] for k in deterministic}, s
+
+
+def flip_byte(path: Path, offset: int) -> None:
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# It learns; the run folder holds what it promises
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_loss_decreases_and_run_folder_is_complete(dataset, tmp_path):
+    run = tmp_path / "run"
+    overrides = base_overrides(dataset, run, "train.max_steps=60", "train.save_every=20", "train.keep_last=2",
+                               "data.batch_size=8", "optim.lr=2e-3", "model.dropout=0.0")
+    assert train_entry.main(["--config", "tiny", *overrides]) == 0
+
+    metrics = metrics_by_step(run)
+    assert sorted(metrics) == list(range(1, 61))
+    # The flow-matching loss of one batch swings with its random times t: compare 10-step means.
+    first = sum(metrics[s]["loss"] for s in range(1, 11)) / 10
+    last = sum(metrics[s]["loss"] for s in range(51, 61)) / 10
+    assert last < 0.8 * first, f"loss did not decrease: first 10 steps {first:.3f}, last 10 {last:.3f}"
+    assert metrics[60]["samples_seen"] == 60 * 8 and metrics[60]["skipped_steps"] == 0
+
+    saved = from_dict(TrainConfig, yaml.safe_load((run / "config.yaml").read_text()))
+    assert saved.train.max_steps == 60 and saved.data.manifest == str(dataset)
+    # keep_last=2: of the checkpoints at 20, 40, 60 the two newest remain, complete, nothing half-written
+    assert complete_steps(run) == [40, 60]
+    assert sorted(p.name for p in ckpt.checkpoints_dir(run).iterdir()) == ["step-00000040", "step-00000060"]
+    _, ema, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(run) / "step-00000060")
+    assert state["step"] == 60 and state["world_size"] == 1 and state["extra"]["samples_seen"] == 480
+    assert ema is not None and state["extra"]["ema_updates"] == 60
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Exact resume after a hard kill
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("num_workers", [0, 2])
+def test_resume_after_sigkill_is_bit_exact(dataset, tmp_path, num_workers):
+    """Run A: 16 steps. Run B: SIGKILLed in the middle of step 12, resume=auto from checkpoint 10, on to 16.
+    Dropout is on, so equal weights also prove the global RNG was restored."""
+    python = [sys.executable]
+    extra = (f"data.num_workers={num_workers}",)
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    proc = run_worker(python, [fit_scenario(a_out, resume_overrides(dataset, a_out / "run", *extra))], a_out)
+    assert proc.returncode == 0, output_of(proc)
+
+    b_scenario = fit_scenario(b_out, resume_overrides(dataset, b_out / "run", *extra))
+    proc = run_worker(python, [{**b_scenario, "kill_at": [0, KILL_STEP]}], b_out)
+    assert proc.returncode == -signal.SIGKILL, output_of(proc)
+    assert complete_steps(b_out / "run") == [5, 10]
+    proc = run_worker(python, [b_scenario], b_out)
+    assert proc.returncode == 0, output_of(proc)
+    assert "resumed from" in proc.stderr and "step-00000010" in proc.stderr
+
+    assert_runs_identical(a_out / "run", b_out / "run", MAX_STEPS)
+    ids_a, ids_b = ids_by_step(a_out, 0), ids_by_step(b_out, 0)
+    assert sorted(ids_a) == list(range(1, MAX_STEPS + 1)) and ids_a == ids_b
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Signals
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class SignalAtStep:
+    """A loss that sends ``signum`` to this process during the ``step``-th call (the middle of that step)."""
+
+    def __init__(self, step: int, signum: int, times: int = 1) -> None:
+        self.step, self.signum, self.times, self.calls = step, signum, times, 0
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        if self.calls == self.step:
+            for _ in range(self.times):
+                os.kill(os.getpid(), self.signum)
+        return trainer_module.flow_matching_loss.__wrapped__(*args, **kwargs)
+
+
+def patch_loss(monkeypatch, loss) -> None:
+    loss.__wrapped__ = trainer_module.flow_matching_loss
+    monkeypatch.setattr(trainer_module, "flow_matching_loss", loss)
+
+
+def test_sigint_finishes_the_step_saves_and_exits_130(dataset, tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    patch_loss(monkeypatch, SignalAtStep(3, signal.SIGINT))
+    previous = signal.getsignal(signal.SIGINT)
+    code = train_entry.main(["--config", "tiny", *base_overrides(dataset, run, "train.max_steps=50",
+                                                                   "train.save_every=20")])
+    assert code == 128 + signal.SIGINT == 130
+    assert complete_steps(run) == [3]  # stopped after the step in progress, with one checkpoint of it
+    assert sorted(metrics_by_step(run)) == [1, 2, 3]
+    assert signal.getsignal(signal.SIGINT) is previous  # the handler is uninstalled again
+
+
+def test_a_second_signal_aborts_at_once(dataset, tmp_path, monkeypatch):
+    """Ctrl-C twice: the user does not want to wait for the step to end (e.g. a hung data read)."""
+    run = tmp_path / "run"
+    patch_loss(monkeypatch, SignalAtStep(2, signal.SIGINT, times=2))
+    with pytest.raises(KeyboardInterrupt):
+        train_entry.main(["--config", "tiny", *base_overrides(dataset, run, "train.max_steps=50")])
+    assert complete_steps(run) == []
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Non-finite losses
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class NaNAtSteps:
+    def __init__(self, steps: set[int]) -> None:
+        self.steps, self.calls = steps, 0
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        loss, stats = trainer_module.flow_matching_loss.__wrapped__(*args, **kwargs)
+        if self.calls in self.steps:
+            loss = loss * float("nan")
+        return loss, stats
+
+
+def test_nonfinite_budget_exceeded_raises(dataset, tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    patch_loss(monkeypatch, NaNAtSteps({2, 5, 6, 7}))
+    with pytest.raises(NonFiniteLossError, match="3 consecutive skipped steps exceed train.nonfinite_budget=2"):
+        train_entry.main(["--config", "tiny", *base_overrides(dataset, run, "train.max_steps=20",
+                                                                "train.nonfinite_budget=2")])
+    metrics = metrics_by_step(run)
+    assert sorted(metrics) == [1, 2, 3, 4, 5, 6]  # step 7 raised before it was logged
+    assert [metrics[s]["skipped_steps"] for s in range(1, 7)] == [0, 1, 1, 1, 2, 3]
+    assert metrics[2]["loss"] is None and metrics[3]["loss"] > 0  # a skipped step has no loss to average
+
+
+def test_skipped_step_leaves_weights_and_optimizer_untouched(dataset, tmp_path, monkeypatch):
+    patch_loss(monkeypatch, NaNAtSteps({2}))
+    cfg = load_config(TrainConfig, "tiny", base_overrides(dataset, tmp_path / "run"))
+    with Dist(mixed_precision="no") as dist:
+        trainer = Trainer(cfg, dist)
+        batches = trainer.loader.iter_batches()
+        trainer.train_step([next(batches)])
+        trainer.step += 1
+        before = {k: v.clone() for k, v in trainer.model.state_dict().items()}
+        optimizer_before = trainer.optimizer.state_dict()
+        ema_before = trainer.ema.state_dict()
+        result = trainer.train_step([next(batches)])
+        assert result.skipped
+        assert_identical(before, dict(trainer.model.state_dict()), "model")
+        assert_identical(optimizer_before, trainer.optimizer.state_dict(), "optimizer")
+        assert_identical(ema_before, trainer.ema.state_dict(), "ema")
+        assert all(p.grad is None for p in trainer.model.parameters())
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Gradient accumulation
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_grad_accumulation_matches_one_big_batch(dataset, tmp_path):
+    import trainer_worker
+
+    cfg = load_config(TrainConfig, "tiny", base_overrides(dataset, tmp_path / "run", "model.dropout=0.0"))
+    batches = trainer_worker.global_batches(cfg, steps=3, global_batch=8)
+    outcomes = []
+    for micro_batches in (1, 2):
+        with Dist(mixed_precision="no") as dist:
+            outcomes.append(trainer_worker.run_equivalence(Trainer(cfg, dist), batches, micro_batches))
+    whole, accumulated = outcomes
+    assert_equivalent(accumulated, whole)
+
+
+def assert_equivalent(result: dict[str, Any], reference: dict[str, Any]) -> None:
+    """Two ways of computing the same optimizer steps agree to float rounding (see run_equivalence)."""
+    torch.testing.assert_close(result["losses"], reference["losses"], rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(result["grad_norms"], reference["grad_norms"], rtol=1e-5, atol=1e-7)
+    for key in ("model", "ema"):
+        torch.testing.assert_close(result[key], reference[key], rtol=1e-5, atol=1e-6)
+    moved = max((reference["model"][k] - reference["initial"][k]).abs().max().item() for k in reference["model"])
+    assert moved > 1e-3, "the weights hardly moved: the comparison above would prove nothing"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Bad shards, through the real entry point
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def corrupted_dataset(dataset, tmp_path) -> tuple[Path, str, set[str]]:
+    """A copy of the dataset with one byte of one train tar flipped; returns (manifest, shard path, its ids)."""
+    copy = tmp_path / "corrupt"
+    shutil.copytree(dataset.parent, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    shards = manifest["splits"]["train"]["shards"]
+    assert len(shards) >= 2
+    bad = shards[1]["path"]
+    with tarfile.open(copy / bad) as tar:
+        ids = {name.split(".", 1)[0] for name in tar.getnames()}
+    flip_byte(copy / bad, (copy / bad).stat().st_size // 2)
+    return copy / "manifest.json", bad, ids
+
+
+def test_strict_verification_fails_before_training_naming_the_shard(corrupted_dataset, tmp_path):
+    manifest, bad, _ = corrupted_dataset
+    run = tmp_path / "run"
+    with pytest.raises(ShardVerificationError, match=bad.replace(".", r"\.")) as err:
+        train_entry.main(["--config", "tiny", *base_overrides(manifest, run, "data.verify=strict")])
+    assert "corrupted" in str(err.value)
+    assert not (run / "metrics.jsonl").exists() and complete_steps(run) == []
+
+
+def test_tolerant_verification_skips_the_shard_and_reports_it(corrupted_dataset, tmp_path, monkeypatch, caplog):
+    manifest, bad, bad_ids = corrupted_dataset
+    run = tmp_path / "run"
+    seen: set[str] = set()
+    real_step = Trainer.train_step
+
+    def recording_step(self, micro_batches, draws=None):
+        seen.update(i for b in micro_batches for i in b["ids"])
+        return real_step(self, micro_batches, draws)
+
+    monkeypatch.setattr(Trainer, "train_step", recording_step)
+    caplog.set_level("WARNING")
+    code = train_entry.main(["--config", "tiny", *base_overrides(manifest, run, "data.verify=tolerant",
+                                                                   "train.max_steps=12")])
+    assert code == 0 and complete_steps(run)[-1] == 12
+    report = json.loads((run / "shard_report.json").read_text())
+    assert report["mode"] == "tolerant" and report["samples_lost"] == 10
+    assert [b["path"] for b in report["bad"]] == [bad] and "corrupted" in report["bad"][0]["reason"]
+    assert bad in caplog.text and "skipping 1 bad shard" in caplog.text
+    assert len(seen) > 30 and not seen & bad_ids  # 12 steps x 4 samples read, none from the bad shard

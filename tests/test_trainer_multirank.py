@@ -1,0 +1,214 @@
+"""The training loop's promises across two real gloo ranks (torchrun and accelerate launch, CPU, tiny model).
+
+* data parallelism is exact: 2 ranks on halves of fixed global batches == 1 process on the whole batches;
+* a NaN on one rank makes every rank skip the same step (or all raise with nonfinite=stop), without a hang;
+* SIGTERM to one rank stops all ranks after the same step, with one complete checkpoint, exit code 143;
+* a run interrupted by that SIGTERM and later by a SIGKILL, resumed twice, ends bit-identical to an
+  uninterrupted run (weights, EMA, optimizer, per-rank RNG and data position, per-step losses and sample ids);
+* ``accelerate launch`` with the 2-rank CPU recipe runs launch/train.py end to end.
+
+The launches are module fixtures shared by the tests that read them: starting torch processes is most of the cost.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import torch
+
+from pipeline import checkpoint as ckpt
+from pipeline.config import TrainConfig, load_config
+from pipeline.distributed import Dist
+from pipeline.trainer import Trainer
+from test_trainer import (
+    KILL_STEP,
+    MAX_STEPS,
+    REPO_ROOT,
+    assert_equivalent,
+    assert_identical,
+    assert_runs_identical,
+    build_dataset_once,
+    clean_env,
+    complete_steps,
+    fit_scenario,
+    ids_by_step,
+    metrics_by_step,
+    output_of,
+    resume_overrides,
+    results,
+    run_worker,
+)
+
+pytestmark = [pytest.mark.multirank, pytest.mark.slow]
+
+TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
+SIGTERM_STEP = 7  # not a multiple of save_every: the stop writes a checkpoint of its own
+EQUIVALENCE_STEPS = 3
+NAN_STEP = 3
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return build_dataset_once(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("trainer-multirank")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Data-parallel equivalence and non-finite losses (one launch, three scenarios)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def misc_launch(dataset, workdir) -> dict[str, Any]:
+    """One torchrun launch: the equivalence steps, a run with a NaN on rank 1 (skip), then one with
+    nonfinite=stop, which raises on every rank and ends the processes with a non-zero code."""
+    root = workdir / "misc"
+    equivalence = {"kind": "equivalence", "out": str(root / "equivalence"), "steps": EQUIVALENCE_STEPS,
+                   "overrides": [f"data.manifest={dataset}", f"train.out_dir={root / 'equivalence' / 'run'}",
+                                 "model.dropout=0.0"]}
+    skip = fit_scenario(root / "skip", [f"data.manifest={dataset}", f"train.out_dir={root / 'skip' / 'run'}",
+                                        "train.log_every=1", "train.max_steps=5"],
+                        nan_at=[1, [NAN_STEP]], snapshot_at=[NAN_STEP, 5])
+    stop = fit_scenario(root / "stop", [f"data.manifest={dataset}", f"train.out_dir={root / 'stop' / 'run'}",
+                                        "train.log_every=1", "train.max_steps=5", "train.nonfinite=stop"],
+                        nan_at=[1, [2]])
+    proc = run_worker(TORCHRUN, [equivalence, skip, stop], root, timeout=240)
+    return {"root": root, "proc": proc, "dataset": dataset}
+
+
+def test_two_ranks_match_one_process_on_the_same_global_batches(misc_launch, tmp_path):
+    import trainer_worker
+
+    root, dataset = misc_launch["root"], misc_launch["dataset"]
+    assert (root / "equivalence" / "result-rank0.json").exists(), output_of(misc_launch["proc"])
+    ranks = [torch.load(root / "equivalence" / f"equivalence-rank{r}.pt") for r in (0, 1)]
+    assert_identical(ranks[0]["model"], ranks[1]["model"], "rank 0 vs rank 1 weights")
+
+    cfg = load_config(TrainConfig, "tiny", [f"data.manifest={dataset}", f"train.out_dir={tmp_path}",
+                                            "model.dropout=0.0"])
+    batches = trainer_worker.global_batches(cfg, EQUIVALENCE_STEPS, 2 * cfg.data.batch_size)
+    with Dist(mixed_precision="no") as dist:
+        single = trainer_worker.run_equivalence(Trainer(cfg, dist), batches)
+    assert_equivalent(ranks[0], single)
+
+
+def test_nan_on_one_rank_is_skipped_by_every_rank_at_the_same_step(misc_launch):
+    out = misc_launch["root"] / "skip"
+    assert results(out, 2) == [{"exit_code": 0}] * 2, output_of(misc_launch["proc"])
+    snaps = {(r, s): torch.load(out / f"snap-rank{r}-step{s}.pt") for r in (0, 1) for s in (NAN_STEP - 1, NAN_STEP, 5)}
+    for rank in (0, 1):
+        # rank 0's own loss and gradients were finite: only the shared flag made it skip
+        assert_identical(snaps[rank, NAN_STEP - 1], snaps[rank, NAN_STEP], f"rank {rank} across the skipped step")
+    for step in (NAN_STEP, 5):
+        assert_identical(snaps[0, step]["model"], snaps[1, step]["model"], f"rank 0 vs 1 after step {step}")
+    after_skip, final = snaps[0, NAN_STEP]["model"], snaps[0, 5]["model"]
+    assert not torch.equal(after_skip["output_proj.weight"], final["output_proj.weight"])  # later steps trained
+    metrics = metrics_by_step(out / "run")
+    assert [metrics[s]["skipped_steps"] for s in range(1, 6)] == [0, 0, 1, 1, 1]
+    assert metrics[NAN_STEP]["loss"] is None and all(metrics[s]["loss"] > 0 for s in (1, 2, 4, 5))
+    _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(out / "run") / "step-00000005")
+    assert state["extra"]["skipped_steps"] == 1 and state["extra"]["ema_updates"] == 4
+
+
+def test_nan_with_nonfinite_stop_raises_on_every_rank(misc_launch):
+    proc, out = misc_launch["proc"], misc_launch["root"] / "stop"
+    assert proc.returncode != 0
+    assert [r.get("error") for r in results(out, 2)] == ["NonFiniteLossError"] * 2, output_of(proc)
+    assert "train.nonfinite=stop" in results(out, 2)[0]["message"]
+    assert complete_steps(out / "run") == []  # stopped before the update, nothing saved after it
+    assert sorted(metrics_by_step(out / "run")) == [1]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# SIGTERM, SIGKILL and exact resume
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(dataset, workdir) -> Path:
+    out = workdir / "uninterrupted"
+    proc = run_worker(TORCHRUN, [fit_scenario(out, resume_overrides(dataset, out / "run"))], out)
+    assert proc.returncode == 0, output_of(proc)
+    return out
+
+
+@pytest.fixture(scope="module")
+def interrupted(dataset, workdir) -> dict[str, Any]:
+    """The same run, stopped by SIGTERM to rank 1 during step 7, resumed, SIGKILLed (rank 0) during step 12,
+    resumed again from checkpoint 10 to the end. At 2 ranks an epoch is 5 batches per rank, so the first resume
+    starts inside an epoch and the second on an epoch boundary."""
+    out = workdir / "interrupted"
+    scenario = fit_scenario(out, resume_overrides(dataset, out / "run"))
+    sigterm = run_worker(TORCHRUN, [{**scenario, "signal_at": [1, SIGTERM_STEP, "SIGTERM"]}], out)
+    _, _, stop_state = ckpt.load_checkpoint(ckpt.checkpoints_dir(out / "run") / ckpt.step_dir_name(SIGTERM_STEP))
+    after_sigterm = {"checkpoints": complete_steps(out / "run"), "results": results(out, 2),
+                     "last_steps": [max(ids_by_step(out, r)) for r in (0, 1)],
+                     "metrics_steps": sorted(metrics_by_step(out / "run")), "stop_state": stop_state}
+    sigkill = run_worker(TORCHRUN, [{**scenario, "kill_at": [0, KILL_STEP]}], out)
+    _, _, resume_state = ckpt.load_checkpoint(ckpt.checkpoints_dir(out / "run") / ckpt.step_dir_name(10))
+    after_sigkill = {"checkpoints": complete_steps(out / "run"), "resume_state": resume_state}
+    final = run_worker(TORCHRUN, [scenario], out)
+    return {"out": out, "sigterm": sigterm, "after_sigterm": after_sigterm, "sigkill": sigkill,
+            "after_sigkill": after_sigkill, "final": final}
+
+
+def test_sigterm_to_one_rank_stops_every_rank_after_one_step_with_a_checkpoint(interrupted):
+    proc, seen = interrupted["sigterm"], interrupted["after_sigterm"]
+    # torchrun reports the failed rank's code and exits non-zero itself
+    assert proc.returncode != 0 and "exitcode  : 143" in proc.stderr, output_of(proc)
+    # both ranks returned 143 from fit (rank 0 may then be terminated by torchrun while tearing down)
+    assert seen["results"] == [{"exit_code": 143}] * 2, output_of(proc)
+    assert seen["last_steps"] == [SIGTERM_STEP] * 2  # no rank started another step
+    assert seen["checkpoints"] == [5, SIGTERM_STEP]  # the periodic one and exactly one stop checkpoint
+    assert seen["metrics_steps"] == list(range(1, SIGTERM_STEP + 1))
+    state = seen["stop_state"]
+    assert state["step"] == SIGTERM_STEP and state["world_size"] == 2 and len(state["rng"]) == len(state["data"]) == 2
+    assert [(d["epoch"], d["batches_in_epoch"]) for d in state["data"]] == [(1, 2)] * 2  # mid-epoch
+
+
+def test_resume_after_sigterm_and_sigkill_is_bit_exact_on_two_ranks(interrupted, uninterrupted):
+    assert interrupted["sigkill"].returncode != 0, output_of(interrupted["sigkill"])
+    assert interrupted["after_sigkill"]["checkpoints"] == [SIGTERM_STEP, 10]
+    resume_state = interrupted["after_sigkill"]["resume_state"]
+    assert [(d["epoch"], d["batches_in_epoch"]) for d in resume_state["data"]] == [(2, 0)] * 2  # epoch boundary
+    final = interrupted["final"]
+    assert final.returncode == 0, output_of(final)
+    assert results(interrupted["out"], 2) == [{"exit_code": 0}] * 2
+    assert_runs_identical(uninterrupted / "run", interrupted["out"] / "run", MAX_STEPS)
+    for rank in (0, 1):
+        expected = ids_by_step(uninterrupted, rank)
+        assert sorted(expected) == list(range(1, MAX_STEPS + 1))
+        assert ids_by_step(interrupted["out"], rank) == expected, f"rank {rank} saw other samples"
+    assert ids_by_step(uninterrupted, 0)[1] != ids_by_step(uninterrupted, 1)[1]  # the ranks read different data
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# accelerate launch
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_accelerate_launch_two_cpu_ranks_end_to_end(dataset, tmp_path):
+    run = tmp_path / "run"
+    env = clean_env()
+    env["ACCELERATE_USE_CPU"] = "1"
+    command = [sys.executable, "-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes", "2",
+               "--num_machines", "1", "--mixed_precision", "no", "--dynamo_backend", "no", "--main_process_port", "0",
+               str(REPO_ROOT / "launch" / "train.py"), "--config", "tiny", f"data.manifest={dataset}",
+               f"train.out_dir={run}", "train.max_steps=4", "train.save_every=2", "train.log_every=2"]
+    proc = subprocess.run(command, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, output_of(proc)
+    assert "world size 2" in proc.stderr
+    assert complete_steps(run) == [2, 4]
+    _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(run) / "step-00000004")
+    assert state["world_size"] == 2 and state["extra"]["samples_seen"] == 4 * 4 * 2
+    assert [s["batches_in_epoch"] for s in state["data"]] == [4, 4]  # each rank read its own 4 batches
+    metrics = metrics_by_step(run)
+    assert sorted(metrics) == [2, 4] and metrics[4]["samples_seen"] == 32
