@@ -143,6 +143,11 @@ class TrainLoopConfig:
     wandb_project: str = "mfm"
     compile: bool = False
     """torch.compile the model."""
+    objective: Literal["flow", "diffusion"] = "flow"
+    """flow: MFM's conditional flow matching; diffusion: the DDPM baseline on the same backbone (FLAME/FlowMDM)."""
+    diffusion: Literal["flowmdm", "flame"] = "flowmdm"
+    """With objective=diffusion: flowmdm = 1000-step cosine, x0-prediction; flame = cosine, eps-prediction with
+    learned variance and the hybrid loss L_simple + lambda * L_vlb (the model then outputs 2 x feature_dim)."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)

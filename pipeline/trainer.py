@@ -36,8 +36,9 @@ import torch
 import yaml
 from tqdm.auto import tqdm
 
-from mfm.flow import flow_matching_loss
-from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters, draw_cond_drop_mask
+from mfm.diffusion import diffusion_from_preset
+from mfm.flow import FlowMatchingObjective
+from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters, draw_cond_drop_mask, draw_positional_mode
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
 from pipeline.data import LoaderOptions, Manifest, MotionLoader, open_manifest, verify_shards
@@ -57,12 +58,17 @@ class NonFiniteLossError(RuntimeError):
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def model_config_for(manifest: Manifest, requested: ModelConfig) -> ModelConfig:
-    """The model config with the dataset-given sizes filled in: feature dim and text-embedding dim from the
-    manifest, and for an action model (``num_actions > 0`` in the config) the number of action classes."""
+def model_config_for(manifest: Manifest, requested: ModelConfig, *, learned_variance: bool = False) -> ModelConfig:
+    """The model config with the dataset-given sizes filled in: feature dim and text-embedding dim (pooled and
+    token-level) from the manifest, for an action model (``num_actions > 0`` in the config) the number of action
+    classes, and for a learned-variance diffusion objective (FLAME) twice the output channels."""
     spec = manifest.data["feature_spec"]
     text = manifest.data["text_encoder"]
     changes: dict[str, Any] = {"feature_dim": int(spec["dim"]), "cond_dim": int(text["dim"])}
+    if requested.conditioning == "cross_attention":
+        changes["token_dim"] = int(text["dim"])
+    if learned_variance:
+        changes["output_dim"] = 2 * int(spec["dim"])
     if requested.num_actions > 0:
         if not manifest.action_classes:
             raise ValueError(f"model.num_actions > 0 asks for an action model, but {manifest.location} has no action classes")
@@ -172,18 +178,22 @@ def seed_everything(seed: int) -> None:
 
 @dataclasses.dataclass
 class Draws:
-    """The random numbers of one micro-batch's loss: flow time, initial noise and which conditions are dropped."""
+    """Injected random numbers of one flow-matching micro-batch (tests slice a global batch's draws across ranks):
+    flow time, initial noise, which conditions are dropped and, for a BPE model, which samples use relative
+    positions. Normal training draws them from the trainer's per-rank generator instead."""
 
     t: torch.Tensor  # (B,)
     x0: torch.Tensor  # (B, T, D)
     cond_mask: torch.Tensor  # (B,) bool
+    positional_mode: torch.Tensor | None = None  # (B,) bool, True = relative (BPE models only)
 
     def to(self, device: torch.device) -> "Draws":
-        return Draws(self.t.to(device), self.x0.to(device), self.cond_mask.to(device))
+        mode = None if self.positional_mode is None else self.positional_mode.to(device)
+        return Draws(self.t.to(device), self.x0.to(device), self.cond_mask.to(device), mode)
 
 
 def draw_for_batch(batch: Mapping[str, Any], cond_drop_prob: float, generator: torch.Generator) -> Draws:
-    """Draws for ``batch`` from ``generator``, in a fixed order (t, x0, cond_mask) so resume replays them."""
+    """Flow-matching draws for ``batch`` from ``generator`` (t, x0, cond_mask), for injecting with train_step."""
     features = batch["features"]
     b = features.shape[0]
     device = generator.device
@@ -191,6 +201,13 @@ def draw_for_batch(batch: Mapping[str, Any], cond_drop_prob: float, generator: t
     x0 = torch.randn(features.shape, generator=generator, device=device)
     cond_mask = draw_cond_drop_mask(b, cond_drop_prob, generator, device)
     return Draws(t, x0, cond_mask)
+
+
+def build_objective(cfg: TrainConfig):
+    """The training objective the config names (both have the same ``loss(...)`` call)."""
+    if cfg.train.objective == "flow":
+        return FlowMatchingObjective()
+    return diffusion_from_preset(cfg.train.diffusion)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -217,7 +234,9 @@ class Trainer:
 
         self.manifest = open_manifest(cfg.data.manifest)
         bad_shards = self._verified_bad_shards()
-        self.model_config = model_config_for(self.manifest, cfg.model)
+        self.objective = build_objective(cfg)
+        self.model_config = model_config_for(
+            self.manifest, cfg.model, learned_variance=getattr(self.objective, "learn_sigma", False))
 
         seed_everything(cfg.train.seed)  # identical initial weights on every rank
         model = MotionFlowTransformer(self.model_config)
@@ -294,6 +313,34 @@ class Trainer:
             return batch["action"].to(self.dist.device)
         return batch["text_emb"].to(self.dist.device)
 
+    def _micro_batch_loss(self, batch: Mapping[str, Any], draws: Draws | None) -> torch.Tensor:
+        """The objective's loss on one micro-batch. Draw order from the per-rank generator (replayed exactly on
+        resume): dropped conditions, the BPE positional mode (BPE models), then the objective's own draws."""
+        device, config = self.dist.device, self.model_config
+        features = batch["features"].to(device, non_blocking=True)
+        lengths = batch["lengths"].to(device, non_blocking=True)
+        model_kwargs: dict[str, Any] = {}
+        if config.conditioning == "cross_attention":
+            if "text_tokens" not in batch:
+                raise ValueError("model.conditioning=cross_attention needs token features: build the dataset with "
+                                 "--token-features")
+            model_kwargs["text_tokens"] = batch["text_tokens"].to(device, non_blocking=True)
+            model_kwargs["text_token_len"] = batch["text_token_len"].to(device, non_blocking=True)
+        overrides: dict[str, torch.Tensor] = {}
+        if draws is None:
+            cond_mask = draw_cond_drop_mask(features.shape[0], config.cond_drop_prob, self.generator, device)
+            if config.positional == "bpe":
+                model_kwargs["positional_mode"] = draw_positional_mode(
+                    features.shape[0], config.bpe_train_relative_prob, self.generator).to(device)
+        else:
+            draws = draws.to(device)
+            cond_mask, overrides = draws.cond_mask, {"t": draws.t, "x0": draws.x0}
+            if draws.positional_mode is not None:
+                model_kwargs["positional_mode"] = draws.positional_mode
+        loss, _ = self.objective.loss(self.model, features, self._condition(batch), lengths, generator=self.generator,
+                                      cond_mask=cond_mask, model_kwargs=model_kwargs, **overrides)
+        return loss
+
     def train_step(self, micro_batches: list[Mapping[str, Any]], draws: list[Draws] | None = None) -> StepResult:
         """Forward/backward over the micro-batches (gradient accumulation), clip, and one AdamW + EMA update —
         unless the loss or gradient norm is non-finite on ANY rank, in which case every rank skips the update.
@@ -302,14 +349,9 @@ class Trainer:
         accum = len(micro_batches)
         loss_sum = torch.zeros((), device=device)
         for i, batch in enumerate(micro_batches):
-            d = draws[i].to(device) if draws is not None else draw_for_batch(batch, self.model_config.cond_drop_prob, self.generator)
-            features = batch["features"].to(device, non_blocking=True)
-            lengths = batch["lengths"].to(device, non_blocking=True)
             sync = i == accum - 1
             with nullcontext() if sync else self.dist.no_sync(model):
-                loss, _ = flow_matching_loss(
-                    model, features, self._condition(batch), lengths, cond_mask=d.cond_mask, t=d.t, x0=d.x0
-                )
+                loss = self._micro_batch_loss(batch, None if draws is None else draws[i])
                 self.dist.backward(loss / accum)
             loss_sum += loss.detach()
         loss_mean = loss_sum / accum

@@ -44,7 +44,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="text encoder builder option, e.g. context_length=22 for CLIP (repeatable)")
     add("--token-features", action="store_true", help="also store per-token text features (for cross-attention)")
     add("--max-tokens", type=int, default=32, help="tokens kept per caption with --token-features (default: 32)")
-    add("--shard-size", type=int, default=DEFAULT_SHARD_SIZE, help=f"motions per shard (default: {DEFAULT_SHARD_SIZE})")
+    add("--shard-size", type=int, help=f"motions per shard (default: {DEFAULT_SHARD_SIZE}; the embedded DeepMimic set: 5)")
     add("--format", default=",".join(SHARD_FORMATS), help="comma-separated subset of tar,parquet (default: both)")
     add("--workers", type=int, default=1, help="processes for loading + feature extraction (default: 1)")
     add("--min-frames", type=int, help="shortest motion/caption span kept, in feature frames "

@@ -557,7 +557,7 @@ class BuildConfig:
     token_features: bool = False
     max_tokens: int = 32
     text_batch_size: int = 64
-    shard_size: int = DEFAULT_SHARD_SIZE
+    shard_size: int | None = None  # None: the source's default_shard_size if it has one, else DEFAULT_SHARD_SIZE
     formats: tuple[str, ...] = SHARD_FORMATS
     min_frames: int | None = None  # None: the skeleton's HumanML3D default (40, KIT 24)
     max_frames: int | None = DEFAULT_MAX_FRAMES
@@ -572,7 +572,7 @@ class BuildConfig:
         unknown = [f for f in self.formats if f not in SHARD_FORMATS]
         if unknown or not self.formats:
             raise ValueError(f"formats must be a non-empty subset of {SHARD_FORMATS}, got {self.formats}")
-        if self.shard_size < 1:
+        if self.shard_size is not None and self.shard_size < 1:
             raise ValueError(f"shard_size must be >= 1, got {self.shard_size}")
         if self.workers < 1:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
@@ -766,6 +766,9 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
     if config.min_frames is None:
         # A source may know its clips need another floor (DeepMimic's kick); else the skeleton's HumanML3D rule.
         config = replace(config, min_frames=getattr(source, "default_min_frames", default_min_frames(skeleton.name)))
+    if config.shard_size is None:
+        # A tiny source (DeepMimic: 15 train motions) needs small shards to feed several ranks x workers.
+        config = replace(config, shard_size=getattr(source, "default_shard_size", DEFAULT_SHARD_SIZE))
     items = list(source.list_items())
     prepare_output_dir(out, overwrite=config.overwrite)
     work_dir = out / _TMP_DIR_NAME

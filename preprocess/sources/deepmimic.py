@@ -443,6 +443,8 @@ class DeepMimicSource:
     # 40-frame minimum the embedded dataset would lose the "kick" action entirely. Builds of this source
     # default to 24 frames (KIT-ML's minimum) instead; --min-frames still overrides it.
     default_min_frames = 24
+    # 15 train motions: shards of 5 let 2 ranks (or 3 data workers) each read whole shards.
+    default_shard_size = 5
 
     def __init__(
         self,
