@@ -59,6 +59,7 @@ class TrainedModel:
     weights: str  # "ema" or "model"
     data: dict[str, Any]  # the checkpoint's dataset identity (see Trainer.save)
     device: torch.device
+    window: int  # frames per training sample: the longest motion the model has learnt
 
     @cached_property
     def mean(self) -> torch.Tensor:
@@ -127,4 +128,5 @@ def load_trained_model(path: str | Path, *, use_ema: bool = True, device: str | 
     device = torch.device(device)
     model.to(device).eval()
     logger.info("loaded %s weights of %s (step %d)", weights, folder, state["step"])
-    return TrainedModel(model, model_config, folder, int(state["step"]), weights, dict(state["manifest"]), device)
+    window = int(state["config"]["data"]["window"])
+    return TrainedModel(model, model_config, folder, int(state["step"]), weights, dict(state["manifest"]), device, window)

@@ -1,0 +1,130 @@
+"""Sampling speed: milliseconds per generated motion, one JSON line per batch size.
+
+    python benchmarks/bench_sampling.py                                  # HumanML3D preset, batch 1 and 256
+    python benchmarks/bench_sampling.py --device cuda --compile          # torch.compile (CUDA graphs on GPU)
+    python benchmarks/bench_sampling.py --batch-sizes 1,32 --repeats 3   # CPU-friendly
+    python benchmarks/bench_sampling.py --checkpoint runs/tiny           # a trained model instead of a preset
+
+What is timed: ``mfm.solvers.sample`` (initial noise, ``--steps`` fixed steps of ``--solver``, classifier-free
+guidance at ``--guidance`` as one batched pass of 2B per evaluation), full ``--frames`` windows (as MDM/MFM
+evaluation), random text embeddings; the text encoder and any export are not included. Random weights are fine:
+speed does not depend on their values. ``ms_per_motion`` = median wall time over ``--repeats`` timed runs (after
+``--warmup`` untimed ones) / batch size.
+
+``--compile``: ``torch.compile`` of the model; on CUDA with ``mode="reduce-overhead"``, which captures CUDA graphs
+(a fixed-step solver calls the model with the same shapes every step, so the graph is replayed). The first
+(warm-up) call compiles; its time is reported as ``compile_s``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters
+from mfm.solvers import sample
+
+PRESETS = {
+    "humanml3d": ModelConfig(),  # MFM's HumanML3D text model: 263-D, 8 layers x 512, 4 heads, CLIP 512
+    "kit": ModelConfig(feature_dim=251),
+    "tiny": ModelConfig(latent_dim=64, ff_dim=128, num_layers=2, cond_dim=384),
+}
+
+
+def build_model(args: argparse.Namespace) -> tuple[torch.nn.Module, ModelConfig, str]:
+    if args.checkpoint:
+        from pipeline.inference import load_trained_model
+
+        trained = load_trained_model(args.checkpoint, device=args.device)
+        return trained.model, trained.model_config, str(trained.checkpoint)
+    config = dataclasses.replace(PRESETS[args.preset], dropout=0.0)
+    torch.manual_seed(0)
+    return MotionFlowTransformer(config).to(args.device).eval(), config, args.preset
+
+
+def random_conditions(config: ModelConfig, batch: int, device: str) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(1)
+    if config.is_action_model:
+        return torch.randint(config.num_actions, (batch,), generator=generator).to(device)
+    return torch.randn(batch, config.cond_dim, generator=generator).to(device)
+
+
+def timed(fn, device: str) -> float:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    start = time.perf_counter()
+    fn()
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+    return time.perf_counter() - start
+
+
+def measure(model, config: ModelConfig, batch: int, args: argparse.Namespace) -> dict:
+    cond = random_conditions(config, batch, args.device)
+    lengths = torch.full((batch,), args.frames, dtype=torch.long)
+    nfe = []
+
+    def run() -> None:
+        result = sample(model, cond, lengths, num_frames=args.frames, feature_dim=config.feature_dim,
+                        solver=args.solver, steps=args.steps, guidance=args.guidance, seed=0)
+        nfe.append(result.nfe)
+
+    warmups = [timed(run, args.device) for _ in range(args.warmup)]
+    times = [timed(run, args.device) for _ in range(args.repeats)]
+    median = statistics.median(times)
+    record = {
+        "bench": "sampling", "batch_size": batch, "ms_per_motion": round(1000.0 * median / batch, 3),
+        "median_batch_s": round(median, 4), "min_batch_s": round(min(times), 4), "repeats": args.repeats,
+        "warmup": args.warmup, "nfe": nfe[-1], "model_passes_of_2B": nfe[-1] if args.guidance not in (0.0, 1.0) else 0,
+        "steps": args.steps, "solver": args.solver, "guidance": args.guidance, "frames": args.frames,
+    }
+    if args.compile and warmups:
+        record["compile_s"] = round(warmups[0], 3)
+    return record
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="humanml3d")
+    parser.add_argument("--checkpoint", help="time a trained checkpoint (run folder or step folder) instead")
+    parser.add_argument("--batch-sizes", default="1,256", help="comma-separated (default 1,256)")
+    parser.add_argument("--steps", type=int, default=10)
+    parser.add_argument("--solver", default="euler")
+    parser.add_argument("--guidance", type=float, default=2.5)
+    parser.add_argument("--frames", type=int, default=196)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--warmup", type=int, default=1)
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--threads", type=int, help="CPU intra-op threads (default: torch's)")
+    parser.add_argument("--compile", action="store_true", help="torch.compile the model (CUDA graphs on GPU)")
+    args = parser.parse_args(argv)
+    if args.compile and args.warmup < 1:
+        parser.error("--compile needs --warmup >= 1 (the first call compiles)")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+
+    model, config, source = build_model(args)
+    if args.compile:
+        model = torch.compile(model, mode="reduce-overhead" if args.device.startswith("cuda") else "default")
+    header = {"bench": "sampling_setup", "model": source, "parameters": count_parameters(model), "device": args.device,
+              "device_name": torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else "cpu",
+              "threads": torch.get_num_threads(), "compile": args.compile, "torch": torch.__version__}
+    print(json.dumps(header), flush=True)
+    with torch.inference_mode():
+        for batch in (int(b) for b in args.batch_sizes.split(",")):
+            print(json.dumps(measure(model, config, batch, args)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,604 @@
+"""Sample (or edit) motions from a trained checkpoint and write files people can use: the engine behind
+``launch/sample.py``.
+
+A :class:`SampleRequest` says what to generate; :func:`run_sampling` loads the checkpoint, generates every sample
+in batches of ``batch_size`` and writes, into ``out_dir``::
+
+    results.json                 describes every file below (and nothing else) plus the settings and timings
+    sample_000/features.npy      (L, D) float32 features, un-normalised (the dataset's HumanML3D-style vector)
+    sample_000/joints.npy        (L, J, 3) float32 joint positions, recovered from the ric block (recover_from_ric)
+    sample_000/motion.mp4|.gif   stick figure, caption as title (GIF when ffmpeg is missing or asked for)
+    sample_000/motion.bvh        BVH for Blender (mfm.export.bvh: metres, Y up, channels Yrotation Xrotation
+                                 Zrotation i.e. R = Ry·Rx·Rz, Blender Euler order ZXY)
+    sample_000/keep_mask.npy     edits only: (L, D) bool, True = taken from the source motion
+    sample_000/trajectory.png    on request: x̂1 estimates along the ODE trajectory (MFM Figure 4 style)
+
+Sample ``i`` is prompt ``i // num_samples``'s ``(i % num_samples)``-th repetition. Determinism: sample ``i``'s
+initial noise comes from its own generator seeded with ``SeedSequence([seed, i])``, and sampled lengths from a
+generator seeded with ``seed``; since the model masks padded frames out of attention, a sample does not depend on
+the batch it lands in (up to floating-point summation order), so ``batch_size`` does not change results.
+
+Lengths: ``lengths`` (frames) or ``seconds``, one value for every prompt or one per prompt; otherwise drawn from the
+checkpoint's training length distribution (sampling) or the source motion's length (editing). They are clamped to
+:func:`max_sample_length`.
+
+Editing (MFM trajectory rewriting, mfm.editing): the source motion is a ``.npy`` of un-normalised features (T, D) or
+joint positions (T, J, 3) on the checkpoint's skeleton (converted with joints_to_features: T - 1 frames); it is
+normalised, cropped to each sample's length, and a preset mask says what is kept. Frames past the source's end are
+never kept (there is nothing to keep); they are generated. Without a text/action the edit is unconditional.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+import re
+import shutil
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from mfm.editing import edit, edit_mask, joint_frame_mask, motion_to_features
+from mfm.export import plot_x1_trajectory, render_motion, write_bvh
+from mfm.export.bvh import JOINT_CHANNELS, ROOT_CHANNELS
+from mfm.features import features_to_joints
+from mfm.layout import FeatureLayout
+from mfm.model import valid_frame_mask
+from mfm.solvers import (
+    FIXED_STEP_SOLVERS,
+    SolveResult,
+    guided_velocity,
+    initial_noise,
+    sample_lengths,
+    solve,
+    zero_padded_frames,
+)
+from pipeline.inference import TrainedModel, load_trained_model
+
+logger = logging.getLogger(__name__)
+
+RESULTS_FILE = "results.json"
+RESULTS_VERSION = 1
+SAMPLE_DIR = "sample_{:03d}"
+_SAMPLE_DIR_PATTERN = re.compile(r"^sample_\d{3,}$")
+
+# Command-line preset name -> mfm.editing preset (None: the custom joints/frames mask built here).
+EDIT_PRESETS: dict[str, str | None] = {
+    "prediction": "prediction",
+    "inbetween": "inbetween",
+    "interpolate": "interpolation",
+    "upper-body": "upper_body",
+    "joints": None,
+}
+# ς per preset: MFM's edit.py uses 1.0 for in-betweening/prediction and 0.1 for the upper body (a body-part mask
+# blends better when the kept part is released early); the custom joints mask is a body-part mask too.
+DEFAULT_REWRITE_UNTIL = {"prediction": 1.0, "inbetween": 1.0, "interpolate": 1.0, "upper-body": 0.1, "joints": 0.1}
+# ``--keep KEY=VALUE`` options each preset accepts, with their parsers.
+KEEP_OPTIONS: dict[str, dict[str, type]] = {
+    "prediction": {"prefix": float},
+    "inbetween": {"prefix": float, "suffix": float},
+    "interpolate": {"every": int},
+    "upper-body": {},
+    "joints": {"joints": str, "frames": str},
+}
+
+
+class SamplingError(ValueError):
+    """A request that cannot be served (bad option combination, unknown name, unreadable source motion)."""
+
+
+def known_solvers() -> list[str]:
+    """Fixed-step solvers of mfm.solvers, then the torchdiffeq methods it hands on (e.g. dopri5)."""
+    # torchdiffeq has no public list of its methods; mfm.solvers reads the same table.
+    from torchdiffeq._impl.odeint import SOLVERS
+
+    return sorted(FIXED_STEP_SOLVERS) + sorted(set(SOLVERS) - set(FIXED_STEP_SOLVERS))
+
+
+@dataclasses.dataclass
+class SampleRequest:
+    """Everything one sampling run needs; see the module docstring for the outputs."""
+
+    checkpoint: str | Path  # a step-XXXXXXXX folder, or a run/checkpoints folder (newest complete checkpoint)
+    out_dir: str | Path
+    texts: Sequence[str] = ()
+    actions: Sequence[str] = ()  # class names, for action models
+    lengths: Sequence[int] = ()  # frames: one for all prompts or one per prompt; empty: see module docstring
+    seconds: Sequence[float] = ()  # alternative to lengths (converted with the dataset's fps)
+    num_samples: int = 1  # per prompt (without prompts: in total, unconditional)
+    steps: int = 10
+    solver: str = "euler"
+    guidance: float = 2.5
+    seed: int = 0
+    batch_size: int = 64
+    weights: str = "ema"  # "ema" (falls back to the raw weights when the run kept none) or "model"
+    device: str = "auto"  # "auto": cuda when available
+    text_weights: str | None = None  # CLIP datasets: the text encoder weights file (checked by hash)
+    edit: str | None = None  # a key of EDIT_PRESETS
+    source_motion: str | Path | None = None
+    keep: Mapping[str, str] = dataclasses.field(default_factory=dict)  # preset options (KEEP_OPTIONS)
+    rewrite_until: float | None = None  # ς; None: DEFAULT_REWRITE_UNTIL[edit]
+    video: bool = True
+    video_format: str = "auto"  # "auto" (MP4 if ffmpeg is on PATH, else GIF), "mp4" or "gif"
+    bvh: bool = True
+    plot_trajectory: bool = False
+    overwrite: bool = False  # replace the outputs of an earlier run in out_dir
+    progress: bool | None = None  # None: progress bars when stderr is a terminal
+
+    def __post_init__(self) -> None:
+        if self.texts and self.actions:
+            raise SamplingError("give texts or actions, not both")
+        if self.lengths and self.seconds:
+            raise SamplingError("give lengths (frames) or seconds, not both")
+        for name in ("num_samples", "steps", "batch_size"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise SamplingError(f"{name} must be a positive int, got {value!r}")
+        if self.weights not in ("ema", "model"):
+            raise SamplingError(f"weights must be 'ema' or 'model', got {self.weights!r}")
+        if self.solver not in known_solvers():
+            raise SamplingError(f"unknown solver {self.solver!r}; known: {known_solvers()}")
+        if self.video_format not in ("auto", "mp4", "gif"):
+            raise SamplingError(f"video_format must be 'auto', 'mp4' or 'gif', got {self.video_format!r}")
+        if self.edit is None:
+            if self.source_motion is not None or self.keep or self.rewrite_until is not None:
+                raise SamplingError("source motion, keep options and rewrite_until only apply to an edit")
+            return
+        if self.edit not in EDIT_PRESETS:
+            raise SamplingError(f"unknown edit {self.edit!r}; known: {sorted(EDIT_PRESETS)}")
+        if self.source_motion is None:
+            raise SamplingError(f"edit {self.edit!r} needs a source motion (.npy features (T, D) or joints (T, J, 3))")
+        if self.solver not in FIXED_STEP_SOLVERS:
+            raise SamplingError(f"editing rewrites the trajectory between fixed steps: use a solver in "
+                                f"{sorted(FIXED_STEP_SOLVERS)}, not {self.solver!r}")
+        unknown = sorted(set(self.keep) - set(KEEP_OPTIONS[self.edit]))
+        if unknown:
+            raise SamplingError(f"edit {self.edit!r} takes keep options {sorted(KEEP_OPTIONS[self.edit]) or 'none'}, "
+                                f"got {unknown}")
+        if self.edit == "joints" and "joints" not in self.keep:
+            raise SamplingError("edit 'joints' needs keep joints=NAME,NAME,... (the joints taken from the source)")
+        if self.rewrite_until is not None and not 0.0 <= self.rewrite_until <= 1.0:
+            raise SamplingError(f"rewrite_until must be in [0, 1], got {self.rewrite_until}")
+
+    @property
+    def rewrite_time(self) -> float:
+        return DEFAULT_REWRITE_UNTIL[self.edit] if self.rewrite_until is None else float(self.rewrite_until)
+
+
+@dataclasses.dataclass(frozen=True)
+class SampleSpec:
+    index: int
+    prompt: int | None  # index into the request's texts/actions; None: unconditional
+    length: int
+    seed: int
+
+
+@dataclasses.dataclass
+class SourceMotion:
+    """A source motion in the model's (normalised) feature space."""
+
+    path: Path
+    kind: str  # "features" or "joints"
+    features: torch.Tensor  # (T, D), normalised
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# planning
+
+
+def read_prompts(path: str | Path) -> list[str]:
+    """One prompt per line; blank lines and lines starting with ``#`` are skipped."""
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as err:
+        raise SamplingError(f"{path}: cannot read the prompts file ({err})") from err
+    prompts = [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
+    if not prompts:
+        raise SamplingError(f"{path}: the prompts file holds no prompt")
+    return prompts
+
+
+def max_sample_length(trained: TrainedModel) -> int:
+    """Longest motion to ask for: the window the model was trained on (196 frames for HumanML3D, as MDM/MFM)."""
+    return min(int(trained.window), int(trained.model_config.max_frames))
+
+
+def sample_seed(seed: int, index: int) -> int:
+    """The noise seed of sample ``index``: independent streams per (seed, index), unlike ``seed + index``."""
+    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
+
+
+def _prompt_count(request: SampleRequest) -> int:
+    return len(request.texts) or len(request.actions)
+
+
+def requested_lengths(request: SampleRequest, fps: float) -> list[int] | None:
+    """Per-prompt lengths in frames from ``lengths``/``seconds`` (None when neither was given)."""
+    values: list[float] = list(request.lengths) or [s * fps for s in request.seconds]
+    if not values:
+        return None
+    prompts = max(_prompt_count(request), 1)
+    if len(values) not in (1, prompts):
+        raise SamplingError(f"give one length for all prompts or one per prompt ({prompts}), got {len(values)}")
+    frames = [int(round(v)) for v in values]
+    if min(frames) < 1:
+        raise SamplingError(f"lengths must be at least one frame, got {frames}")
+    return frames * prompts if len(frames) == 1 else frames
+
+
+def plan_samples(request: SampleRequest, trained: TrainedModel, source: SourceMotion | None) -> list[SampleSpec]:
+    """One SampleSpec per output motion, with its prompt, length (clamped) and noise seed."""
+    prompts = _prompt_count(request)
+    prompt_of = [p for p in range(prompts) for _ in range(request.num_samples)] or [None] * request.num_samples
+    n = len(prompt_of)
+    per_prompt = requested_lengths(request, trained.fps)
+    if per_prompt is not None:
+        lengths = [per_prompt[p or 0] for p in prompt_of]
+    elif source is not None:
+        lengths = [source.features.shape[0]] * n
+    elif trained.train_lengths:
+        generator = torch.Generator().manual_seed(request.seed)
+        lengths = sample_lengths(trained.train_lengths, n, generator).tolist()
+    else:
+        raise SamplingError(f"{trained.checkpoint} records no training lengths: give lengths or seconds")
+    limit = max_sample_length(trained)
+    if max(lengths) > limit:
+        logger.warning("clamping lengths above %d frames (the model's max_frames) to %d", limit, limit)
+    return [SampleSpec(i, prompt_of[i], min(int(lengths[i]), limit), sample_seed(request.seed, i)) for i in range(n)]
+
+
+def batches(specs: Sequence[SampleSpec], batch_size: int) -> Iterator[list[SampleSpec]]:
+    """Chunks of ``batch_size``, longest samples together (less padding to compute)."""
+    ordered = sorted(specs, key=lambda s: (-s.length, s.index))
+    for start in range(0, len(ordered), batch_size):
+        yield ordered[start:start + batch_size]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# editing inputs
+
+
+def load_source_motion(path: str | Path, trained: TrainedModel) -> SourceMotion:
+    """A ``.npy`` of un-normalised features (T, D) or joints (T, J, 3) on the checkpoint's skeleton, normalised."""
+    path = Path(path)
+    try:
+        motion = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise SamplingError(f"{path}: cannot read the source motion as a .npy array ({err})") from err
+    if not np.issubdtype(motion.dtype, np.floating):
+        raise SamplingError(f"{path}: the source motion must be a float array, got {motion.dtype}")
+    kind = "features" if motion.ndim == 2 else "joints"
+    try:
+        features = motion_to_features(motion, trained.skeleton, mean=trained.mean.cpu(), std=trained.std.cpu())
+    except ValueError as err:
+        raise SamplingError(f"{path}: {err}") from err
+    if features.shape[0] < 1:
+        raise SamplingError(f"{path}: the source motion has no frames")
+    return SourceMotion(path, kind, features.to(trained.device))
+
+
+def _parse_frames(text: str, num_frames: int) -> slice | list[int]:
+    """``a:b`` (a slice, either end optional) or ``i,j,k`` frame indices."""
+    try:
+        if ":" in text:
+            start, _, stop = text.partition(":")
+            return slice(int(start) if start else None, int(stop) if stop else None)
+        return [int(f) for f in text.split(",") if f]
+    except ValueError:
+        raise SamplingError(f"keep frames={text!r}: use START:STOP or comma-separated frame indices") from None
+
+
+def _parse_joints(text: str) -> list[int | str]:
+    return [int(j) if j.strip().isdigit() else j.strip() for j in text.split(",") if j.strip()]
+
+
+def preset_options(request: SampleRequest) -> dict[str, Any]:
+    """The keep options converted to the preset's types (as recorded in results.json)."""
+    types = KEEP_OPTIONS[request.edit]
+    options: dict[str, Any] = {}
+    for key, value in request.keep.items():
+        if types[key] is str:
+            options[key] = str(value)
+            continue
+        try:
+            options[key] = types[key](value)
+        except ValueError:
+            raise SamplingError(f"keep {key}={value!r}: expected a {types[key].__name__}") from None
+    return options
+
+
+def keep_mask(request: SampleRequest, options: Mapping[str, Any], lengths: torch.Tensor, num_frames: int,
+              layout: FeatureLayout, source_frames: int) -> torch.Tensor:
+    """(B, T, D) bool keep mask of the request's preset, restricted to frames the source motion has."""
+    batch = lengths.shape[0]
+    try:
+        if request.edit == "joints":
+            frames = _parse_frames(options.get("frames", ":"), num_frames)
+            mask = joint_frame_mask(num_frames, layout, frames, _parse_joints(options["joints"]))
+            mask = mask.expand(batch, -1, -1)
+        else:
+            mask = edit_mask(EDIT_PRESETS[request.edit], lengths.cpu(), num_frames, layout, **options)
+    except (ValueError, IndexError) as err:
+        raise SamplingError(f"edit {request.edit!r} with keep {dict(options)}: {err}") from err
+    available = torch.arange(num_frames) < source_frames
+    return (mask & available.view(1, -1, 1)).contiguous()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# generation
+
+
+@dataclasses.dataclass
+class BatchResult:
+    specs: list[SampleSpec]
+    features: torch.Tensor  # (B, T, D) normalised, CPU
+    nfe: int
+    keep: torch.Tensor | None  # (B, T, D) bool, edits only
+    x1_hat: torch.Tensor | None  # (K, B, T, D), on request
+    x1_hat_times: torch.Tensor | None
+
+
+def _conditions(request: SampleRequest, trained: TrainedModel) -> torch.Tensor | None:
+    """(P, E) text embeddings or (P,) action ids of the request's prompts; None without prompts."""
+    if not _prompt_count(request):
+        return None
+    try:
+        return trained.conditions(texts=list(request.texts), actions=list(request.actions),
+                                  text_weights=request.text_weights)
+    except ValueError as err:
+        raise SamplingError(str(err)) from err
+
+
+def _placeholder_conditions(trained: TrainedModel, batch: int) -> torch.Tensor:
+    """A condition of the right shape for unconditional sampling (guidance 0 drops it through cond_mask)."""
+    if trained.model_config.is_action_model:
+        return torch.zeros(batch, dtype=torch.long, device=trained.device)
+    return torch.zeros(batch, trained.model_config.cond_dim, device=trained.device)
+
+
+def _initial_noise(specs: Sequence[SampleSpec], num_frames: int, dim: int, device: torch.device) -> torch.Tensor:
+    """(B, T, D): each sample's own noise for its valid frames (from its seed), zeros past its length."""
+    x0 = torch.zeros(len(specs), num_frames, dim, device=device)
+    for row, spec in enumerate(specs):
+        generator = torch.Generator().manual_seed(spec.seed)
+        x0[row, :spec.length] = initial_noise((spec.length, dim), generator=generator, device=device)
+    return x0
+
+
+@torch.no_grad()
+def generate_batch(request: SampleRequest, trained: TrainedModel, specs: list[SampleSpec],
+                   conditions: torch.Tensor | None, source: SourceMotion | None,
+                   options: Mapping[str, Any]) -> BatchResult:
+    """Sample (or edit) one batch of motions."""
+    device = trained.device
+    lengths = torch.tensor([s.length for s in specs], dtype=torch.long, device=device)
+    num_frames = int(lengths.max())
+    dim = trained.model_config.feature_dim
+    if conditions is None:
+        cond, scale = _placeholder_conditions(trained, len(specs)), 0.0
+    else:
+        cond, scale = conditions[torch.tensor([s.prompt for s in specs], device=conditions.device)], request.guidance
+    velocity = guided_velocity(trained.model, cond, scale=scale, lengths=lengths)
+    x0 = _initial_noise(specs, num_frames, dim, device)
+    keep = None
+    if source is None:
+        result: SolveResult = solve(zero_padded_frames(velocity, lengths), x0, solver=request.solver,
+                                    steps=request.steps, return_trajectory=request.plot_trajectory)
+    else:
+        known = torch.zeros(len(specs), num_frames, dim, device=device)
+        frames = min(num_frames, source.features.shape[0])
+        known[:, :frames] = source.features[:frames]
+        known = known * valid_frame_mask(lengths, num_frames).unsqueeze(-1)
+        keep = keep_mask(request, options, lengths, num_frames, FeatureLayout(trained.skeleton),
+                         source.features.shape[0]).to(device)
+        result = edit(velocity, known, keep, steps=request.steps, rewrite_until=request.rewrite_time,
+                      solver=request.solver, x0=x0, lengths=lengths, return_trajectory=request.plot_trajectory)
+    return BatchResult(
+        specs, result.x1.float().cpu(), result.nfe, None if keep is None else keep.cpu(),
+        None if result.x1_hat is None else result.x1_hat.float().cpu(), result.x1_hat_times,
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# outputs
+
+
+def _ranges(flags: np.ndarray) -> list[list[int]]:
+    """Half-open [start, stop) runs of True in a 1-D bool array."""
+    padded = np.concatenate(([False], flags.astype(bool), [False]))
+    edges = np.flatnonzero(padded[1:] != padded[:-1])
+    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
+
+
+def edited_joints(keep: np.ndarray, layout: FeatureLayout) -> np.ndarray:
+    """(T, J) bool: a joint is edited (generated) on a frame where any of its feature dims is not kept."""
+    return np.stack([~keep[:, layout.joint_dims(j)].all(axis=1) for j in range(layout.num_joints)], axis=1)
+
+
+def caption(request: SampleRequest, spec: SampleSpec) -> str:
+    if spec.prompt is None:
+        words = "unconditional"
+    else:
+        words = (request.texts or request.actions)[spec.prompt]
+    return words if request.edit is None else f"{words} [{request.edit} edit]"
+
+
+class SampleWriter:
+    """Writes one sample's files and describes each of them for results.json (paths relative to out_dir)."""
+
+    def __init__(self, request: SampleRequest, trained: TrainedModel, out_dir: Path) -> None:
+        self.request = request
+        self.trained = trained
+        self.out_dir = out_dir
+        self.skeleton = trained.skeleton
+        self.layout = FeatureLayout(self.skeleton)
+
+    def _entry(self, path: Path, kind: str, **info: Any) -> dict[str, Any]:
+        return {"path": path.relative_to(self.out_dir).as_posix(), "kind": kind, **info}
+
+    def write(self, spec: SampleSpec, features: np.ndarray, keep: np.ndarray | None,
+              x1_hat: np.ndarray | None, x1_hat_times: np.ndarray | None) -> list[dict[str, Any]]:
+        folder = self.out_dir / SAMPLE_DIR.format(spec.index)
+        folder.mkdir(parents=True, exist_ok=True)
+        joints = features_to_joints(features, self.skeleton).astype(np.float32)
+        files = []
+        np.save(folder / "features.npy", features)
+        files.append(self._entry(folder / "features.npy", "features", shape=list(features.shape),
+                                 normalized=False, dtype="float32"))
+        np.save(folder / "joints.npy", joints)
+        files.append(self._entry(folder / "joints.npy", "joints", shape=list(joints.shape), unit=self.skeleton.unit,
+                                 recovered_with="features_to_joints (recover_from_ric)", dtype="float32"))
+        if keep is not None:
+            np.save(folder / "keep_mask.npy", keep)
+            files.append(self._entry(folder / "keep_mask.npy", "keep_mask", shape=list(keep.shape),
+                                     meaning="True = kept from the source motion"))
+        title = caption(self.request, spec)
+        if self.request.video:
+            edited = None if keep is None else edited_joints(keep, self.layout)
+            video = render_motion(folder / "motion", joints, self.skeleton, self.trained.fps, title=title,
+                                  edited=edited, fmt=self.request.video_format)
+            files.append(self._entry(video, "video", format=video.suffix.lstrip("."), fps=self.trained.fps,
+                                     colors="kept blue, edited red" if keep is not None else "one colour per chain"))
+        if self.request.bvh:
+            bvh = write_bvh(folder / "motion.bvh", joints, self.skeleton, self.trained.fps)
+            files.append(self._entry(bvh, "bvh", skeleton=self.skeleton.name, unit="m", up="Y",
+                                     root_channels=list(ROOT_CHANNELS), joint_channels=list(JOINT_CHANNELS),
+                                     rotation_order="R = Ry @ Rx @ Rz (Blender Euler ZXY)", fps=self.trained.fps))
+        if x1_hat is not None:
+            png = plot_x1_trajectory(folder / "trajectory.png", x1_hat, x1_hat_times, self.skeleton,
+                                     mean=self.trained.mean.cpu(), std=self.trained.std.cpu(), title=title)
+            files.append(self._entry(png, "trajectory_plot", times=[round(float(t), 6) for t in x1_hat_times]))
+        return files
+
+
+def _edit_record(request: SampleRequest, source: SourceMotion, options: Mapping[str, Any],
+                 keep: np.ndarray) -> dict[str, Any]:
+    return {
+        "preset": request.edit,
+        "source_motion": str(source.path),
+        "source_kind": source.kind,
+        "source_frames": int(source.features.shape[0]),
+        "options": dict(options),
+        "rewrite_until": request.rewrite_time,
+        "kept_frame_ranges": _ranges(keep.any(axis=1)),
+        "kept_dim_ranges": _ranges(keep.any(axis=0)),
+        "kept_fraction": round(float(keep.mean()), 6),
+    }
+
+
+def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
+    """Create ``out_dir``; refuse one with files unless ``overwrite``, which removes an earlier run's outputs
+    (results.json and sample_NNN folders) only."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    existing = [p for p in out_dir.iterdir()]
+    if not existing:
+        return
+    if not overwrite:
+        raise SamplingError(f"{out_dir} is not empty: choose a new output folder or pass overwrite")
+    ours = [p for p in existing if p.name == RESULTS_FILE or (p.is_dir() and _SAMPLE_DIR_PATTERN.match(p.name))]
+    others = sorted(p.name for p in set(existing) - set(ours))
+    if others:
+        raise SamplingError(f"{out_dir} holds files that are not sampling outputs ({others[:5]}): not overwriting")
+    for path in ours:
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+def _write_json_atomically(path: Path, payload: Mapping[str, Any]) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(payload, indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _resolve_device(device: str) -> str:
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return device
+
+
+def _synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def run_sampling(request: SampleRequest) -> dict[str, Any]:
+    """Generate every sample of ``request``, write the files and ``results.json``; returns the results dict."""
+    out_dir = Path(request.out_dir)
+    trained = load_trained_model(request.checkpoint, use_ema=request.weights == "ema",
+                                 device=_resolve_device(request.device))
+    source = None if request.source_motion is None else load_source_motion(request.source_motion, trained)
+    options = preset_options(request) if request.edit else {}
+    conditions = _conditions(request, trained)
+    specs = plan_samples(request, trained, source)
+    prepare_out_dir(out_dir, request.overwrite)
+    writer = SampleWriter(request, trained, out_dir)
+    disable = None if request.progress is None else not request.progress
+
+    started = time.perf_counter()
+    generation_s = 0.0
+    samples: dict[int, dict[str, Any]] = {}
+    nfe_per_batch: list[int] = []
+    with tqdm(total=len(specs), desc="sampling", unit="motion", disable=disable) as bar:
+        for chunk in batches(specs, request.batch_size):
+            _synchronize(trained.device)
+            tick = time.perf_counter()
+            batch = generate_batch(request, trained, chunk, conditions, source, options)
+            _synchronize(trained.device)
+            generation_s += time.perf_counter() - tick
+            nfe_per_batch.append(batch.nfe)
+            features = trained.denormalize(batch.features.to(trained.device)).cpu().numpy()
+            for row, spec in enumerate(chunk):
+                keep = None if batch.keep is None else batch.keep[row, :spec.length].numpy()
+                x1_hat = None if batch.x1_hat is None else batch.x1_hat[:, row, :spec.length].numpy()
+                times = None if batch.x1_hat_times is None else batch.x1_hat_times.numpy()
+                files = writer.write(spec, np.ascontiguousarray(features[row, :spec.length], dtype=np.float32),
+                                     keep, x1_hat, times)
+                samples[spec.index] = {
+                    "index": spec.index,
+                    "text": request.texts[spec.prompt] if request.texts and spec.prompt is not None else None,
+                    "action": request.actions[spec.prompt] if request.actions and spec.prompt is not None else None,
+                    "length": spec.length,
+                    "seconds": round(spec.length / trained.fps, 6),
+                    "noise_seed": spec.seed,
+                    "nfe": batch.nfe,
+                    "files": files,
+                    **({"edit": _edit_record(request, source, options, keep)} if keep is not None else {}),
+                }
+            bar.update(len(chunk))
+    total_s = time.perf_counter() - started
+
+    results = {
+        "version": RESULTS_VERSION,
+        "checkpoint": str(trained.checkpoint),
+        "step": trained.step,
+        "weights": trained.weights,
+        "dataset_id": trained.dataset_id,
+        "skeleton": trained.skeleton.name,
+        "fps": trained.fps,
+        "mode": "edit" if request.edit else "sample",
+        "conditioning": "text" if request.texts else "action" if request.actions else "none",
+        "solver": request.solver,
+        "steps": request.steps,
+        "nfe_per_batch": nfe_per_batch,
+        "guidance": request.guidance if conditions is not None else 0.0,
+        "seed": request.seed,
+        "batch_size": request.batch_size,
+        "device": str(trained.device),
+        "timing": {
+            "generation_s": round(generation_s, 6),
+            "ms_per_motion": round(1000.0 * generation_s / len(specs), 3),
+            "total_s": round(total_s, 6),
+        },
+        "samples": [samples[i] for i in sorted(samples)],
+    }
+    _write_json_atomically(out_dir / RESULTS_FILE, results)
+    logger.info("wrote %d sample(s) to %s (%.1f ms per motion)", len(specs), out_dir,
+                results["timing"]["ms_per_motion"])
+    return results

@@ -1,0 +1,266 @@
+"""launch/sample.py end to end on CPU: tiny text and action checkpoints trained once per session on the small
+synthetic dataset test_trainer.py builds, then sampling, editing and the files results.json describes."""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from matplotlib import rcParams
+from PIL import Image
+
+from conftest import REPO_ROOT
+from mfm.export import read_bvh
+from mfm.features import features_to_joints
+from mfm.layout import FeatureLayout
+from pipeline.inference import load_trained_model
+from pipeline.sampling import edited_joints
+from test_trainer import build_dataset_once, train_entry
+
+pytestmark = pytest.mark.slow
+
+
+def _load_entry_point():
+    spec = importlib.util.spec_from_file_location("launch_sample", REPO_ROOT / "launch" / "sample.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+sample_entry = _load_entry_point()
+
+
+@contextlib.contextmanager
+def one_thread():
+    """Tiny models on a shared CPU: a second intra-op thread only adds spin-waiting."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+@pytest.fixture(autouse=True)
+def _single_thread():
+    with one_thread():
+        yield
+
+
+def _train_once(tmp_path_factory, name: str, manifest: Path, *overrides: str) -> Path:
+    """A tiny 4-step run on ``manifest``, trained once per session."""
+    run = tmp_path_factory.getbasetemp() / name
+    if not (run / "checkpoints").is_dir():
+        with one_thread():
+            code = train_entry.main(["--config", "tiny", f"data.manifest={manifest}", f"train.out_dir={run}",
+                                     "train.max_steps=4", "train.save_every=4", *overrides])
+        assert code == 0
+    return run
+
+
+@pytest.fixture(scope="session")
+def text_run(tmp_path_factory) -> Path:
+    return _train_once(tmp_path_factory, "sampling-text-run", build_dataset_once(tmp_path_factory))
+
+
+@pytest.fixture(scope="session")
+def action_run(tmp_path_factory) -> Path:
+    # num_actions > 0 makes the trainer build an action model over the manifest's action classes.
+    return _train_once(tmp_path_factory, "sampling-action-run", build_dataset_once(tmp_path_factory),
+                       "model.num_actions=1")
+
+
+def sample(run: Path, out: Path, *args: str) -> dict:
+    code = sample_entry.main(["--checkpoint", str(run), "--out", str(out), *args])
+    assert code == 0
+    return json.loads((out / "results.json").read_text())
+
+
+def files_on_disk(out: Path) -> set[str]:
+    return {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and p.name != "results.json"}
+
+
+def files_described(results: dict) -> set[str]:
+    return {f["path"] for s in results["samples"] for f in s["files"]}
+
+
+def file_of(sample_record: dict, kind: str) -> str:
+    (path,) = [f["path"] for f in sample_record["files"] if f["kind"] == kind]
+    return path
+
+
+def features_of(out: Path, results: dict) -> list[np.ndarray]:
+    return [np.load(out / f["path"]) for s in results["samples"] for f in s["files"] if f["kind"] == "features"]
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def test_text_request_writes_every_file_and_describes_exactly_those(text_run, tmp_path, monkeypatch):
+    monkeypatch.setitem(rcParams, "animation.ffmpeg_path", "no-such-ffmpeg-binary")  # force the GIF fallback
+    out = tmp_path / "out"
+    results = sample(text_run, out, "--text", "a person walks forward", "--text", "someone jumps",
+                     "--num-samples", "2", "--length", "20", "--length", "27", "--plot-trajectory", "--seed", "5")
+    trained = load_trained_model(text_run)
+    assert (results["checkpoint"], results["step"], results["weights"]) == (str(trained.checkpoint), 4, "ema")
+    assert results["dataset_id"] == trained.dataset_id
+    assert (results["solver"], results["steps"], results["nfe_per_batch"], results["guidance"], results["seed"]) == \
+        ("euler", 10, [10], 2.5, 5)
+    assert results["timing"]["ms_per_motion"] > 0
+    assert [(s["text"], s["length"], s["seconds"]) for s in results["samples"]] == [
+        ("a person walks forward", 20, 1.0), ("a person walks forward", 20, 1.0),
+        ("someone jumps", 27, 1.35), ("someone jumps", 27, 1.35)]
+    assert files_on_disk(out) == files_described(results)
+
+    skeleton = trained.skeleton
+    for s in results["samples"]:
+        files = {f["kind"]: out / f["path"] for f in s["files"]}
+        assert set(files) == {"features", "joints", "video", "bvh", "trajectory_plot"}
+        features, joints = np.load(files["features"]), np.load(files["joints"])
+        assert features.shape == (s["length"], 263) and joints.shape == (s["length"], 22, 3)
+        np.testing.assert_allclose(joints, features_to_joints(features, skeleton), rtol=0, atol=1e-6)
+        assert files["video"].suffix == ".gif"
+        with Image.open(files["video"]) as gif:
+            assert gif.n_frames == s["length"]
+        with Image.open(files["trajectory_plot"]) as png:
+            assert png.format == "PNG"
+        # The network's ric output has drifting bone lengths: the BVH keeps the root path and every bone direction.
+        bvh = read_bvh(files["bvh"], skeleton.joint_names)
+        assert bvh.joints.shape == joints.shape and bvh.fps == pytest.approx(trained.fps)
+        np.testing.assert_allclose(bvh.joints[:, 0], joints[:, 0], atol=1e-5)
+        parents = skeleton.parents[1:]
+        np.testing.assert_allclose(unit(bvh.joints[:, 1:] - bvh.joints[:, parents]),
+                                   unit(joints[:, 1:] - joints[:, parents]), atol=1e-4)
+
+
+def test_same_seed_same_motions_whatever_the_batching(text_run, tmp_path):
+    prompts = tmp_path / "prompts.txt"
+    prompts.write_text("# one prompt per line\na person walks\n\n")
+    args = ["--prompts", str(prompts), "--num-samples", "3", "--no-video", "--no-bvh", "--seed", "11"]
+    first = sample(text_run, tmp_path / "a", *args)
+    reference = features_of(tmp_path / "a", first)  # read before the overwrite below replaces them
+    again = sample(text_run, tmp_path / "a", *args, "--overwrite")
+    one_by_one = sample(text_run, tmp_path / "c", *args, "--batch-size", "1")
+    other_seed = sample(text_run, tmp_path / "d", *args[:-1], "12")
+    raw_weights = sample(text_run, tmp_path / "e", *args, "--model-weights", "model")
+
+    assert [s["text"] for s in first["samples"]] == ["a person walks"] * 3
+    lengths = [s["length"] for s in first["samples"]]
+    trained = load_trained_model(text_run)
+    assert all(length in trained.train_lengths for length in lengths)  # drawn from the training distribution
+    assert first["nfe_per_batch"] == [10] and one_by_one["nfe_per_batch"] == [10, 10, 10]
+    assert (first["weights"], raw_weights["weights"]) == ("ema", "model")
+    assert [f.shape[0] for f in reference] == lengths
+    for a, b, c in zip(reference, features_of(tmp_path / "a", again), features_of(tmp_path / "c", one_by_one)):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, c, atol=1e-4)
+    assert not np.array_equal(reference[0], features_of(tmp_path / "d", other_seed)[0])
+    assert not np.array_equal(reference[0], features_of(tmp_path / "e", raw_weights)[0])
+
+
+def test_inbetween_edit_keeps_the_source_frames_and_records_the_mask(text_run, tmp_path):
+    source_out = tmp_path / "source"
+    source = sample(text_run, source_out, "--text", "a person walks", "--length", "30", "--no-video", "--no-bvh")
+    source_file = source_out / file_of(source["samples"][0], "features")
+    out = tmp_path / "edit"
+    results = sample(text_run, out, "--text", "a person jumps", "--num-samples", "2", "--edit", "inbetween",
+                     "--source-motion", str(source_file), "--keep", "prefix=0.2", "--rewrite-until", "1",
+                     "--steps", "50", "--no-bvh", "--seed", "1")  # other noise than the source's
+    assert files_on_disk(out) == files_described(results)
+    trained = load_trained_model(text_run)
+    src = trained.normalize(torch.from_numpy(np.load(source_file))).numpy()
+    for s in results["samples"]:
+        record = s["edit"]
+        assert record["preset"] == "inbetween" and record["rewrite_until"] == 1.0
+        assert record["options"] == {"prefix": 0.2} and record["source_kind"] == "features"
+        assert record["kept_frame_ranges"] == [[0, 6], [22, 30]] and record["kept_dim_ranges"] == [[0, 263]]
+        files = {f["kind"]: out / f["path"] for f in s["files"]}
+        keep = np.load(files["keep_mask"])
+        expected = np.zeros((30, 263), dtype=bool)
+        expected[:6] = expected[22:] = True
+        np.testing.assert_array_equal(keep, expected)
+        edited = trained.normalize(torch.from_numpy(np.load(files["features"]))).numpy()
+        error = np.abs(edited - src)
+        # With ς = 1 the known frames are on the noise→source line until the last step; only that step's drift
+        # h·(v - (x1 - x0)) (h = 1/50) separates them from the source. The generated middle is free.
+        assert error[keep].max() < 0.25
+        assert error[keep].mean() < 0.1 * error[~keep].mean()
+
+
+def test_upper_body_edit_from_joints_colours_the_generated_joints(text_run, tmp_path):
+    source_out = tmp_path / "source"
+    source = sample(text_run, source_out, "--text", "a person walks", "--length", "25", "--no-video", "--no-bvh")
+    joints_file = source_out / file_of(source["samples"][0], "joints")
+    out = tmp_path / "edit"
+    results = sample(text_run, out, "--edit", "upper-body", "--source-motion", str(joints_file), "--no-bvh",
+                     "--video-format", "gif")
+    (record,) = [s["edit"] for s in results["samples"]]
+    assert results["conditioning"] == "none" and results["guidance"] == 0.0
+    assert record["source_kind"] == "joints" and record["source_frames"] == 24  # joints -> features drops a frame
+    assert results["samples"][0]["length"] == 24 and record["rewrite_until"] == 0.1
+    layout = FeatureLayout(load_trained_model(text_run).skeleton)
+    keep = np.load(out / "sample_000" / "keep_mask.npy")
+    np.testing.assert_array_equal(keep, np.broadcast_to(layout.lower_body_mask, keep.shape))
+    generated = edited_joints(keep, layout)
+    lower = set(layout.skeleton.lower_body_joints)
+    assert all(generated[:, j].all() != (j in lower) for j in range(layout.num_joints))
+    assert (out / "sample_000" / "motion.gif").is_file()
+
+
+def test_action_model_samples_by_class_name_and_rejects_unknown_names(action_run, tmp_path, capsys):
+    trained = load_trained_model(action_run)
+    assert trained.model_config.is_action_model and "jump" in trained.action_classes
+    results = sample(action_run, tmp_path / "ok", "--action", "jump", "--action", "walk", "--length", "16",
+                     "--no-video", "--no-bvh")
+    assert results["conditioning"] == "action"
+    assert [(s["action"], s["text"], s["length"]) for s in results["samples"]] == [("jump", None, 16),
+                                                                                   ("walk", None, 16)]
+    code = sample_entry.main(["--checkpoint", str(action_run), "--out", str(tmp_path / "bad"), "--action", "moonwalk"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "moonwalk" in err and "jump" in err
+    assert not (tmp_path / "bad" / "results.json").exists()
+    code = sample_entry.main(["--checkpoint", str(action_run), "--out", str(tmp_path / "bad"), "--text", "a jump"])
+    assert code == 2 and "action" in capsys.readouterr().err
+
+
+def test_bad_requests_fail_with_a_clear_message(text_run, tmp_path, capsys):
+    def fails(*args: str) -> str:
+        assert sample_entry.main(["--checkpoint", str(text_run), "--out", str(tmp_path / "o"), *args]) == 2
+        return capsys.readouterr().err
+
+    assert "dopri5" in fails("--text", "x", "--solver", "rk45")
+    assert "source motion" in fails("--text", "x", "--edit", "inbetween")
+    assert "keep options" in fails("--text", "x", "--edit", "prediction", "--source-motion", "m.npy", "--keep", "every=2")
+    assert "one per prompt" in fails("--text", "x", "--text", "y", "--length", "10", "--length", "12", "--length", "9")
+    bad_source = tmp_path / "bad.npy"
+    np.save(bad_source, np.zeros((10, 7), dtype=np.float32))
+    assert "bad.npy" in fails("--text", "x", "--edit", "inbetween", "--source-motion", str(bad_source))
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / "notes.txt").write_text("mine")
+    assert "not empty" in fails("--text", "x", "--no-video", "--no-bvh")
+    assert sample_entry.main(["--checkpoint", str(tmp_path / "nothing"), "--out", str(tmp_path / "p"), "--text", "x"]) == 2
+    assert "no checkpoint" in capsys.readouterr().err
+
+
+def test_embedded_deepmimic_action_demo(tmp_path_factory, tmp_path):
+    """The real demo: an action model on the embedded DeepMimic dataset samples its clips' class names."""
+    from preprocess.shards import BuildConfig, build_dataset
+
+    data = tmp_path_factory.getbasetemp() / "deepmimic-minilm"
+    manifest = build_dataset(BuildConfig(out=data, progress=False))
+    assert {"cartwheel", "backflip", "walk"} <= set(manifest["action_classes"])
+    run = _train_once(tmp_path_factory, "sampling-deepmimic-run", data / "manifest.json", "model.num_actions=1")
+    results = sample(run, tmp_path / "out", "--action", "cartwheel", "--action", "backflip", "--seconds", "1.5",
+                     "--no-video")
+    assert results["dataset_id"] == manifest["dataset_id"]
+    assert [(s["action"], s["length"]) for s in results["samples"]] == [("cartwheel", 30), ("backflip", 30)]
+    for s in results["samples"]:
+        bvh = read_bvh(tmp_path / "out" / file_of(s, "bvh"))
+        assert bvh.joints.shape[0] == 30 and bvh.fps == pytest.approx(20.0)
