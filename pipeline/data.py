@@ -699,6 +699,7 @@ class MotionLoader:
         self.epoch = 0
         self.batches_in_epoch = 0
         self._generation = 0
+        self._plan_logged = False
         self._log_plan(self._spec.checked_plan(0))
 
     # -- plan ------------------------------------------------------------------------------------------
@@ -719,7 +720,10 @@ class MotionLoader:
         return self.plan(epoch).samples_dropped
 
     def _log_plan(self, plan: EpochPlan) -> None:
-        logger.info("data %s epoch %d: %d batches per rank, %d of %d samples used, %d dropped (rotates "
+        # Once at INFO (the first epoch); later epochs at DEBUG: a small dataset turns over every few steps.
+        level = logging.INFO if plan.epoch == 0 or not self._plan_logged else logging.DEBUG
+        self._plan_logged = True
+        logger.log(level, "data %s epoch %d: %d batches per rank, %d of %d samples used, %d dropped (rotates "
                     "across epochs), %d shards over %d readers", self.split, plan.epoch, plan.batches_per_rank,
                     plan.samples_used, plan.samples_in_epoch, plan.samples_dropped, len(self.shards),
                     plan.num_slots)
