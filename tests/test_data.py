@@ -632,7 +632,7 @@ def built_dataset(tmp_path_factory) -> Path:
     from preprocess.sources.synthetic import SyntheticSource
 
     out = tmp_path_factory.mktemp("built") / "ds"
-    config = BuildConfig(out=out, source="synthetic", shard_size=3, token_features=True, max_tokens=4,
+    config = BuildConfig(out=out, source="synthetic", text_encoder="hash-test", shard_size=3, token_features=True, max_tokens=4,
                          progress=False)
     build_dataset(config, source=SyntheticSource(num_clips=40, min_seconds=2.0, max_seconds=4.0),
                   text_encoder=HashTextEncoder())
