@@ -24,7 +24,6 @@ Heavy libraries (transformers, open_clip) are imported inside the builders so `i
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import zipfile
@@ -37,12 +36,12 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from mfm.integrity import sha256_file
+
 log = logging.getLogger(__name__)
 
 RANDOM_INIT_SHA256 = "none"
 """`weights_sha256` of an encoder whose weights were randomly initialised (tests only)."""
-
-_HASH_CHUNK_BYTES = 1 << 20
 
 
 @dataclass
@@ -77,15 +76,6 @@ class TextEncoder(Protocol):
 
 # ---------------------------------------------------------------------------------------------------
 # Shared pieces
-
-
-def sha256_file(path: str | Path) -> str:
-    """sha256 of a file's bytes, read in chunks (weights files are hundreds of MB)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(_HASH_CHUNK_BYTES):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _check_encode_args(texts: list[str], max_tokens: int, batch_size: int) -> None:

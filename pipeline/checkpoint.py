@@ -44,6 +44,8 @@ import safetensors.torch
 import torch
 from safetensors import SafetensorError
 
+from mfm.integrity import sha256_file
+
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_VERSION = 1
@@ -303,16 +305,8 @@ def verify_files(path: str | Path, marker: Mapping[str, Any], *, hashes: bool) -
             raise CorruptCheckpointError(f"{file}: listed in {COMPLETE_MARKER} but missing") from err
         if size != expected["bytes"]:
             raise CorruptCheckpointError(f"{file}: {size} bytes, the marker says {expected['bytes']}")
-        if hashes and _sha256_of(file) != expected["sha256"]:
+        if hashes and sha256_file(file) != expected["sha256"]:
             raise CorruptCheckpointError(f"{file}: sha256 differs from the marker (the file changed after the save)")
-
-
-def _sha256_of(file: Path) -> str:
-    digest = hashlib.sha256()
-    with open(file, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def is_complete(path: str | Path) -> bool:

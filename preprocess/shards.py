@@ -45,6 +45,7 @@ from tqdm import tqdm
 
 from mfm.features import FeatureStats
 from mfm.layout import FeatureLayout
+from mfm.integrity import sha256_file
 from mfm.skeleton import Skeleton, get_skeleton
 from preprocess.clip import SkippedInput
 from preprocess.processing import (
@@ -72,7 +73,6 @@ _TMP_DIR_NAME = ".build-tmp"
 _STALE_PATTERNS = (re.compile(r"^shard-\d{5}\.tar$"), re.compile(r"^part-\d{5}\.parquet$"))
 _PARQUET_ROW_GROUP = 64  # bounds the writer's buffer: 64 HumanML3D motions are ~10 MB of features
 _TEXT_CHUNK = 1024  # captions per encode() call: bounds memory and drives the progress bar
-_HASH_CHUNK = 1 << 20
 
 
 class BadInputError(RuntimeError):
@@ -152,14 +152,6 @@ class ShardInfo:
 
     def to_json(self) -> dict[str, Any]:
         return {"path": self.path, "num_motions": self.num_motions, "bytes": self.bytes, "sha256": self.sha256}
-
-
-def sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(_HASH_CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 class TarShardWriter:
