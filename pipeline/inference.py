@@ -4,6 +4,11 @@ A checkpoint carries the dataset's identity (id, feature spec, text encoder entr
 training lengths), so sampling and evaluation need no access to the shards: features are produced in the
 training normalisation and converted back with the checkpoint's Mean/Std, prompts are encoded with the same
 text encoder (checked by weights hash), and joints are recovered on the dataset's skeleton.
+
+The checkpoint's resolved training config says which objective trained it (``train.objective``): a ``'flow'``
+model is a velocity field (ODE solvers, mfm.solvers), a ``'diffusion'`` model a denoiser whose
+:class:`mfm.diffusion.GaussianDiffusion` is rebuilt from the saved preset (``train.diffusion``: ``'flowmdm'`` or
+``'flame'``; DDPM/DDIM samplers, mfm.diffusion_sampling).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mfm.diffusion import GaussianDiffusion, diffusion_from_preset
 from mfm.model import ModelConfig, MotionFlowTransformer
 from mfm.skeleton import Skeleton, get_skeleton
 from pipeline import checkpoint as ckpt
@@ -60,6 +66,9 @@ class TrainedModel:
     data: dict[str, Any]  # the checkpoint's dataset identity (see Trainer.save)
     device: torch.device
     window: int  # frames per training sample: the longest motion the model has learnt
+    objective: str = "flow"  # the training objective: "flow" (velocity field) or "diffusion" (denoiser)
+    diffusion_preset: str | None = None  # diffusion models: "flowmdm" or "flame" (mfm.diffusion.DIFFUSION_PRESETS)
+    diffusion: GaussianDiffusion | None = None  # diffusion models: the process they were trained on
 
     @cached_property
     def mean(self) -> torch.Tensor:
@@ -101,27 +110,52 @@ class TrainedModel:
 
         return build_matching_text_encoder(self.data["text_encoder"], weights=weights, device=str(self.device))
 
-    def conditions(self, *, texts: Sequence[str] = (), actions: Sequence[str] = (), text_weights: str | None = None) -> torch.Tensor:
+    def conditions(
+        self, *, texts: Sequence[str] = (), actions: Sequence[str] = (), text_weights: str | None = None
+    ) -> torch.Tensor:
         """Model conditions for the request: pooled text embeddings (N, E) or action ids (N,)."""
+        return self.condition_inputs(texts=texts, actions=actions, text_weights=text_weights)[0]
+
+    def condition_inputs(
+        self, *, texts: Sequence[str] = (), actions: Sequence[str] = (), text_weights: str | None = None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """:meth:`conditions` plus the per-prompt keyword inputs the model also needs: for a cross_attention model
+        ``text_tokens`` (N, L, E) and ``text_token_len`` (N,), encoded as the dataset's token features; else none."""
         if self.model_config.is_action_model:
             if texts:
                 raise ValueError("this is an action-to-motion model: ask with action names, not texts")
             unknown = [a for a in actions if a not in self.action_classes]
             if unknown:
                 raise ValueError(f"unknown action(s) {unknown}; this model knows {self.action_classes}")
-            return torch.tensor([self.action_classes.index(a) for a in actions], dtype=torch.long, device=self.device)
+            ids = torch.tensor([self.action_classes.index(a) for a in actions], dtype=torch.long, device=self.device)
+            return ids, {}
         if actions:
             raise ValueError("this is a text-to-motion model: ask with texts, not action names")
-        encoding = self.text_encoder(text_weights).encode(list(texts))
-        return torch.as_tensor(encoding.pooled, device=self.device)
+        if self.model_config.conditioning != "cross_attention":
+            encoding = self.text_encoder(text_weights).encode(list(texts))
+            return torch.as_tensor(encoding.pooled, device=self.device), {}
+        entry = self.data["text_encoder"]
+        if not entry.get("token_features") or int(entry.get("max_tokens", 0)) < 1:
+            raise ValueError(f"{self.checkpoint}: a cross_attention model needs the dataset's token features, but "
+                             "its text encoder entry records none (max_tokens)")
+        encoding = self.text_encoder(text_weights).encode(list(texts), token_features=True,
+                                                          max_tokens=int(entry["max_tokens"]))
+        extras = {"text_tokens": torch.as_tensor(encoding.tokens, device=self.device),
+                  "text_token_len": torch.as_tensor(encoding.token_lengths, dtype=torch.long, device=self.device)}
+        return torch.as_tensor(encoding.pooled, device=self.device), extras
 
 
 def load_trained_model(path: str | Path, *, use_ema: bool = True, device: str | torch.device = "cpu") -> TrainedModel:
-    """Load a checkpoint (or a run folder's newest complete one) for sampling/evaluation, EMA weights by default."""
+    """Load a checkpoint (or a run folder's newest complete one) for sampling/evaluation, EMA weights by default.
+
+    The model is built with the saved (resolved) model config, output width included; a diffusion checkpoint
+    also gets its GaussianDiffusion (``TrainedModel.diffusion``) from the saved ``train.diffusion`` preset.
+    """
     folder = resolve_checkpoint(path)
     model_state, ema_state, state = ckpt.load_checkpoint(folder)
     extra = state["extra"]
     model_config = ModelConfig(**extra["model_config"])
+    objective, preset, diffusion = training_objective(state["config"], model_config, folder)
     model = MotionFlowTransformer(model_config)
     weights = "ema" if use_ema and ema_state is not None else "model"
     model.load_state_dict(ema_state if weights == "ema" else model_state)
@@ -129,4 +163,30 @@ def load_trained_model(path: str | Path, *, use_ema: bool = True, device: str | 
     model.to(device).eval()
     logger.info("loaded %s weights of %s (step %d)", weights, folder, state["step"])
     window = int(state["config"]["data"]["window"])
-    return TrainedModel(model, model_config, folder, int(state["step"]), weights, dict(state["manifest"]), device, window)
+    return TrainedModel(model, model_config, folder, int(state["step"]), weights, dict(state["manifest"]), device,
+                        window, objective, preset, diffusion)
+
+
+def training_objective(
+    config: Mapping[str, Any], model_config: ModelConfig, folder: Path
+) -> tuple[str, str | None, GaussianDiffusion | None]:
+    """(objective, diffusion preset, GaussianDiffusion) a checkpoint was trained with, from its saved config.
+
+    Checkpoints written before the objective switch existed record none: they are flow models.
+    """
+    train = config.get("train", {})
+    objective = train.get("objective", "flow")
+    if objective == "flow":
+        return objective, None, None
+    if objective != "diffusion":
+        raise ValueError(f"{folder}: unknown train.objective {objective!r} in the checkpoint's config")
+    preset = train.get("diffusion", "flowmdm")
+    try:
+        diffusion = diffusion_from_preset(preset)
+    except ValueError as err:
+        raise ValueError(f"{folder}: {err}") from err
+    expected = diffusion.output_channels_factor * model_config.feature_dim
+    if model_config.output_size != expected:
+        raise ValueError(f"{folder}: the {preset!r} diffusion preset needs a denoiser with {expected} output channels "
+                         f"(learn_sigma={diffusion.learn_sigma}), but the saved model has {model_config.output_size}")
+    return objective, preset, diffusion

@@ -26,6 +26,18 @@ Editing (MFM trajectory rewriting, mfm.editing): the source motion is a ``.npy``
 joint positions (T, J, 3) on the checkpoint's skeleton (converted with joints_to_features: T - 1 frames); it is
 normalised, cropped to each sample's length, and a preset mask says what is kept. Frames past the source's end are
 never kept (there is nothing to keep); they are generated. Without a text/action the edit is unconditional.
+
+Objectives: a flow checkpoint (``train.objective=flow``) integrates its velocity field with an ODE solver (euler,
+midpoint, heun, rk4 or a torchdiffeq method; default euler, 10 steps). A diffusion checkpoint (``train.objective=
+diffusion``, FLAME / FlowMDM presets) runs the reverse chain with ``solver`` ``'ddpm'`` (ancestral, the references'
+sampler) or ``'ddim'`` (eta 0, deterministic), ``steps`` respaced from the training steps (default: all of them,
+1000); an evaluation is one denoiser pass (a guided one batches both halves), so nfe = steps. Diffusion samplers draw
+a batch's initial and per-step noise from one generator seeded with the batch's first sample's ``noise_seed``, so
+unlike flow samples they depend on ``batch_size``. Editing a diffusion model is FLAME's replacement editing (the kept
+part is re-noised onto the chain before every step; ``rewrite_until`` does not apply) with the same mask presets.
+
+Composition (FlowMDM, one long sequence from several (text, length) segments) lives in pipeline/composing.py; it
+shares this module's request, outputs and checkpoint loading.
 """
 
 from __future__ import annotations
@@ -45,10 +57,15 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from mfm.composition import BoundInputs
+from mfm.diffusion import GaussianDiffusion
+from mfm.diffusion_sampling import SAMPLERS, replacement_edit, sample_diffusion
 from mfm.editing import edit, edit_mask, joint_frame_mask, motion_to_features
 from mfm.export import plot_x1_trajectory, render_motion, write_bvh
 from mfm.export.bvh import JOINT_CHANNELS, ROOT_CHANNELS
+from mfm.export.render import Captions
 from mfm.features import features_to_joints
+from mfm.guidance import classifier_free_guidance
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
 from mfm.solvers import (
@@ -67,6 +84,7 @@ logger = logging.getLogger(__name__)
 RESULTS_FILE = "results.json"
 RESULTS_VERSION = 1
 SAMPLE_DIR = "sample_{:03d}"
+TIME_CONVENTIONS = {"flow": "flow time t, 1 = data", "diffusion": "diffusion t_model = step / train steps, 0 = data"}
 _SAMPLE_DIR_PATTERN = re.compile(r"^sample_\d{3,}$")
 
 # Command-line preset name -> mfm.editing preset (None: the custom joints/frames mask built here).
@@ -102,6 +120,16 @@ def known_solvers() -> list[str]:
     return sorted(FIXED_STEP_SOLVERS) + sorted(set(SOLVERS) - set(FIXED_STEP_SOLVERS))
 
 
+DEFAULT_FLOW_SOLVER = "euler"
+DEFAULT_FLOW_STEPS = 10
+DEFAULT_DIFFUSION_SAMPLER = "ddpm"  # FLAME's and FlowMDM's sampler; its default steps are the training steps
+
+
+def _positive_int(name: str, value: Any) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise SamplingError(f"{name} must be a positive int, got {value!r}")
+
+
 @dataclasses.dataclass
 class SampleRequest:
     """Everything one sampling run needs; see the module docstring for the outputs."""
@@ -112,9 +140,9 @@ class SampleRequest:
     actions: Sequence[str] = ()  # class names, for action models
     lengths: Sequence[int] = ()  # frames: one for all prompts or one per prompt; empty: see module docstring
     seconds: Sequence[float] = ()  # alternative to lengths (converted with the dataset's fps)
-    num_samples: int = 1  # per prompt (without prompts: in total, unconditional)
-    steps: int = 10
-    solver: str = "euler"
+    num_samples: int = 1  # per prompt (without prompts: in total, unconditional); composition: sequences
+    steps: int | None = None  # None: 10 for flow models, every training step (1000) for diffusion models
+    solver: str | None = None  # None: "euler" (flow) or "ddpm" (diffusion); see the module docstring
     guidance: float = 2.5
     seed: int = 0
     batch_size: int = 64
@@ -131,22 +159,34 @@ class SampleRequest:
     plot_trajectory: bool = False
     overwrite: bool = False  # replace the outputs of an earlier run in out_dir
     progress: bool | None = None  # None: progress bars when stderr is a terminal
+    # Composition (pipeline/composing.py): one sequence made of (text, frames) segments.
+    compose_file: str | Path | None = None  # FlowMDM prompt file {"text": [...], "lengths": [...]}
+    extrapolate: bool = False  # one text (or action) over every segment; also chosen when the file's texts agree
+    num_segments: int | None = None  # extrapolation without a file: the one length repeated this many times
+    switch: float | int | None = None  # bpe models: flow time or leading absolute steps; None: HUMANML3D_SWITCH
+    attention_chunk: int | None = None  # bpe models: attention block size; None: auto; 0: dense attention
 
     def __post_init__(self) -> None:
         if self.texts and self.actions:
             raise SamplingError("give texts or actions, not both")
         if self.lengths and self.seconds:
             raise SamplingError("give lengths (frames) or seconds, not both")
-        for name in ("num_samples", "steps", "batch_size"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise SamplingError(f"{name} must be a positive int, got {value!r}")
+        for name in ("num_samples", "batch_size"):
+            _positive_int(name, getattr(self, name))
+        if self.steps is not None:
+            _positive_int("steps", self.steps)
         if self.weights not in ("ema", "model"):
             raise SamplingError(f"weights must be 'ema' or 'model', got {self.weights!r}")
-        if self.solver not in known_solvers():
-            raise SamplingError(f"unknown solver {self.solver!r}; known: {known_solvers()}")
+        if self.solver is not None and self.solver not in known_solvers() + list(SAMPLERS):
+            raise SamplingError(f"unknown solver {self.solver!r}; known: {known_solvers()} for flow models, "
+                                f"{list(SAMPLERS)} for diffusion models")
         if self.video_format not in ("auto", "mp4", "gif"):
             raise SamplingError(f"video_format must be 'auto', 'mp4' or 'gif', got {self.video_format!r}")
+        if self.composes:
+            self._check_composition()
+        elif self.num_segments is not None or self.switch is not None or self.attention_chunk is not None:
+            raise SamplingError("num_segments, switch and attention_chunk only apply to a composition "
+                                "(compose_file / extrapolate)")
         if self.edit is None:
             if self.source_motion is not None or self.keep or self.rewrite_until is not None:
                 raise SamplingError("source motion, keep options and rewrite_until only apply to an edit")
@@ -155,9 +195,10 @@ class SampleRequest:
             raise SamplingError(f"unknown edit {self.edit!r}; known: {sorted(EDIT_PRESETS)}")
         if self.source_motion is None:
             raise SamplingError(f"edit {self.edit!r} needs a source motion (.npy features (T, D) or joints (T, J, 3))")
-        if self.solver not in FIXED_STEP_SOLVERS:
+        if self.solver is not None and self.solver not in FIXED_STEP_SOLVERS and self.solver not in SAMPLERS:
             raise SamplingError(f"editing rewrites the trajectory between fixed steps: use a solver in "
-                                f"{sorted(FIXED_STEP_SOLVERS)}, not {self.solver!r}")
+                                f"{sorted(FIXED_STEP_SOLVERS)} (flow) or {list(SAMPLERS)} (diffusion), "
+                                f"not {self.solver!r}")
         unknown = sorted(set(self.keep) - set(KEEP_OPTIONS[self.edit]))
         if unknown:
             raise SamplingError(f"edit {self.edit!r} takes keep options {sorted(KEEP_OPTIONS[self.edit]) or 'none'}, "
@@ -166,6 +207,38 @@ class SampleRequest:
             raise SamplingError("edit 'joints' needs keep joints=NAME,NAME,... (the joints taken from the source)")
         if self.rewrite_until is not None and not 0.0 <= self.rewrite_until <= 1.0:
             raise SamplingError(f"rewrite_until must be in [0, 1], got {self.rewrite_until}")
+
+    @property
+    def composes(self) -> bool:
+        """A composition request (pipeline/composing.py) rather than independent samples or edits."""
+        return self.compose_file is not None or self.extrapolate
+
+    def _check_composition(self) -> None:
+        if self.edit is not None:
+            raise SamplingError("a composition cannot also be an edit")
+        if self.compose_file is not None:
+            if self.texts or self.actions or self.lengths or self.seconds or self.num_segments is not None:
+                raise SamplingError(f"{self.compose_file}: the composition's texts and lengths come from the file; "
+                                    "do not also give texts, actions, lengths, seconds or num_segments")
+        else:
+            if len(self.texts) + len(self.actions) != 1:
+                raise SamplingError("extrapolation without a prompt file repeats one text (or action): give exactly "
+                                    "one")
+            if not (self.lengths or self.seconds):
+                raise SamplingError("extrapolation without a prompt file needs the segment lengths (one per segment, "
+                                    "or one with num_segments)")
+            if self.num_segments is not None:
+                _positive_int("num_segments", self.num_segments)
+                if len(self.lengths) + len(self.seconds) != 1:
+                    raise SamplingError("num_segments repeats one length: give exactly one length (or seconds)")
+        if self.switch is not None:
+            if isinstance(self.switch, bool) or not isinstance(self.switch, (int, float)):
+                raise SamplingError(f"switch must be a flow time (float) or a step count (int), got {self.switch!r}")
+        if self.attention_chunk is not None and (isinstance(self.attention_chunk, bool)
+                                                 or not isinstance(self.attention_chunk, int)
+                                                 or self.attention_chunk < 0):
+            raise SamplingError(f"attention_chunk must be an int >= 0 (0: dense attention), got "
+                                f"{self.attention_chunk!r}")
 
     @property
     def rewrite_time(self) -> float:
@@ -333,6 +406,69 @@ def keep_mask(request: SampleRequest, options: Mapping[str, Any], lengths: torch
 
 
 # ---------------------------------------------------------------------------------------------------------------
+# the checkpoint and how to integrate it
+
+
+@dataclasses.dataclass(frozen=True)
+class Integrator:
+    """How a request integrates its checkpoint: an ODE solver (flow) or a diffusion sampler, with its steps."""
+
+    objective: str  # "flow" or "diffusion"
+    name: str  # the solver (flow) or sampler (diffusion: "ddpm" / "ddim")
+    steps: int
+    diffusion: GaussianDiffusion | None = None  # diffusion: the training process respaced to ``steps``
+
+    def record(self, trained: TrainedModel) -> dict[str, Any]:
+        """results.json's description of the objective and sampler."""
+        info: dict[str, Any] = {"objective": self.objective, "sampler": self.name, "solver": self.name,
+                                "steps": self.steps}
+        if self.diffusion is not None:
+            process = trained.diffusion
+            info["diffusion"] = {"preset": trained.diffusion_preset, "train_steps": process.num_train_steps,
+                                 "schedule": process.schedule, "prediction": process.prediction,
+                                 "learn_sigma": process.learn_sigma,
+                                 "model_steps": self.diffusion.timestep_map.tolist()}  # the training steps visited
+            if self.name == "ddim":
+                info["diffusion"]["eta"] = 0.0
+        return info
+
+
+def load_for_request(request: SampleRequest) -> TrainedModel:
+    """The request's checkpoint on its device (a checkpoint that cannot be loaded is a SamplingError)."""
+    try:
+        return load_trained_model(request.checkpoint, use_ema=request.weights == "ema",
+                                  device=resolve_device(request.device))
+    except ValueError as err:
+        raise SamplingError(str(err)) from err
+
+
+def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integrator:
+    """The solver or sampler and steps for ``trained``'s objective; a mismatch is a clear SamplingError."""
+    if trained.objective == "flow":
+        solver = request.solver or DEFAULT_FLOW_SOLVER
+        if solver in SAMPLERS:
+            raise SamplingError(f"{trained.checkpoint} is a flow-matching model (train.objective=flow): {solver!r} is "
+                                f"a diffusion sampler; use an ODE solver ({', '.join(known_solvers())})")
+        return Integrator("flow", solver, request.steps or DEFAULT_FLOW_STEPS)
+    sampler = request.solver or DEFAULT_DIFFUSION_SAMPLER
+    if sampler not in SAMPLERS:
+        raise SamplingError(f"{trained.checkpoint} is a diffusion model (train.objective=diffusion, preset "
+                            f"{trained.diffusion_preset!r}): sample it with solver 'ddpm' or 'ddim' (steps respaced "
+                            f"from its {trained.diffusion.num_train_steps} training steps), not the ODE solver "
+                            f"{sampler!r}")
+    if request.edit is not None and request.rewrite_until is not None:
+        raise SamplingError("rewrite_until is a flow-matching edit option: FLAME's replacement editing of a diffusion "
+                            "model re-noises the kept part before every step")
+    steps = request.steps or trained.diffusion.num_train_steps
+    try:
+        schedule = trained.diffusion.respaced(steps)
+    except ValueError as err:
+        raise SamplingError(f"cannot sample {trained.checkpoint} with {steps} steps of its "
+                            f"{trained.diffusion.num_train_steps}: {err}") from err
+    return Integrator("diffusion", sampler, steps, schedule)
+
+
+# ---------------------------------------------------------------------------------------------------------------
 # generation
 
 
@@ -346,22 +482,47 @@ class BatchResult:
     x1_hat_times: torch.Tensor | None
 
 
-def _conditions(request: SampleRequest, trained: TrainedModel) -> torch.Tensor | None:
-    """(P, E) text embeddings or (P,) action ids of the request's prompts; None without prompts."""
+@dataclasses.dataclass
+class PromptConditions:
+    """The encoded prompts: conditions (P, E) or (P,) and the per-prompt model inputs some models also need
+    (cross_attention: ``text_tokens``, ``text_token_len``)."""
+
+    cond: torch.Tensor
+    extras: dict[str, torch.Tensor]
+
+    def select(self, prompts: torch.Tensor) -> PromptConditions:
+        index = prompts.to(self.cond.device)
+        return PromptConditions(self.cond[index], {name: value[index] for name, value in self.extras.items()})
+
+
+def encode_prompts(request: SampleRequest, trained: TrainedModel) -> PromptConditions | None:
+    """The request's texts or actions encoded for the model; None without prompts."""
     if not _prompt_count(request):
         return None
     try:
-        return trained.conditions(texts=list(request.texts), actions=list(request.actions),
-                                  text_weights=request.text_weights)
+        cond, extras = trained.condition_inputs(texts=list(request.texts), actions=list(request.actions),
+                                                text_weights=request.text_weights)
     except ValueError as err:
         raise SamplingError(str(err)) from err
+    return PromptConditions(cond, extras)
 
 
-def _placeholder_conditions(trained: TrainedModel, batch: int) -> torch.Tensor:
-    """A condition of the right shape for unconditional sampling (guidance 0 drops it through cond_mask)."""
-    if trained.model_config.is_action_model:
-        return torch.zeros(batch, dtype=torch.long, device=trained.device)
-    return torch.zeros(batch, trained.model_config.cond_dim, device=trained.device)
+def placeholder_conditions(trained: TrainedModel, batch: int) -> PromptConditions:
+    """Conditions of the right shapes for unconditional sampling (guidance 0 drops them through cond_mask)."""
+    config = trained.model_config
+    device = trained.device
+    if config.is_action_model:
+        return PromptConditions(torch.zeros(batch, dtype=torch.long, device=device), {})
+    extras = {}
+    if config.conditioning == "cross_attention":
+        extras = {"text_tokens": torch.zeros(batch, 1, config.text_token_dim, device=device),
+                  "text_token_len": torch.ones(batch, dtype=torch.long, device=device)}
+    return PromptConditions(torch.zeros(batch, config.cond_dim, device=device), extras)
+
+
+def conditioned_model(trained: TrainedModel, conditions: PromptConditions) -> torch.nn.Module | BoundInputs:
+    """The model with the conditions' extra per-sample inputs bound (the solvers' and samplers' call signature)."""
+    return BoundInputs(trained.model, conditions.extras) if conditions.extras else trained.model
 
 
 def _initial_noise(specs: Sequence[SampleSpec], num_frames: int, dim: int, device: torch.device) -> torch.Tensor:
@@ -373,9 +534,17 @@ def _initial_noise(specs: Sequence[SampleSpec], num_frames: int, dim: int, devic
     return x0
 
 
+def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Tensor, num_frames: int) -> torch.Tensor:
+    """(B, T, D) the source motion cropped/zero-padded to every sample's length."""
+    known = torch.zeros(lengths.shape[0], num_frames, trained.model_config.feature_dim, device=trained.device)
+    frames = min(num_frames, source.features.shape[0])
+    known[:, :frames] = source.features[:frames]
+    return known * valid_frame_mask(lengths, num_frames).unsqueeze(-1)
+
+
 @torch.no_grad()
-def generate_batch(request: SampleRequest, trained: TrainedModel, specs: list[SampleSpec],
-                   conditions: torch.Tensor | None, source: SourceMotion | None,
+def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: Integrator, specs: list[SampleSpec],
+                   conditions: PromptConditions | None, source: SourceMotion | None,
                    options: Mapping[str, Any]) -> BatchResult:
     """Sample (or edit) one batch of motions."""
     device = trained.device
@@ -383,24 +552,38 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, specs: list[Sa
     num_frames = int(lengths.max())
     dim = trained.model_config.feature_dim
     if conditions is None:
-        cond, scale = _placeholder_conditions(trained, len(specs)), 0.0
+        batch_conditions, scale = placeholder_conditions(trained, len(specs)), 0.0
     else:
-        cond, scale = conditions[torch.tensor([s.prompt for s in specs], device=conditions.device)], request.guidance
-    velocity = guided_velocity(trained.model, cond, scale=scale, lengths=lengths)
-    x0 = _initial_noise(specs, num_frames, dim, device)
+        batch_conditions = conditions.select(torch.tensor([s.prompt for s in specs]))
+        scale = request.guidance
+    model = conditioned_model(trained, batch_conditions)
+    cond = batch_conditions.cond
     keep = None
-    if source is None:
-        result: SolveResult = solve(zero_padded_frames(velocity, lengths), x0, solver=request.solver,
-                                    steps=request.steps, return_trajectory=request.plot_trajectory)
-    else:
-        known = torch.zeros(len(specs), num_frames, dim, device=device)
-        frames = min(num_frames, source.features.shape[0])
-        known[:, :frames] = source.features[:frames]
-        known = known * valid_frame_mask(lengths, num_frames).unsqueeze(-1)
+    if source is not None:
+        known = _known_motion(trained, source, lengths, num_frames)
         keep = keep_mask(request, options, lengths, num_frames, FeatureLayout(trained.skeleton),
                          source.features.shape[0]).to(device)
-        result = edit(velocity, known, keep, steps=request.steps, rewrite_until=request.rewrite_time,
-                      solver=request.solver, x0=x0, lengths=lengths, return_trajectory=request.plot_trajectory)
+    if integrator.objective == "diffusion":
+        # One generator per batch (mfm.diffusion_sampling draws the batch's noise from it): see the module docstring.
+        generator = torch.Generator().manual_seed(specs[0].seed)
+        if source is None:
+            result: SolveResult = sample_diffusion(
+                model, integrator.diffusion, cond, lengths, num_frames=num_frames, feature_dim=dim,
+                sampler=integrator.name, guidance=scale, generator=generator,
+                return_trajectory=request.plot_trajectory)
+        else:
+            denoise = classifier_free_guidance(model, cond, scale=scale, lengths=lengths, guided_channels=dim)
+            result = replacement_edit(denoise, integrator.diffusion, known, keep, sampler=integrator.name,
+                                      lengths=lengths, generator=generator, return_trajectory=request.plot_trajectory)
+    else:
+        velocity = guided_velocity(model, cond, scale=scale, lengths=lengths)
+        x0 = _initial_noise(specs, num_frames, dim, device)
+        if source is None:
+            result = solve(zero_padded_frames(velocity, lengths), x0, solver=integrator.name, steps=integrator.steps,
+                           return_trajectory=request.plot_trajectory)
+        else:
+            result = edit(velocity, known, keep, steps=integrator.steps, rewrite_until=request.rewrite_time,
+                          solver=integrator.name, x0=x0, lengths=lengths, return_trajectory=request.plot_trajectory)
     return BatchResult(
         specs, result.x1.float().cpu(), result.nfe, None if keep is None else keep.cpu(),
         None if result.x1_hat is None else result.x1_hat.float().cpu(), result.x1_hat_times,
@@ -444,9 +627,11 @@ class SampleWriter:
     def _entry(self, path: Path, kind: str, **info: Any) -> dict[str, Any]:
         return {"path": path.relative_to(self.out_dir).as_posix(), "kind": kind, **info}
 
-    def write(self, spec: SampleSpec, features: np.ndarray, keep: np.ndarray | None,
-              x1_hat: np.ndarray | None, x1_hat_times: np.ndarray | None) -> list[dict[str, Any]]:
-        folder = self.out_dir / SAMPLE_DIR.format(spec.index)
+    def write(self, index: int, features: np.ndarray, title: Captions, keep: np.ndarray | None = None,
+              x1_hat: np.ndarray | None = None, x1_hat_times: np.ndarray | None = None) -> list[dict[str, Any]]:
+        """Sample ``index``'s files from its un-normalised features (L, D); ``title``: a caption, or
+        ``[(start_frame, caption), ...]`` for captions that change over the motion (composition)."""
+        folder = self.out_dir / SAMPLE_DIR.format(index)
         folder.mkdir(parents=True, exist_ok=True)
         joints = features_to_joints(features, self.skeleton).astype(np.float32)
         files = []
@@ -460,34 +645,40 @@ class SampleWriter:
             np.save(folder / "keep_mask.npy", keep)
             files.append(self._entry(folder / "keep_mask.npy", "keep_mask", shape=list(keep.shape),
                                      meaning="True = kept from the source motion"))
-        title = caption(self.request, spec)
         if self.request.video:
             edited = None if keep is None else edited_joints(keep, self.layout)
             video = render_motion(folder / "motion", joints, self.skeleton, self.trained.fps, title=title,
                                   edited=edited, fmt=self.request.video_format)
+            captions = {} if isinstance(title, str) or title is None else {"captions": [list(c) for c in title]}
             files.append(self._entry(video, "video", format=video.suffix.lstrip("."), fps=self.trained.fps,
-                                     colors="kept blue, edited red" if keep is not None else "one colour per chain"))
+                                     colors="kept blue, edited red" if keep is not None else "one colour per chain",
+                                     **captions))
         if self.request.bvh:
             bvh = write_bvh(folder / "motion.bvh", joints, self.skeleton, self.trained.fps)
             files.append(self._entry(bvh, "bvh", skeleton=self.skeleton.name, unit="m", up="Y",
                                      root_channels=list(ROOT_CHANNELS), joint_channels=list(JOINT_CHANNELS),
                                      rotation_order="R = Ry @ Rx @ Rz (Blender Euler ZXY)", fps=self.trained.fps))
         if x1_hat is not None:
+            plot_title = title if isinstance(title, str) or title is None else " / ".join(text for _, text in title)
             png = plot_x1_trajectory(folder / "trajectory.png", x1_hat, x1_hat_times, self.skeleton,
-                                     mean=self.trained.mean.cpu(), std=self.trained.std.cpu(), title=title)
-            files.append(self._entry(png, "trajectory_plot", times=[round(float(t), 6) for t in x1_hat_times]))
+                                     mean=self.trained.mean.cpu(), std=self.trained.std.cpu(), title=plot_title)
+            # Flow: t of each x̂1 estimate (1 = data); diffusion: the denoiser's t_model (0 = data).
+            files.append(self._entry(png, "trajectory_plot", times=[round(float(t), 6) for t in x1_hat_times],
+                                     time_convention=TIME_CONVENTIONS[self.trained.objective]))
         return files
 
 
-def _edit_record(request: SampleRequest, source: SourceMotion, options: Mapping[str, Any],
+def _edit_record(request: SampleRequest, integrator: Integrator, source: SourceMotion, options: Mapping[str, Any],
                  keep: np.ndarray) -> dict[str, Any]:
+    diffusion = integrator.objective == "diffusion"
     return {
         "preset": request.edit,
+        "method": "replacement (FLAME)" if diffusion else "trajectory rewriting (MFM)",
         "source_motion": str(source.path),
         "source_kind": source.kind,
         "source_frames": int(source.features.shape[0]),
         "options": dict(options),
-        "rewrite_until": request.rewrite_time,
+        "rewrite_until": None if diffusion else request.rewrite_time,
         "kept_frame_ranges": _ranges(keep.any(axis=1)),
         "kept_dim_ranges": _ranges(keep.any(axis=0)),
         "kept_fraction": round(float(keep.mean()), 6),
@@ -511,31 +702,54 @@ def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
         shutil.rmtree(path) if path.is_dir() else path.unlink()
 
 
-def _write_json_atomically(path: Path, payload: Mapping[str, Any]) -> None:
+def write_json_atomically(path: Path, payload: Mapping[str, Any]) -> None:
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.write_text(json.dumps(payload, indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, path)
 
 
-def _resolve_device(device: str) -> str:
+def resolve_device(device: str) -> str:
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
     return device
 
 
-def _synchronize(device: torch.device) -> None:
+def synchronize(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
 
+def results_header(request: SampleRequest, trained: TrainedModel, integrator: Integrator, mode: str,
+                   conditioned: bool) -> dict[str, Any]:
+    """The part of results.json every mode shares: the checkpoint, the data it knows and how it was integrated."""
+    return {
+        "version": RESULTS_VERSION,
+        "checkpoint": str(trained.checkpoint),
+        "step": trained.step,
+        "weights": trained.weights,
+        "dataset_id": trained.dataset_id,
+        "skeleton": trained.skeleton.name,
+        "fps": trained.fps,
+        "mode": mode,
+        "conditioning": "text" if request.texts or request.compose_file else "action" if request.actions else "none",
+        **integrator.record(trained),
+        "guidance": request.guidance if conditioned else 0.0,
+        "seed": request.seed,
+        "device": str(trained.device),
+    }
+
+
 def run_sampling(request: SampleRequest) -> dict[str, Any]:
-    """Generate every sample of ``request``, write the files and ``results.json``; returns the results dict."""
+    """Generate every sample of ``request``, write the files and ``results.json``; returns the results dict.
+    Composition requests go to :func:`pipeline.composing.run_composition`."""
+    if request.composes:
+        raise SamplingError("a composition request is run by pipeline.composing.run_composition")
     out_dir = Path(request.out_dir)
-    trained = load_trained_model(request.checkpoint, use_ema=request.weights == "ema",
-                                 device=_resolve_device(request.device))
+    trained = load_for_request(request)
+    integrator = resolve_integrator(request, trained)
     source = None if request.source_motion is None else load_source_motion(request.source_motion, trained)
     options = preset_options(request) if request.edit else {}
-    conditions = _conditions(request, trained)
+    conditions = encode_prompts(request, trained)
     specs = plan_samples(request, trained, source)
     prepare_out_dir(out_dir, request.overwrite)
     writer = SampleWriter(request, trained, out_dir)
@@ -547,10 +761,10 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
     nfe_per_batch: list[int] = []
     with tqdm(total=len(specs), desc="sampling", unit="motion", disable=disable) as bar:
         for chunk in batches(specs, request.batch_size):
-            _synchronize(trained.device)
+            synchronize(trained.device)
             tick = time.perf_counter()
-            batch = generate_batch(request, trained, chunk, conditions, source, options)
-            _synchronize(trained.device)
+            batch = generate_batch(request, trained, integrator, chunk, conditions, source, options)
+            synchronize(trained.device)
             generation_s += time.perf_counter() - tick
             nfe_per_batch.append(batch.nfe)
             features = trained.denormalize(batch.features.to(trained.device)).cpu().numpy()
@@ -558,39 +772,27 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
                 keep = None if batch.keep is None else batch.keep[row, :spec.length].numpy()
                 x1_hat = None if batch.x1_hat is None else batch.x1_hat[:, row, :spec.length].numpy()
                 times = None if batch.x1_hat_times is None else batch.x1_hat_times.numpy()
-                files = writer.write(spec, np.ascontiguousarray(features[row, :spec.length], dtype=np.float32),
-                                     keep, x1_hat, times)
+                files = writer.write(spec.index, np.ascontiguousarray(features[row, :spec.length], dtype=np.float32),
+                                     caption(request, spec), keep, x1_hat, times)
                 samples[spec.index] = {
                     "index": spec.index,
                     "text": request.texts[spec.prompt] if request.texts and spec.prompt is not None else None,
                     "action": request.actions[spec.prompt] if request.actions and spec.prompt is not None else None,
                     "length": spec.length,
                     "seconds": round(spec.length / trained.fps, 6),
-                    "noise_seed": spec.seed,
+                    # Diffusion samplers seed one generator per batch (module docstring).
+                    "noise_seed": chunk[0].seed if integrator.objective == "diffusion" else spec.seed,
                     "nfe": batch.nfe,
                     "files": files,
-                    **({"edit": _edit_record(request, source, options, keep)} if keep is not None else {}),
+                    **({"edit": _edit_record(request, integrator, source, options, keep)} if keep is not None else {}),
                 }
             bar.update(len(chunk))
     total_s = time.perf_counter() - started
 
     results = {
-        "version": RESULTS_VERSION,
-        "checkpoint": str(trained.checkpoint),
-        "step": trained.step,
-        "weights": trained.weights,
-        "dataset_id": trained.dataset_id,
-        "skeleton": trained.skeleton.name,
-        "fps": trained.fps,
-        "mode": "edit" if request.edit else "sample",
-        "conditioning": "text" if request.texts else "action" if request.actions else "none",
-        "solver": request.solver,
-        "steps": request.steps,
+        **results_header(request, trained, integrator, "edit" if request.edit else "sample", conditions is not None),
         "nfe_per_batch": nfe_per_batch,
-        "guidance": request.guidance if conditions is not None else 0.0,
-        "seed": request.seed,
         "batch_size": request.batch_size,
-        "device": str(trained.device),
         "timing": {
             "generation_s": round(generation_s, 6),
             "ms_per_motion": round(1000.0 * generation_s / len(specs), 3),
@@ -598,7 +800,7 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
         },
         "samples": [samples[i] for i in sorted(samples)],
     }
-    _write_json_atomically(out_dir / RESULTS_FILE, results)
+    write_json_atomically(out_dir / RESULTS_FILE, results)
     logger.info("wrote %d sample(s) to %s (%.1f ms per motion)", len(specs), out_dir,
                 results["timing"]["ms_per_motion"])
     return results
