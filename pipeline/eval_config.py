@@ -1,0 +1,196 @@
+"""Settings of the evaluation job (launch/evaluate.py): typed sections, presets configs/eval_{full,fast}.yaml, dotted
+overrides, and the sweep flags ``--solver/--steps/--guidance`` (comma lists). See pipeline.evaluation.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+from pipeline.config import ConfigError, coerce_fields, load_config, parse_yaml
+
+PROTOCOL_PRESETS = {"full": "eval_full", "fast": "eval_fast"}
+EDIT_PRESETS = ("prediction", "inbetween", "interpolation", "upper_body")
+"""mfm.editing presets the editing metrics may use."""
+
+
+def _require(condition: bool, message: str) -> None:
+    if not condition:
+        raise ConfigError(message)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ProtocolConfig:
+    """The metric protocol; ``full`` and ``fast`` presets are configs/eval_full.yaml and eval_fast.yaml."""
+
+    name: str = "full"
+    """Recorded in every result (``full``: 20 replications as published; ``fast``: 3, for training curves)."""
+    replications: int = 20
+    r_precision_batch: int = 32
+    """Retrieval among this many (1 match + 31 others); a smaller test set uses its size (recorded)."""
+    diversity_times: int = 300
+    multimodality: bool = True
+    """Generate ``mm_repeats`` motions for ``mm_num_texts`` texts per replication (MDM's ``mm_short``)."""
+    mm_num_texts: int = 100
+    mm_repeats: int = 30
+    mm_times: int = 10
+    num_samples: int = 0
+    """Items generated per replication: 0 = the whole test set (T2M); 1000 = MDM's ``num_samples_limit``."""
+    max_length: int = 196
+    """Longest ground-truth clip in frames (the reference's ``max_motion_length``); longer ones are cropped."""
+    unit_length: int = 4
+    """Ground-truth clips are cropped to a multiple of this (the reference loader's rule)."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        for name in ("replications", "r_precision_batch", "diversity_times", "mm_num_texts", "mm_repeats",
+                     "mm_times", "max_length", "unit_length"):
+            _require(getattr(self, name) >= 1, f"protocol.{name} must be >= 1, got {getattr(self, name)}")
+        _require(self.mm_times <= self.mm_repeats,
+                 f"protocol.mm_times ({self.mm_times}) must not exceed mm_repeats ({self.mm_repeats})")
+        _require(self.num_samples >= 0, f"protocol.num_samples must be >= 0, got {self.num_samples}")
+        _require(self.seed >= 0, f"protocol.seed must be >= 0, got {self.seed}")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SamplingConfig:
+    """How motions are generated; every (solver, steps, guidance) combination is one unit (a sweep)."""
+
+    solvers: tuple[str, ...] = ("euler",)
+    """mfm.solvers names: euler, midpoint, heun, rk4 or a torchdiffeq method (dopri5, ...)."""
+    steps: tuple[int, ...] = (10,)
+    guidance: tuple[float, ...] = (2.5,)
+    use_ema: bool = True
+    batch_size: int = 64
+    """Motions generated per forward batch (per rank)."""
+    rtol: float = 1e-5
+    atol: float = 1e-5
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        _require(bool(self.solvers) and bool(self.steps) and bool(self.guidance),
+                 "sampling.solvers, sampling.steps and sampling.guidance must each list at least one value")
+        _require(all(s >= 1 for s in self.steps), f"sampling.steps must be >= 1, got {self.steps}")
+        _require(self.batch_size >= 1, f"sampling.batch_size must be >= 1, got {self.batch_size}")
+
+    def points(self) -> list[SamplingPoint]:
+        return [SamplingPoint(s, n, float(g)) for s in self.solvers for n in self.steps for g in self.guidance]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EvaluatorConfig:
+    """Which network metrics are computed in."""
+
+    kind: Literal["contrastive", "t2m"] = "contrastive"
+    """contrastive: the project's own (launch/train_evaluator.py); t2m: the official evaluator of Guo et al."""
+    path: str = "auto"
+    """Contrastive evaluator weights (.safetensors); auto: runs/evaluators/<dataset id>/contrastive.safetensors."""
+    action_classifier: str = "auto"
+    """Action classifier for action-to-motion; auto: beside the evaluator if present; empty: none."""
+    t2m_checkpoint_dir: str = ""
+    """Folder holding {t2m,kit}/text_mot_match/model/finest.tar (T2M ``checkpoints/`` or MDM's repository root)."""
+    t2m_glove_dir: str = ""
+    """Folder holding our_vab_data.npy, our_vab_words.pkl, our_vab_idx.pkl."""
+    t2m_norm_dir: str = ""
+    """Folder holding {t2m,kit}_mean.npy / _std.npy (empty: look in t2m_checkpoint_dir)."""
+    t2m_allow_pickle: bool = False
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class TasksConfig:
+    """Which metric families run besides text-to-motion (or action-to-motion for action models)."""
+
+    flame: bool = True
+    """APE/AVE, mCLIP, MID and per-text joint variance (FLAME / TEMOS)."""
+    mid_eps: float = 5e-4
+    """Ridge added to MID's covariances (its authors' advice for small sets)."""
+    editing: tuple[str, ...] = ("prediction", "inbetween", "upper_body")
+    """MFM Table 3 tasks, mfm.editing presets; empty: none. Needs a fixed-step solver."""
+    editing_replications: int = 0
+    """0: as many as protocol.replications."""
+    edit_rewrite_until: dict[str, float] = dataclasses.field(default_factory=lambda: {
+        "prediction": 1.0, "inbetween": 1.0, "interpolation": 1.0, "upper_body": 0.1})
+    """ς per preset (MFM's edit.py values)."""
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        unknown = [p for p in self.editing if p not in EDIT_PRESETS]
+        _require(not unknown, f"tasks.editing: unknown preset(s) {unknown}; known: {list(EDIT_PRESETS)}")
+        _require(self.editing_replications >= 0, "tasks.editing_replications must be >= 0")
+        missing = [p for p in self.editing if p not in self.edit_rewrite_until]
+        _require(not missing, f"tasks.edit_rewrite_until has no value for {missing}")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EvalDataConfig:
+    manifest: str = ""
+    """Dataset manifest; empty: the one the checkpoint was trained on (its recorded location)."""
+    split: str = "test"
+    format: Literal["tar", "parquet"] = "tar"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class OutputConfig:
+    dir: str = ""
+    """Evaluation folder; empty: <run_dir>/eval."""
+    claim_timeout_s: float = 3600.0
+    """A claim without a heartbeat for this long belongs to a dead job and may be taken over."""
+    poll_s: float = 300.0
+    """--watch without --once: seconds between scans of the run folder."""
+    order: Literal["newest", "oldest"] = "newest"
+    wandb: Literal["auto", "offline", "online", "disabled"] = "auto"
+    """auto: the training run's mode (config.yaml train.wandb); WANDB_MODE wins."""
+    plots: bool = True
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        _require(self.claim_timeout_s > 0, "output.claim_timeout_s must be > 0")
+        _require(self.poll_s > 0, "output.poll_s must be > 0")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EvalConfig:
+    """Everything the evaluation job needs; every field that changes the numbers is part of a result's key."""
+
+    protocol: ProtocolConfig = dataclasses.field(default_factory=ProtocolConfig)
+    sampling: SamplingConfig = dataclasses.field(default_factory=SamplingConfig)
+    evaluator: EvaluatorConfig = dataclasses.field(default_factory=EvaluatorConfig)
+    tasks: TasksConfig = dataclasses.field(default_factory=TasksConfig)
+    data: EvalDataConfig = dataclasses.field(default_factory=EvalDataConfig)
+    output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
+
+
+def load_eval_config(protocol: str = "full", preset: str | Path | None = None,
+                     overrides: Sequence[str] = ()) -> EvalConfig:
+    """Defaults <- the protocol's preset (configs/eval_{full,fast}.yaml), or ``preset`` instead of it, <- dotted
+    overrides."""
+    if preset is None:
+        if protocol not in PROTOCOL_PRESETS:
+            raise ConfigError(f"--protocol must be one of {sorted(PROTOCOL_PRESETS)}, got {protocol!r}")
+        preset = PROTOCOL_PRESETS[protocol]
+    return load_config(EvalConfig, preset, overrides)
+
+
+def sweep_overrides(solvers: str | None, steps: str | None, guidance: str | None) -> list[str]:
+    """``--solver euler,midpoint --steps 5,10 --guidance 2.5`` as config overrides (comma lists)."""
+    out = []
+    for key, text in (("solvers", solvers), ("steps", steps), ("guidance", guidance)):
+        if text:
+            values = [parse_yaml(v.strip(), source=f"--{key}") for v in text.split(",") if v.strip()]
+            out.append(f"sampling.{key}={json.dumps(values)}")
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class SamplingPoint:
+    solver: str
+    steps: int
+    guidance: float
+
+    @property
+    def name(self) -> str:
+        return f"{self.solver}-{self.steps}steps-g{self.guidance:g}"

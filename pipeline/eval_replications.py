@@ -1,0 +1,599 @@
+"""The replications of one (checkpoint, sampling point): generation split across ranks, evaluator embeddings,
+joints, and the metrics of each replication with their mean ± 95 % CI.
+
+Deterministic whatever the world size. Every replication's work is a fixed list of batches (items sorted by
+length, independent of the number of ranks); rank ``r`` runs batches ``r, r + W, ...``; rows are gathered back into
+item order (``Dist.gather_tensor``, uneven counts are fine) and per-batch statistics are combined in batch order.
+Each motion's initial noise comes from its own seed ``(protocol seed, task, replication, item, repetition)``. So 1
+and 2 ranks compute the same numbers (tests/test_evaluation_multirank.py).
+
+Generation uses the sampling code: ``mfm.solvers.solve`` over ``guided_velocity`` with padded frames zeroed (what
+``mfm.solvers.sample`` does, with per-motion noise), and ``mfm.editing.edit`` for the editing tasks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from mfm import metrics
+from mfm.composition import BoundInputs
+from mfm.diffusion_sampling import SAMPLERS, replacement_edit, sample_diffusion
+from mfm.editing import edit, edit_mask
+from mfm.guidance import classifier_free_guidance
+from mfm.features import features_to_joints
+from mfm.layout import FeatureLayout
+from mfm.model import valid_frame_mask
+from mfm.solvers import FIXED_STEP_SOLVERS, guided_velocity, initial_noise, solve, zero_padded_frames
+from pipeline.data import Manifest
+from pipeline.distributed import Dist
+from pipeline.eval_config import EDIT_PRESETS, EvalConfig, SamplingConfig, SamplingPoint
+from pipeline.eval_spaces import ClassifierSpace, EmbeddingSpace, EvaluationError, GroundTruthSet
+from pipeline.inference import TrainedModel
+
+# Task tags keep the random streams of different uses independent (noise, subsets, shuffles, draws).
+_TAG = {"main": 1, "mm": 2, "edit": 3, "subset": 4, "mm_texts": 5, "shuffle": 6, "diversity": 7,
+        "multimodality": 8, "bootstrap": 9, "gt": 11}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Work plan: batches, seeds, gathering
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def derive_seed(*parts: int) -> int:
+    """A 64-bit seed from integer parts; independent streams for different tuples (unlike sums)."""
+    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1, np.uint64)[0] >> 1)
+
+
+def rng_of(*parts: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([int(p) for p in parts]))
+
+
+@dataclasses.dataclass(frozen=True)
+class Batch:
+    """Rows of one forward batch: which ground-truth item each row uses, and where its output goes."""
+
+    index: int
+    kind: str
+    """'main', 'mm', 'gt' or 'edit:<preset>'."""
+    items: np.ndarray
+    slots: np.ndarray
+    """Row position in the kind's output array."""
+    repeats: np.ndarray
+    """Repetition number of each row (MultiModality), else 0."""
+
+
+def length_sorted_chunks(items: np.ndarray, lengths: np.ndarray, batch_size: int) -> list[np.ndarray]:
+    """Positions into ``items`` sorted by length (stable) and cut into chunks: less padding per batch."""
+    order = np.argsort(lengths[items], kind="stable")
+    return [order[i:i + batch_size] for i in range(0, len(order), batch_size)]
+
+
+def plan_rows(kind: str, items: np.ndarray, lengths: np.ndarray, batch_size: int, first_index: int) -> list[Batch]:
+    """One batch per length-sorted chunk; slot = position in ``items``."""
+    return [Batch(first_index + b, kind, items[chunk], chunk, np.zeros(len(chunk), np.int64))
+            for b, chunk in enumerate(length_sorted_chunks(items, lengths, batch_size))]
+
+
+def plan_repeats(items: np.ndarray, lengths: np.ndarray, repeats: int, batch_size: int,
+                 first_index: int) -> list[Batch]:
+    """MultiModality: every text's ``repeats`` generations in one batch (several texts per batch when they fit),
+    so per-text statistics never straddle ranks. Slot = text position × repeats + repetition."""
+    per_batch = max(1, batch_size // repeats)
+    batches = []
+    for b, chunk in enumerate(length_sorted_chunks(items, lengths, per_batch)):
+        text_slots = np.repeat(chunk, repeats)
+        reps = np.tile(np.arange(repeats), len(chunk))
+        batches.append(Batch(first_index + b, "mm", items[text_slots], text_slots * repeats + reps, reps))
+    return batches
+
+
+def my_batches(batches: Sequence[Batch], dist: Dist) -> list[Batch]:
+    """Round-robin over the fixed global list: the same batches exist whatever the world size."""
+    return [b for b in batches if b.index % dist.world_size == dist.rank]
+
+
+def gather_rows(dist: Dist, parts: Sequence[tuple[np.ndarray, Tensor]], total: int, width: int) -> np.ndarray:
+    """Rank-local (slots, rows) pieces -> the (total, width) array in slot order, identical on every rank."""
+    if parts:
+        slots = torch.from_numpy(np.concatenate([p[0] for p in parts]).astype(np.int64))
+        rows = torch.cat([p[1].detach().float().cpu() for p in parts])
+    else:
+        slots, rows = torch.zeros(0, dtype=torch.int64), torch.zeros(0, width)
+    slots, rows = dist.gather_tensor(slots.to(dist.device)).cpu(), dist.gather_tensor(rows.to(dist.device)).cpu()
+    if sorted(slots.tolist()) != list(range(total)):
+        raise RuntimeError(f"gathered {len(slots)} rows for {total} slots: a batch was lost or duplicated")
+    out = np.empty((total, width), np.float32)
+    out[slots.numpy()] = rows.numpy()
+    return out
+
+
+def gather_stats(dist: Dist, local: Sequence[tuple[int, str, dict]]) -> list[tuple[int, str, dict]]:
+    """Per-batch statistics of every rank, in batch order (so sums are taken in the same order everywhere)."""
+    return sorted((entry for part in dist.all_gather_object(list(local)) for entry in part), key=lambda e: e[0])
+
+
+class PhaseTimer:
+    """Wall time per named phase (accumulated); synchronises CUDA so times are not just launch times."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    def _sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    @contextlib.contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        self._sync()
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._sync()
+            self.seconds[name] += time.perf_counter() - start
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Ground-truth embeddings (computed once per evaluator, cached on disk)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class GroundTruthEmbeddings:
+    motion: np.ndarray
+    text: np.ndarray | None
+    logits: np.ndarray | None
+
+
+def gt_cache_path(cache_dir: Path, space: EmbeddingSpace, gt: GroundTruthSet) -> Path:
+    return cache_dir / f"gt-{space.evaluator_id[-16:]}-{gt.dataset_id[:12]}-{gt.split}-{gt.key[:12]}.npz"
+
+
+def ground_truth_embeddings(gt: GroundTruthSet, space: EmbeddingSpace, dist: Dist, cache_dir: Path,
+                            batch_size: int) -> tuple[GroundTruthEmbeddings, bool]:
+    """The evaluator's embeddings of every item (rank 0 gets them; other ranks get None) and whether they came
+    from the cache. Missing: computed by all ranks, written by rank 0 (atomically)."""
+    path = gt_cache_path(cache_dir, space, gt)
+    cached = dist.broadcast_object(path.is_file() if dist.is_main else None)
+    if cached:
+        return (_read_gt_cache(path, gt) if dist.is_main else None), True
+    all_items = np.arange(len(gt))
+    batches = plan_rows("gt", all_items, gt.lengths, batch_size, 0)
+    parts: dict[str, list] = defaultdict(list)
+    for batch in my_batches(batches, dist):
+        features, lengths = gt.padded(batch.items, dist.device)
+        parts["motion"].append((batch.slots, space.encode_motions(features, lengths)))
+        if space.has_text:
+            parts["text"].append((batch.slots, space.encode_texts(gt, batch.items)))
+        if isinstance(space, ClassifierSpace):
+            parts["logits"].append((batch.slots, space.logits(features, lengths)))
+    widths = dist.all_gather_object({k: int(v[0][1].shape[1]) for k, v in parts.items() if v})
+    width = {k: w for d in widths for k, w in d.items()}
+    gathered = {k: gather_rows(dist, parts.get(k, []), len(gt), width[k]) for k in sorted(width)}
+    result = GroundTruthEmbeddings(gathered["motion"], gathered.get("text"), gathered.get("logits"))
+    if dist.is_main:
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp.npz")
+        arrays = {k: v for k, v in dataclasses.asdict(result).items() if v is not None}
+        np.savez(tmp, ids=np.asarray(gt.ids), evaluator_id=np.asarray(space.evaluator_id), **arrays)
+        tmp.replace(path)
+        return result, False
+    return None, False
+
+
+def _read_gt_cache(path: Path, gt: GroundTruthSet) -> GroundTruthEmbeddings:
+    with np.load(path) as data:
+        if tuple(data["ids"].tolist()) != gt.ids:
+            raise EvaluationError(f"{path}: cached ground truth lists other items; delete it to recompute")
+        return GroundTruthEmbeddings(data["motion"], data["text"] if "text" in data else None,
+                                     data["logits"] if "logits" in data else None)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Protocol sizes actually used
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class ProtocolPlan:
+    """The protocol's constants as applied to this test set; every reduction is listed in ``notes``."""
+
+    name: str
+    replications: int
+    editing_replications: int
+    num_items: int
+    num_samples: int
+    r_precision_batch: int
+    diversity_times: int
+    multimodality: bool
+    mm_num_texts: int
+    mm_repeats: int
+    mm_times: int
+    notes: tuple[str, ...]
+
+    def as_dict(self) -> dict[str, Any]:
+        out = dataclasses.asdict(self)
+        out["notes"] = list(self.notes)
+        return out
+
+
+def plan_protocol(cfg: EvalConfig, num_items: int, mm_candidates: int) -> ProtocolPlan:
+    p, notes = cfg.protocol, []
+    num_samples = num_items if p.num_samples == 0 else min(p.num_samples, num_items)
+    if 0 < p.num_samples and p.num_samples > num_items:
+        notes.append(f"num_samples {p.num_samples} > {num_items} test items: all items used")
+    if num_samples < 2:
+        raise EvaluationError(f"the test set has {num_samples} item(s); metrics need at least 2")
+    rp = min(p.r_precision_batch, num_samples)
+    if rp < p.r_precision_batch:
+        notes.append(f"R-precision among {rp} (test set of {num_samples}), not {p.r_precision_batch}: "
+                     "not comparable with published numbers")
+    diversity_times = min(p.diversity_times, num_samples - 1)
+    if diversity_times < p.diversity_times:
+        notes.append(f"Diversity over {diversity_times} pairs (test set of {num_samples}), not {p.diversity_times}")
+    mm_texts = min(p.mm_num_texts, mm_candidates)
+    if p.multimodality and mm_texts < p.mm_num_texts:
+        notes.append(f"MultiModality over {mm_texts} texts/classes (only {mm_candidates} available), "
+                     f"not {p.mm_num_texts}")
+    edit_reps = cfg.tasks.editing_replications or p.replications
+    return ProtocolPlan(p.name, p.replications, edit_reps, num_items, num_samples, rp, diversity_times,
+                        p.multimodality, mm_texts, p.mm_repeats, p.mm_times, tuple(notes))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Metrics of one replication (rank 0)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def retrieval_metrics(text: np.ndarray, motion: np.ndarray, batch_size: int,
+                      shuffle: np.random.Generator) -> dict[str, float]:
+    """R-precision top-1/2/3 and MM-Dist over the same shuffled pairs (complete batches only, as the reference)."""
+    order = shuffle.permutation(len(text))
+    text, motion = text[order], motion[order]
+    top = metrics.r_precision(text, motion, batch_size=batch_size, top_k=3)
+    used = len(text) // batch_size * batch_size
+    return {"r_precision_top1": top[0], "r_precision_top2": top[1], "r_precision_top3": top[2],
+            "mm_dist": metrics.mm_dist(text[:used], motion[:used])}
+
+
+def summarise(per_replication: Sequence[Mapping[str, float | None]]) -> dict[str, dict[str, Any]]:
+    """{metric: {mean, ci, values}} over replications (ci = 1.96·std/√R; None from a single replication, which
+    has no spread to measure); metrics missing in any replication are dropped."""
+    names = [k for k in per_replication[0] if all(r.get(k) is not None for r in per_replication)]
+    out = {}
+    for name in names:
+        values = [float(r[name]) for r in per_replication]
+        mean, half = metrics.confidence_interval(values)
+        out[name] = {"mean": mean, "ci": half if len(values) > 1 else None, "values": values}
+    return out
+
+
+@dataclasses.dataclass
+class CheckpointContext:
+    trained: TrainedModel
+    checkpoint_id: str
+    manifest: Manifest
+    gt: GroundTruthSet
+    space: EmbeddingSpace
+    gt_emb: GroundTruthEmbeddings | None
+    """Rank 0 only."""
+    gt_from_cache: bool
+    plan: ProtocolPlan
+    labels: np.ndarray | None
+    """Action models: each item's class index in the model's (= classifier's) classes."""
+    mm_candidates: np.ndarray
+    """Items MultiModality may pick (one per class for action models)."""
+    notes: tuple[str, ...] = ()
+    """Caveats about this checkpoint's evaluation, copied into every result."""
+
+    @property
+    def is_action(self) -> bool:
+        return self.trained.model_config.is_action_model
+
+
+def action_labels(trained: TrainedModel, space: EmbeddingSpace, gt: GroundTruthSet,
+                  seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each item's class index (the model's and the classifier's class lists must agree) and one item per class
+    (a seeded pick) as MultiModality's 'texts'."""
+    classes = trained.action_classes
+    if isinstance(space, ClassifierSpace) and space.action_classes != classes:
+        raise EvaluationError(f"the action classifier knows {space.action_classes}, the model {classes}")
+    unknown = sorted({a for a in gt.actions if a not in classes})
+    if unknown:
+        raise EvaluationError(f"test actions {unknown} are not among the model's classes {classes}")
+    labels = np.array([classes.index(a) for a in gt.actions], np.int64)
+    rng = rng_of(seed, _TAG["mm_texts"])
+    per_class = [int(rng.choice(np.flatnonzero(labels == c))) for c in range(len(classes)) if (labels == c).any()]
+    return labels, np.asarray(per_class, np.int64)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Generation and the replications of one sampling point
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def per_sample_noise(seeds: Sequence[int], lengths: Tensor, num_frames: int, dim: int,
+                     device: torch.device) -> Tensor:
+    """(B, T, D) initial noise: row b drawn from its own seed over its valid frames, zero after."""
+    x0 = torch.zeros(len(seeds), num_frames, dim)
+    for row, (seed, length) in enumerate(zip(seeds, lengths.tolist())):
+        x0[row, :length] = initial_noise((length, dim), seed=seed)
+    return x0.to(device)
+
+
+def check_point(trained: TrainedModel, point: SamplingPoint) -> None:
+    """A flow model takes an ODE solver, a diffusion model a reverse sampler (ddpm/ddim) with respaced steps."""
+    if trained.objective == "diffusion":
+        if point.solver not in SAMPLERS:
+            raise EvaluationError(f"{trained.checkpoint} is a diffusion model: sample it with "
+                                  f"sampling.solvers={list(SAMPLERS)}, not {point.solver!r}")
+        try:
+            trained.diffusion.respaced(point.steps)
+        except ValueError as exc:
+            raise EvaluationError(f"{trained.checkpoint}: cannot respace its {trained.diffusion.num_train_steps} "
+                                  f"diffusion steps to {point.steps}: {exc}") from exc
+    elif point.solver in SAMPLERS:
+        raise EvaluationError(f"{trained.checkpoint} is a flow-matching model: {point.solver!r} is a diffusion "
+                              "sampler; use an ODE solver (euler, midpoint, heun, rk4, dopri5, ...)")
+
+
+@torch.no_grad()
+def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], lengths: Tensor,
+             seeds: Sequence[int], point: SamplingPoint, sampling: SamplingConfig, *, known: Tensor | None = None,
+             keep: Tensor | None = None, rewrite_until: float = 1.0) -> tuple[Tensor, int]:
+    """Sample (or, with ``known``/``keep``, edit) one batch with the sampling code; raw (un-normalised) features,
+    zero past each length, and the number of (guided) model evaluations.
+
+    Flow models: ``mfm.solvers.solve`` of the guided velocity (``mfm.editing.edit`` for edits), each motion's
+    initial noise from its own seed. Diffusion models (FLAME / FlowMDM baselines): ``sample_diffusion`` /
+    FLAME's ``replacement_edit`` on the schedule respaced to ``point.steps``; their noise comes from one generator
+    per batch, seeded by the batch's first motion (batches are the same whatever the world size).
+    ``extras``: per-motion model inputs (cross-attention token features), bound with ``BoundInputs``.
+    """
+    model = BoundInputs(trained.model, dict(extras)) if extras else trained.model
+    num_frames, dim = int(lengths.max()), trained.model_config.feature_dim
+    if trained.objective == "diffusion":
+        schedule = trained.diffusion.respaced(point.steps)
+        generator = torch.Generator().manual_seed(seeds[0])
+        if keep is None:
+            result = sample_diffusion(model, schedule, cond, lengths, num_frames=num_frames, feature_dim=dim,
+                                      sampler=point.solver, guidance=point.guidance, generator=generator)
+        else:
+            denoise = classifier_free_guidance(model, cond, scale=point.guidance, lengths=lengths, guided_channels=dim)
+            result = replacement_edit(denoise, schedule, known, keep, sampler=point.solver, lengths=lengths,
+                                      generator=generator)
+    else:
+        velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths)
+        x0 = per_sample_noise(seeds, lengths, num_frames, dim, trained.device)
+        if keep is None:
+            result = solve(zero_padded_frames(velocity, lengths), x0, solver=point.solver, steps=point.steps,
+                           rtol=sampling.rtol, atol=sampling.atol)
+        else:
+            result = edit(velocity, known, keep, steps=point.steps, rewrite_until=rewrite_until,
+                          solver=point.solver, x0=x0, lengths=lengths)
+    valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)
+    return trained.denormalize(result.x1.float()) * valid, result.nfe
+
+
+class PointRun:
+    """Replications of one (checkpoint, sampling point): per-rank generation, gathering, rank-0 metrics."""
+
+    def __init__(self, cfg: EvalConfig, dist: Dist, ctx: CheckpointContext, point: SamplingPoint,
+                 timer: PhaseTimer) -> None:
+        self.cfg, self.dist, self.ctx, self.point, self.timer = cfg, dist, ctx, point, timer
+        self.trained, self.gt, self.space, self.plan = ctx.trained, ctx.gt, ctx.space, ctx.plan
+        self.skeleton = ctx.trained.skeleton
+        self.layout = FeatureLayout(self.skeleton)
+        self.flame = cfg.tasks.flame and not ctx.is_action
+        check_point(ctx.trained, point)
+        editable = ctx.trained.objective == "diffusion" or point.solver in FIXED_STEP_SOLVERS
+        self.edit_presets: tuple[str, ...] = cfg.tasks.editing if editable else ()
+        self.notes: list[str] = list(ctx.notes)
+        if cfg.tasks.editing and not self.edit_presets:
+            self.notes.append(f"editing skipped: trajectory rewriting needs a fixed-step solver, not {point.solver}")
+        self.generated: list[dict[str, float | None]] = []
+        self.ground_truth: list[dict[str, float | None]] = []
+        self.edited: dict[str, list[dict[str, float]]] = defaultdict(list)
+        self.nfe: list[tuple[int, int]] = []  # (nfe, rows) per main batch
+        self.gen_seconds: list[tuple[float, int]] = []
+        width = ctx.gt_emb.motion.shape[1] if dist.is_main else None
+        self.width: int = dist.broadcast_object(width)
+
+    # -- plan ------------------------------------------------------------------------------------------------
+
+    def batches(self, replication: int) -> tuple[np.ndarray, np.ndarray, list[Batch]]:
+        plan, lengths, size = self.plan, self.gt.lengths, self.cfg.sampling.batch_size
+        seed = self.cfg.protocol.seed
+        items = np.arange(plan.num_items)
+        if plan.num_samples < plan.num_items:
+            items = np.sort(rng_of(seed, _TAG["subset"], replication).choice(plan.num_items, plan.num_samples,
+                                                                           replace=False))
+        batches = plan_rows("main", items, lengths, size, 0)
+        mm_items = np.zeros(0, np.int64)
+        if plan.multimodality:
+            candidates = self.ctx.mm_candidates
+            mm_items = np.sort(rng_of(seed, _TAG["mm_texts"], replication).choice(candidates, plan.mm_num_texts,
+                                                                                replace=False))
+            batches += plan_repeats(mm_items, lengths, plan.mm_repeats, size, len(batches))
+        if replication < plan.editing_replications:
+            for preset in self.edit_presets:
+                batches += [dataclasses.replace(b, kind=f"edit:{preset}")
+                            for b in plan_rows("edit", items, lengths, size, len(batches))]
+        return items, mm_items, batches
+
+    # -- one replication ---------------------------------------------------------------------------------------
+
+    def replicate(self, replication: int) -> None:
+        items, mm_items, batches = self.batches(replication)
+        parts: dict[str, list] = defaultdict(list)
+        stats: list[tuple[int, str, dict]] = []
+        for batch in my_batches(batches, self.dist):
+            stats.append((batch.index, batch.kind, self._run_batch(batch, replication, parts)))
+        with self.timer.phase("gather"):
+            width = self.width
+            totals = {"main": len(items), "mm": len(mm_items) * self.plan.mm_repeats}
+            kinds = sorted({b.kind for b in batches})
+            rows = {k: gather_rows(self.dist, parts[k], totals.get(k, len(items)), width) for k in kinds}
+            logits = None
+            if self.ctx.is_action:
+                logits = gather_rows(self.dist, parts["logits"], len(items), len(self.trained.action_classes))
+            all_stats = gather_stats(self.dist, stats)
+        if self.dist.is_main:
+            with self.timer.phase("metrics"):
+                self._metrics(replication, items, mm_items, rows, logits, all_stats)
+
+    def _conditions(self, items: np.ndarray) -> tuple[Tensor, dict[str, Tensor]]:
+        """The model's condition for each row (cached caption embedding or action id) and extra inputs."""
+        device = self.trained.device
+        if self.ctx.is_action:
+            return torch.as_tensor(self.ctx.labels[items], device=device), {}
+        extras = {}
+        if self.gt.text_tokens is not None:
+            extras = {"text_tokens": torch.from_numpy(self.gt.text_tokens[items]).to(device),
+                      "text_token_len": torch.from_numpy(self.gt.text_token_len[items]).to(device)}
+        return torch.from_numpy(self.gt.text_cond[items]).to(device), extras
+
+    def _run_batch(self, batch: Batch, replication: int, parts: dict[str, list]) -> dict[str, Any]:
+        device, kind = self.trained.device, batch.kind
+        lengths = torch.as_tensor(self.gt.lengths[batch.items], device=device)
+        tag = _TAG["edit"] * 1000 + EDIT_PRESETS.index(kind[5:]) if kind.startswith("edit:") else _TAG[kind]
+        seeds = [derive_seed(self.cfg.protocol.seed, tag, replication, item, rep)
+                 for item, rep in zip(batch.items.tolist(), batch.repeats.tolist())]
+        cond, extras = self._conditions(batch.items)
+        gt_raw = None
+        phase = "editing" if kind.startswith("edit:") else "generation"
+        before = self.timer.seconds[phase]
+        with self.timer.phase(phase):  # synchronises CUDA on exit: the time is the batch's real time
+            if kind.startswith("edit:"):
+                preset = kind[5:]
+                gt_raw, _ = self.gt.padded(batch.items, device)
+                known = self.trained.normalize(gt_raw) * valid_frame_mask(lengths, gt_raw.shape[1]).unsqueeze(-1)
+                keep = edit_mask(preset, lengths.cpu(), gt_raw.shape[1], self.layout).to(device)
+                raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.point, self.cfg.sampling,
+                                    known=known, keep=keep, rewrite_until=self.cfg.tasks.edit_rewrite_until[preset])
+            else:
+                raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.point, self.cfg.sampling)
+        stats: dict[str, Any] = {"nfe": nfe, "rows": len(batch.items), "seconds": self.timer.seconds[phase] - before}
+        with self.timer.phase("features"):
+            parts[kind].append((batch.slots, self.space.encode_motions(raw, lengths)))
+            if kind == "main" and isinstance(self.space, ClassifierSpace):
+                parts["logits"].append((batch.slots, self.space.logits(raw, lengths)))
+        if kind.startswith("edit:") or (self.flame and kind in ("main", "mm")):
+            with self.timer.phase("joints"):
+                stats.update(self._joint_stats(batch, kind, raw, lengths, gt_raw))
+        return stats
+
+    def _joint_stats(self, batch: Batch, kind: str, raw: Tensor, lengths: Tensor,
+                     gt_raw: Tensor | None) -> dict[str, Any]:
+        joints = features_to_joints(raw.double(), self.skeleton).cpu().numpy()
+        lens = lengths.cpu().numpy()
+        if kind == "mm":  # one batch holds every repetition of its texts
+            texts = batch.slots // self.plan.mm_repeats
+            return {"joint_variance": [
+                (int(t), metrics.joint_variance(joints[texts == t][:, : lens[texts == t][0]]))
+                for t in np.unique(texts)]}
+        if gt_raw is None:
+            gt_raw, _ = self.gt.padded(batch.items, raw.device)
+        gt_joints = features_to_joints(gt_raw.double(), self.skeleton).cpu().numpy()
+        if kind == "main":
+            ape = metrics.ape_ave(joints, gt_joints, lens, face_joints=self.skeleton.face_joints)
+            return {"ape_ave": ape, "frames": int(lens.sum())}
+        keep = edit_mask(kind[5:], lengths.cpu(), raw.shape[1], self.layout).numpy()
+        regenerated = ~keep.all(axis=-1)  # frames with at least one generated dim
+        return {"ade": metrics.ade(joints, gt_joints, lens, mask_frames=regenerated),
+                "fde": metrics.fde(joints, gt_joints, lens)}
+
+    # -- metrics (rank 0) ----------------------------------------------------------------------------------------
+
+    def _metrics(self, replication: int, items: np.ndarray, mm_items: np.ndarray, rows: Mapping[str, np.ndarray],
+                 logits: np.ndarray | None, stats: Sequence[tuple[int, str, dict]]) -> None:
+        seed, plan, gt_emb = self.cfg.protocol.seed, self.plan, self.ctx.gt_emb
+        gt_all, gt_motion = gt_emb.motion, gt_emb.motion[items]
+
+        def draws(tag: str) -> np.random.Generator:  # the same draws for the generated and the GT row
+            return rng_of(seed, _TAG[tag], replication)
+
+        gen = self._spread(rows["main"], gt_all, draws)
+        boot = draws("bootstrap").integers(0, len(gt_motion), len(gt_motion))
+        truth = {"fid": metrics.fid(gt_motion[boot], gt_all), **self._spread(gt_motion, None, draws)}
+        if self.ctx.is_action:
+            labels = self.ctx.labels[items]
+            gen["accuracy"] = metrics.action_accuracy(logits, labels)
+            truth["accuracy"] = metrics.action_accuracy(gt_emb.logits[items], labels)
+        else:
+            text = gt_emb.text[items]
+            gen.update(retrieval_metrics(text, rows["main"], plan.r_precision_batch, draws("shuffle")))
+            truth.update(retrieval_metrics(text, gt_motion, plan.r_precision_batch, draws("shuffle")))
+            if self.flame:
+                gen.update(self._flame(text, rows["main"], gt_motion, stats))
+                truth["mclip"] = metrics.mclip_score(text, gt_motion)
+                truth["mid"] = metrics.mutual_information_divergence(text, gt_motion, gt_motion,
+                                                                     eps=self.cfg.tasks.mid_eps)
+        if plan.multimodality:
+            mm = rows["mm"].reshape(len(mm_items), plan.mm_repeats, -1)
+            gen["multimodality"] = metrics.multimodality(mm, plan.mm_times, draws("multimodality"))
+            if self.flame:
+                variances = [v for _, kind, s in stats if kind == "mm" for _, v in s["joint_variance"]]
+                gen["joint_variance"] = float(np.mean(variances))
+        self.generated.append(gen)
+        self.ground_truth.append(truth)
+        for preset in self.edit_presets if replication < plan.editing_replications else ():
+            kind = f"edit:{preset}"
+            edited = self._spread(rows[kind], gt_all, draws)
+            per_batch = [(s["ade"], s["fde"], s["rows"]) for _, k, s in stats if k == kind]
+            n = sum(r for *_, r in per_batch)
+            edited["ade"] = sum(a * r for a, _, r in per_batch) / n
+            edited["fde"] = sum(f * r for _, f, r in per_batch) / n
+            self.edited[preset].append(edited)
+        main = [s for _, kind, s in stats if kind == "main"]
+        self.nfe += [(s["nfe"], s["rows"]) for s in main]
+        self.gen_seconds += [(s["seconds"], s["rows"]) for s in main]
+
+    def _spread(self, motion: np.ndarray, gt_all: np.ndarray | None,
+                draws: Callable[[str], np.random.Generator]) -> dict[str, float]:
+        """FID against the whole ground truth (unless ``gt_all`` is None) and Diversity. The GT row's FID is that
+        of a bootstrap resample of the ground truth: the sampling-noise floor of the metric."""
+        out = {"diversity": metrics.diversity(motion, self.plan.diversity_times, draws("diversity"))}
+        if gt_all is not None:
+            out["fid"] = metrics.fid(motion, gt_all)
+        return out
+
+    def _flame(self, text: np.ndarray, motion: np.ndarray, gt_motion: np.ndarray,
+               stats: Sequence[tuple[int, str, dict]]) -> dict[str, float]:
+        out = {"mclip": metrics.mclip_score(text, motion),
+               "mid": metrics.mutual_information_divergence(text, motion, gt_motion, eps=self.cfg.tasks.mid_eps)}
+        main = [s for _, kind, s in stats if kind == "main"]
+        frames, count = sum(s["frames"] for s in main), sum(s["rows"] for s in main)
+        for name in main[0]["ape_ave"]:  # APE is frame-weighted, AVE sequence-weighted (TEMOS)
+            weight = "frames" if name.startswith("APE") else "rows"
+            total = frames if weight == "frames" else count
+            out[name] = sum(s["ape_ave"][name] * s[weight] for s in main) / total
+        return out
+
+    # -- result ------------------------------------------------------------------------------------------------
+
+    def result(self) -> dict[str, Any]:
+        rows = sum(r for _, r in self.nfe)
+        nfe = sum(n * r for n, r in self.nfe) / rows
+        passes = 1 if self.point.guidance in (0.0, 1.0) else 2
+        return {
+            "metrics": summarise(self.generated),
+            "ground_truth": summarise(self.ground_truth),
+            "editing": {preset: summarise(values) for preset, values in self.edited.items()},
+            "nfe": nfe,
+            "model_passes_per_motion": nfe * passes,
+            "generation_seconds_per_motion": sum(s for s, _ in self.gen_seconds) / rows,
+            "notes": self.notes,
+        }

@@ -1,0 +1,314 @@
+"""What the evaluation job scores and in which space: the ground-truth items of a split, and the evaluators
+(the project's contrastive evaluator, its action classifier, the official T2M evaluator) behind one interface.
+
+Ground truth. One item per test motion and caption span (HumanML3D's sub-clips), as the reference loader: a caption
+picked at random, the clip cropped to at most ``max_length`` frames and to a multiple of ``unit_length`` (random
+offset). Picks and crops are drawn once from ``(seed, motion id, span)``, so the items, and therefore their
+evaluator embeddings, are the same for every replication, checkpoint and job (computed once, cached per evaluator).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections import defaultdict
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from mfm.evaluators import (
+    T2MEvaluator,
+    T2MEvaluatorFilesMissing,
+    load_evaluator,
+    resolve_t2m_files,
+    t2m_dataset_for_skeleton,
+)
+from mfm.integrity import sha256_file
+from mfm.model import valid_frame_mask
+from pipeline.data import Manifest, iter_motions, open_manifest
+from pipeline.eval_config import EvaluatorConfig
+from pipeline.stages import stable_id_hash
+
+GT_FORMAT = 1
+EVALUATOR_FILE = "contrastive.safetensors"
+CLASSIFIER_FILE = "action_classifier.safetensors"
+_TAG_GT_PICK = 10
+
+
+class EvaluationError(RuntimeError):
+    """A checkpoint, dataset and evaluator that cannot be evaluated together; the message says why."""
+
+
+class EvaluatorUnavailable(FileNotFoundError):
+    """The requested evaluator's files are missing; the message lists them and how to get them."""
+
+
+def digest(obj: Any) -> str:
+    """sha256 of a JSON-able object (sorted keys): identities of settings and items."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Ground truth
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class GroundTruthSet:
+    """The evaluation items of one split: fixed caption and crop per (motion, span); raw features."""
+
+    dataset_id: str
+    split: str
+    ids: tuple[str, ...]
+    features: tuple[np.ndarray, ...]
+    """(L_i, D) float32, un-normalised, already cropped."""
+    lengths: np.ndarray
+    captions: tuple[str, ...]
+    caption_tokens: tuple[tuple[str, ...], ...]
+    text_cond: np.ndarray
+    """(N, E) float32 cached pooled embedding of each item's caption: the text model's condition."""
+    actions: tuple[str | None, ...]
+    dropped: Mapping[str, int]
+    key: str
+    """sha256 of (dataset id, split, construction settings): identifies cached embeddings."""
+    text_tokens: np.ndarray | None = None
+    """(N, L, E) token features of each caption (cross-attention models), when asked for."""
+    text_token_len: np.ndarray | None = None
+    """(N,) valid tokens per caption."""
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def padded(self, indices: np.ndarray, device: torch.device | str = "cpu") -> tuple[Tensor, Tensor]:
+        """Raw features of ``indices`` zero-padded to their longest, (B, T, D), and lengths (B,)."""
+        lengths = self.lengths[indices]
+        out = np.zeros((len(indices), int(lengths.max()), self.features[0].shape[1]), np.float32)
+        for row, index in enumerate(indices):
+            out[row, : lengths[row]] = self.features[index]
+        return torch.from_numpy(out).to(device), torch.from_numpy(lengths.astype(np.int64)).to(device)
+
+
+def build_ground_truth(manifest: Manifest | str | Path, split: str = "test", *, max_length: int = 196,
+                       unit_length: int = 4, seed: int = 0, backend: str = "webdataset",
+                       require_action: bool = False, token_features: bool = False) -> GroundTruthSet:
+    """The evaluation items of ``split`` (see the module docstring); deterministic in (manifest, settings).
+    ``token_features``: also keep each caption's token features (the manifest must store them)."""
+    manifest = open_manifest(manifest)
+    if token_features and not manifest.record_spec.token_features:
+        raise EvaluationError(f"{manifest.location}: the model needs caption token features, which this dataset "
+                              "does not store (build it with --token-features)")
+    fields: dict[str, list] = defaultdict(list)
+    dropped: dict[str, int] = defaultdict(int)
+    for record in iter_motions(manifest, split, backend):
+        if require_action and not record.action:
+            dropped["no_action_label"] += 1
+            continue
+        spans: dict[tuple[int, int], list[int]] = {}
+        for c, (start, end) in enumerate(record.spans.tolist()):
+            spans.setdefault((int(start), int(end)), []).append(c)
+        for (start, end), captions in spans.items():
+            rng = np.random.default_rng(np.random.SeedSequence(
+                [seed, _TAG_GT_PICK, stable_id_hash(record.id), start, end]))
+            c = captions[int(rng.integers(len(captions)))]
+            span = end - start
+            length = min(span, max_length) // unit_length * unit_length
+            if length < 1:
+                dropped["shorter_than_unit_length"] += 1
+                continue
+            offset = start + int(rng.integers(0, span - length + 1))
+            fields["ids"].append(record.id if len(spans) == 1 else f"{record.id}#{start}-{end}")
+            fields["features"].append(np.ascontiguousarray(record.features[offset:offset + length], np.float32))
+            fields["lengths"].append(length)
+            fields["captions"].append(record.captions[c])
+            fields["caption_tokens"].append(tuple(record.caption_tokens[c]))
+            fields["text_cond"].append(record.text_emb[c])
+            fields["actions"].append(record.action)
+            if token_features:
+                fields["text_tokens"].append(record.text_tokens[c])
+                fields["text_token_len"].append(int(record.text_token_len[c]))
+    if not fields["ids"]:
+        raise EvaluationError(f"{manifest.location}: split {split!r} has no usable evaluation item "
+                              f"(dropped: {dict(dropped) or 'none'})")
+    settings = {"format": GT_FORMAT, "dataset_id": manifest.dataset_id, "split": split,
+                "max_length": max_length, "unit_length": unit_length, "seed": seed, "require_action": require_action}
+    return GroundTruthSet(
+        dataset_id=manifest.dataset_id, split=split, ids=tuple(fields["ids"]), features=tuple(fields["features"]),
+        lengths=np.asarray(fields["lengths"], np.int64), captions=tuple(fields["captions"]),
+        caption_tokens=tuple(fields["caption_tokens"]), text_cond=np.stack(fields["text_cond"]).astype(np.float32),
+        actions=tuple(fields["actions"]), dropped=dict(dropped), key=digest(settings),
+        text_tokens=np.stack(fields["text_tokens"]).astype(np.float32) if token_features else None,
+        text_token_len=np.asarray(fields["text_token_len"], np.int64) if token_features else None)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Embedding spaces (evaluators)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class EmbeddingSpace(Protocol):
+    """An evaluator seen by the job: raw motions (and the items' captions) -> embeddings."""
+
+    kind: str
+    evaluator_id: str
+    has_text: bool
+
+    def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor: ...
+
+    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray) -> Tensor: ...
+
+    def describe(self) -> dict[str, Any]: ...
+
+
+class _NormalisingEncoder:
+    """Runs a model trained on manifest-normalised features on raw features."""
+
+    def __init__(self, mean: np.ndarray, std: np.ndarray, device: torch.device) -> None:
+        self.mean = torch.as_tensor(mean, dtype=torch.float32, device=device)
+        self.std = torch.as_tensor(std, dtype=torch.float32, device=device)
+        self.device = device
+
+    def normalise(self, features_raw: Tensor, lengths: Tensor) -> tuple[Tensor, Tensor]:
+        lengths = lengths.to(self.device)
+        valid = valid_frame_mask(lengths, features_raw.shape[1]).unsqueeze(-1)
+        return ((features_raw.to(self.device) - self.mean) / self.std) * valid, lengths
+
+
+class ContrastiveSpace(_NormalisingEncoder):
+    """The project's motion-CLIP evaluator (mfm.evaluators.contrastive) on the manifest's normalisation."""
+
+    kind = "contrastive"
+    has_text = True
+
+    def __init__(self, path: Path, manifest: Manifest, device: torch.device) -> None:
+        loaded = load_evaluator(path, device)
+        if loaded.kind != "contrastive":
+            raise EvaluationError(f"{path}: a {loaded.kind!r} model, not a contrastive evaluator")
+        _check_evaluator_dataset(path, loaded.manifest_dataset_id, manifest)
+        _check_dims(path, loaded.config.feature_dim, loaded.config.text_dim, manifest)
+        super().__init__(manifest.mean, manifest.std, device)
+        self.model, self.path = loaded.model, path
+        self.evaluator_id, self.manifest_dataset_id = loaded.evaluator_id, loaded.manifest_dataset_id
+
+    @torch.no_grad()
+    def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
+        return self.model.encode_motions(*self.normalise(features_raw, lengths)).float()
+
+    @torch.no_grad()
+    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray) -> Tensor:
+        return self.model.encode_texts(torch.from_numpy(gt.text_cond[indices]).to(self.device)).float()
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": self.kind, "id": self.evaluator_id, "path": str(self.path),
+                "manifest_dataset_id": self.manifest_dataset_id}
+
+
+class ClassifierSpace(_NormalisingEncoder):
+    """The action classifier: its encoder features are the action-to-motion metric space; logits give accuracy."""
+
+    kind = "action_classifier"
+    has_text = False
+
+    def __init__(self, path: Path, manifest: Manifest, device: torch.device) -> None:
+        loaded = load_evaluator(path, device)
+        if loaded.kind != "action_classifier":
+            raise EvaluationError(f"{path}: a {loaded.kind!r} model, not an action classifier")
+        _check_evaluator_dataset(path, loaded.manifest_dataset_id, manifest)
+        _check_dims(path, loaded.config.feature_dim, None, manifest)
+        super().__init__(manifest.mean, manifest.std, device)
+        self.model, self.path = loaded.model, path
+        self.evaluator_id, self.manifest_dataset_id = loaded.evaluator_id, loaded.manifest_dataset_id
+        self.action_classes: list[str] = list(loaded.model.action_classes)
+
+    @torch.no_grad()
+    def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
+        return self.model.features(*self.normalise(features_raw, lengths)).float()
+
+    @torch.no_grad()
+    def logits(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
+        return self.model(*self.normalise(features_raw, lengths)).float()
+
+    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray) -> Tensor:
+        raise EvaluationError("the action classifier has no text tower")
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": self.kind, "id": self.evaluator_id, "path": str(self.path),
+                "manifest_dataset_id": self.manifest_dataset_id, "action_classes": self.action_classes}
+
+
+class T2MSpace:
+    """The official T2M evaluator (mfm.evaluators.t2m): raw Guo features and POS-tagged caption tokens."""
+
+    kind = "t2m"
+    has_text = True
+
+    def __init__(self, cfg: EvaluatorConfig, skeleton: str, device: torch.device) -> None:
+        dataset = t2m_dataset_for_skeleton(skeleton)
+        norm_dir = cfg.t2m_norm_dir or None
+        try:
+            files = resolve_t2m_files(cfg.t2m_checkpoint_dir or ".", cfg.t2m_glove_dir or ".", dataset, norm_dir)
+        except T2MEvaluatorFilesMissing as exc:
+            raise EvaluatorUnavailable(
+                f"{exc}\nPoint the job at them with evaluator.t2m_checkpoint_dir=DIR evaluator.t2m_glove_dir=DIR "
+                f"(and evaluator.t2m_norm_dir=DIR for {dataset}_mean.npy/{dataset}_std.npy), or use "
+                "evaluator.kind=contrastive (launch/train_evaluator.py).") from exc
+        self.model = T2MEvaluator.from_files(cfg.t2m_checkpoint_dir or ".", cfg.t2m_glove_dir or ".", dataset,
+                                             device, norm_dir=norm_dir, allow_pickle=cfg.t2m_allow_pickle)
+        self.evaluator_id = f"t2m-{dataset}-{sha256_file(files.checkpoint)}"
+        self.files = files
+        self.dataset = dataset
+
+    def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
+        return self.model.encode_motions(features_raw, lengths.cpu()).float()
+
+    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray) -> Tensor:
+        tokens = [gt.caption_tokens[i] for i in indices]
+        if any(len(t) == 0 for t in tokens):
+            raise EvaluationError(
+                f"the T2M evaluator reads captions as word/POS tokens, but item "
+                f"{gt.ids[indices[[len(t) == 0 for t in tokens].index(True)]]!r} of {gt.dataset_id[:16]} has none "
+                "(only the HumanML3D and KIT-ML sources carry them); use evaluator.kind=contrastive")
+        return self.model.encode_texts(tokens).float()
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": self.kind, "id": self.evaluator_id, "dataset": self.dataset,
+                "checkpoint": str(self.files.checkpoint), "epoch": self.model.checkpoint_epoch}
+
+
+def _check_evaluator_dataset(path: Path, evaluator_dataset: str, manifest: Manifest) -> None:
+    if evaluator_dataset != manifest.dataset_id:
+        raise EvaluationError(
+            f"{path} was trained on dataset {evaluator_dataset[:16]}, but the evaluation data is "
+            f"{manifest.dataset_id[:16]} ({manifest.location}): its normalisation and embedding space belong to "
+            "its own dataset. Train one on this dataset with launch/train_evaluator.py.")
+
+
+def _check_dims(path: Path, feature_dim: int, text_dim: int | None, manifest: Manifest) -> None:
+    spec = manifest.record_spec
+    if feature_dim != spec.feature_dim or (text_dim is not None and text_dim != spec.text_dim):
+        raise EvaluationError(f"{path}: built for features {feature_dim}-D / text {text_dim}-D, the dataset has "
+                              f"{spec.feature_dim}-D / {spec.text_dim}-D")
+
+
+def default_evaluator_dir(dataset_id: str) -> Path:
+    """Where launch/train_evaluator.py saves, and evaluator.path=auto looks: runs/evaluators/<dataset id>."""
+    return Path("runs") / "evaluators" / dataset_id[:16]
+
+
+def resolve_evaluator_file(setting: str, manifest: Manifest, filename: str, *, required: bool) -> Path | None:
+    if setting == "":
+        return None
+    path = default_evaluator_dir(manifest.dataset_id) / filename if setting == "auto" else Path(setting)
+    if path.is_file() and path.with_suffix(".json").is_file():
+        return path
+    if not required and setting == "auto":
+        return None
+    raise EvaluatorUnavailable(
+        f"no evaluator at {path} (weights + .json sidecar). Train one on this dataset first:\n"
+        f"  python launch/train_evaluator.py data.manifest={manifest.location}\n"
+        "then pass evaluator.path=<its contrastive.safetensors> (or leave evaluator.path=auto), "
+        "or use the official one with evaluator.kind=t2m.")

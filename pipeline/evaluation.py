@@ -1,0 +1,407 @@
+"""The evaluation job (launch/evaluate.py): score committed checkpoints once each, from any number of jobs.
+
+One *unit* of work is a checkpoint at one sampling point (solver, steps, guidance) with fixed settings::
+
+    claim (eval_store) -> load the model (EMA weights) -> ground-truth items of the test split (eval_spaces)
+      -> evaluator embeddings of the ground truth (computed once, cached on disk per evaluator)
+      -> R replications (eval_replications): generate with the sampling code -> embeddings / joints -> metrics
+      -> mean ± 95 % CI -> result JSON + table rows (eval_store) -> W&B under the training run, plots (eval_plots)
+
+Protocol (text-to-motion, Guo et al. / MDM / MFM): FID against the whole ground-truth set, R-precision top-1/2/3
+among batches of 32, MM-Dist, Diversity (300 pairs), MultiModality (30 generations per text, 10 pairs, 100
+texts), 20 replications (``full``) or 3 (``fast``), mean ± 1.96·std/√R, plus the ground-truth row. A test set too
+small for a constant (32, 300, 100) uses a smaller value, recorded with a note under ``protocol``; never silently.
+The ground-truth row's FID is that of a bootstrap resample of the ground truth against the whole set: the
+sampling-noise floor (the reference's GT FID is likewise nonzero, its crops and captions being re-drawn). Also:
+editing (prediction, in-between, upper body: FID, Diversity, ADE/FDE on joints; MFM Table 3), FLAME's metrics
+(APE/AVE, mCLIP, MID, per-text joint variance), and for action models FID / accuracy / Diversity /
+MultiModality in the action classifier's feature space. NFE and generation seconds per motion are reported.
+
+Identity. A unit's key hashes the checkpoint id (its COMPLETE marker, which lists every file's sha256), the
+evaluator id, the ground-truth identity (dataset id, split, crops), the protocol, tasks and sampling point; the
+result and every table row carry the evaluator id and the dataset id, so numbers from different evaluators are
+never mixed up. Re-running on the same checkpoint finds the result and skips it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections import defaultdict
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline import checkpoint as ckpt
+from pipeline.config import parse_yaml, to_dict
+from pipeline.data import Manifest, open_manifest
+from pipeline.distributed import Dist
+from pipeline.eval_config import EvalConfig, SamplingPoint
+from pipeline.eval_replications import (
+    CheckpointContext,
+    PhaseTimer,
+    PointRun,
+    ground_truth_embeddings,
+    action_labels,
+    plan_protocol,
+)
+from pipeline.eval_spaces import (
+    CLASSIFIER_FILE,
+    EVALUATOR_FILE,
+    ClassifierSpace,
+    ContrastiveSpace,
+    EmbeddingSpace,
+    EvaluationError,
+    EvaluatorUnavailable,
+    T2MSpace,
+    build_ground_truth,
+    digest,
+    resolve_evaluator_file,
+)
+from pipeline.eval_store import ResultsStore, Unit, log_to_wandb
+from pipeline.inference import TrainedModel, load_trained_model, resolve_checkpoint
+
+logger = logging.getLogger(__name__)
+
+RESULT_FORMAT = 1
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# One checkpoint: context shared by its sampling points
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def checkpoint_id(folder: Path) -> str:
+    """sha256 of the COMPLETE marker, which lists every file's sha256: a re-saved checkpoint gets a new id."""
+    return digest(ckpt.read_marker(folder))
+
+
+def check_compatible(trained: TrainedModel, manifest: Manifest) -> None:
+    """Refuse a checkpoint whose features or text conditions differ from the evaluation data's."""
+    mine, theirs = trained.data["feature_spec"], manifest.data["feature_spec"]
+    for key in ("representation", "skeleton", "dim", "fps"):
+        if mine.get(key) != theirs.get(key):
+            raise EvaluationError(f"{trained.checkpoint} was trained on {key}={mine.get(key)!r} features, the "
+                                  f"evaluation data {manifest.location} has {theirs.get(key)!r}")
+    if not trained.model_config.is_action_model:
+        a, b = trained.data["text_encoder"], manifest.data["text_encoder"]
+        if (a.get("id"), a.get("weights_sha256"), a.get("dim")) != (b.get("id"), b.get("weights_sha256"), b.get("dim")):
+            raise EvaluationError(f"{trained.checkpoint} was conditioned on text encoder {a.get('id')} "
+                                  f"({str(a.get('weights_sha256'))[:12]}), the evaluation data's captions were "
+                                  f"encoded with {b.get('id')} ({str(b.get('weights_sha256'))[:12]})")
+    if trained.dataset_id != manifest.dataset_id:
+        logger.warning("%s was trained on dataset %s; evaluating on %s (%s)", trained.checkpoint,
+                       trained.dataset_id[:16], manifest.dataset_id[:16], manifest.location)
+
+
+class CheckpointScorer:
+    """Builds a checkpoint's context (model, data, evaluator, ground truth; the latter two kept across checkpoints)
+    and runs the replications of a sampling point."""
+
+    def __init__(self, cfg: EvalConfig, dist: Dist) -> None:
+        self.cfg, self.dist = cfg, dist
+        self._spaces: dict[tuple, Any] = {}
+        self._gt: dict[tuple, tuple] = {}
+
+    # -- building blocks -------------------------------------------------------------------------------------
+
+    def manifest_for(self, trained: TrainedModel) -> Manifest:
+        location = self.cfg.data.manifest or trained.data.get("location", "")
+        if not location:
+            raise EvaluationError(f"{trained.checkpoint} records no dataset location: set data.manifest=")
+        try:
+            return open_manifest(location)
+        except FileNotFoundError as exc:
+            raise EvaluationError(f"evaluation data {location} not found ({exc}); set data.manifest=") from exc
+
+    def space_for(self, trained: TrainedModel, manifest: Manifest) -> EmbeddingSpace:
+        """The metric space: the action classifier for action models, else the configured evaluator."""
+        ev = self.cfg.evaluator
+        key = (trained.model_config.is_action_model, manifest.dataset_id, trained.data["feature_spec"]["skeleton"])
+        if key not in self._spaces:
+            if trained.model_config.is_action_model:
+                path = resolve_evaluator_file(ev.action_classifier or "auto", manifest, CLASSIFIER_FILE,
+                                               required=True)
+                space: Any = ClassifierSpace(path, manifest, self.dist.device)
+            elif ev.kind == "t2m":
+                space = T2MSpace(ev, trained.data["feature_spec"]["skeleton"], self.dist.device)
+            else:
+                path = resolve_evaluator_file(ev.path, manifest, EVALUATOR_FILE, required=True)
+                space = ContrastiveSpace(path, manifest, self.dist.device)
+            self._spaces[key] = space
+        return self._spaces[key]
+
+    def context(self, folder: Path, cache_dir: Path, timer: PhaseTimer) -> CheckpointContext:
+        with timer.phase("load"):
+            trained = load_trained_model(folder, use_ema=self.cfg.sampling.use_ema, device=self.dist.device)
+            manifest = self.manifest_for(trained)
+            check_compatible(trained, manifest)
+            space = self.space_for(trained, manifest)
+        p, data = self.cfg.protocol, self.cfg.data
+        is_action = trained.model_config.is_action_model
+        tokens = not is_action and trained.model_config.conditioning == "cross_attention"
+        key = (manifest.dataset_id, data.split, space.evaluator_id, is_action, tokens)
+        if key not in self._gt:
+            with timer.phase("ground_truth"):
+                backend = "parquet" if data.format == "parquet" else "webdataset"
+                gt = build_ground_truth(manifest, data.split, max_length=p.max_length, unit_length=p.unit_length,
+                                        seed=p.seed, backend=backend, require_action=is_action,
+                                        token_features=tokens)
+                emb, cached = ground_truth_embeddings(gt, space, self.dist, cache_dir, self.cfg.sampling.batch_size)
+            self._gt[key] = (gt, emb, cached)
+        gt, emb, cached = self._gt[key]
+        limit = _max_generation_length(trained)
+        if int(gt.lengths.max()) > limit:
+            raise EvaluationError(f"test clips reach {int(gt.lengths.max())} frames but {trained.checkpoint} "
+                                  f"generates at most {limit}: set protocol.max_length={limit}")
+        notes = []
+        if int(gt.lengths.max()) > trained.window:
+            notes.append(f"test clips reach {int(gt.lengths.max())} frames; the model trained on windows of "
+                         f"{trained.window}")
+            logger.warning("%s: %s", trained.checkpoint, notes[-1])
+        labels, candidates = None, np.arange(len(gt))
+        if is_action:
+            labels, candidates = action_labels(trained, space, gt, p.seed)
+        plan = plan_protocol(self.cfg, len(gt), len(candidates))
+        return CheckpointContext(trained, checkpoint_id(folder), manifest, gt, space, emb, cached, plan, labels,
+                                 candidates, tuple(notes))
+
+    def unit_for(self, folder: Path, ctx_ids: Mapping[str, str], point: SamplingPoint) -> Unit:
+        cfg = self.cfg
+        settings = {"format": RESULT_FORMAT, "ids": dict(ctx_ids), "point": dataclasses.asdict(point),
+                    "protocol": to_dict(cfg.protocol), "tasks": to_dict(cfg.tasks), "split": cfg.data.split,
+                    "sampling": {"use_ema": cfg.sampling.use_ema, "rtol": cfg.sampling.rtol,
+                                 "atol": cfg.sampling.atol}}
+        return Unit(folder.name, point.name, digest(settings))
+
+    # -- evaluating one unit -------------------------------------------------------------------------------------
+
+    def evaluate_point(self, ctx: CheckpointContext, point: SamplingPoint, timer: PhaseTimer,
+                       heartbeat: Callable[[], None] = lambda: None) -> dict[str, Any] | None:
+        """All replications of one sampling point; the result dict on rank 0, None elsewhere."""
+        run = PointRun(self.cfg, self.dist, ctx, point, timer)
+        for replication in range(ctx.plan.replications):
+            run.replicate(replication)
+            if self.dist.is_main:
+                heartbeat()
+        return run.result() if self.dist.is_main else None
+
+
+def _max_generation_length(trained: TrainedModel) -> int:
+    config = trained.model_config
+    limit = config.max_len - config.num_prefix_tokens
+    return min(limit, config.max_frames) if config.length_token else limit
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The job: one checkpoint, or watch a run
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def run_dir_of(folder: Path) -> Path:
+    """The run folder of a checkpoint (``<run>/checkpoints/step-N`` -> ``<run>``)."""
+    parent = folder.parent
+    return parent.parent if parent.name == ckpt.CHECKPOINTS_SUBDIR else parent
+
+
+def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The result's rows for the results table: the generated row and the ground-truth row, metrics flattened
+    to ``<metric>`` (mean) and ``<metric>_ci``; editing as ``edit_<preset>_<metric>``."""
+    base = {
+        "checkpoint": result["checkpoint"]["path"], "checkpoint_name": result["checkpoint"]["name"],
+        "step": result["checkpoint"]["step"], "checkpoint_id": result["checkpoint"]["id"],
+        "evaluator_kind": result["evaluator"]["kind"], "evaluator_id": result["evaluator"]["id"],
+        "dataset_id": result["data"]["dataset_id"], "checkpoint_dataset_id": result["checkpoint"]["dataset_id"],
+        "split": result["data"]["split"], "protocol": result["protocol"]["name"],
+        "replications": result["protocol"]["replications"], "num_items": result["protocol"]["num_items"],
+        "solver": result["sampling"]["solver"], "steps": result["sampling"]["steps"],
+        "guidance": result["sampling"]["guidance"], "nfe": result["nfe"],
+        "model_passes_per_motion": result["model_passes_per_motion"],
+        "generation_seconds_per_motion": result["generation_seconds_per_motion"],
+        "world_size": result["world_size"], "created": result["created"], "result_key": result["key"],
+    }
+    generated = {**base, "row_kind": "generated", "row_key": f"{result['key']}:generated"}
+    generated.update(_flatten(result["metrics"]))
+    for preset, values in result["editing"].items():
+        generated.update(_flatten(values, prefix=f"edit_{preset}_"))
+    truth = {**base, "row_kind": "ground_truth", "row_key": f"{result['key']}:ground_truth"}
+    truth.update(_flatten(result["ground_truth"]))
+    return [generated, truth]
+
+
+def summary_line(result: Mapping[str, Any]) -> str:
+    """A one-line human summary: the headline metrics with their intervals, NFE and phase times."""
+    shown = [f"{name} {v['mean']:.4g}" + ("" if v["ci"] is None else f"±{v['ci']:.2g}")
+             for name, v in result["metrics"].items()
+             if name in ("fid", "r_precision_top1", "r_precision_top3", "mm_dist", "diversity", "multimodality",
+                         "accuracy")]
+    phases = ", ".join(f"{k} {v:.1f}s" for k, v in result["timing_s"].items())
+    return f"{'; '.join(shown)}; NFE {result['nfe']:g}; {phases}"
+
+
+def _flatten(summary: Mapping[str, Mapping[str, Any]], prefix: str = "") -> dict[str, float]:
+    out = {}
+    for name, value in summary.items():
+        out[f"{prefix}{name}"] = value["mean"]
+        out[f"{prefix}{name}_ci"] = value["ci"]
+    return out
+
+
+class EvaluationJob:
+    """Claims units, evaluates them and writes results; the same object serves --checkpoint and --watch."""
+
+    def __init__(self, cfg: EvalConfig, dist: Dist) -> None:
+        self.cfg, self.dist = cfg, dist
+        self.scorer = CheckpointScorer(cfg, dist)
+        self.timings: dict[str, float] = defaultdict(float)
+        """Wall seconds per phase over everything this job evaluated (rank 0's view)."""
+        self._finished: set[str] = set()
+        """Checkpoint ids whose every unit is done: a long-running watcher does not reload them (rank 0)."""
+
+    def store_for(self, folder: Path) -> ResultsStore:
+        root = Path(self.cfg.output.dir) if self.cfg.output.dir else run_dir_of(folder) / "eval"
+        return ResultsStore(root, self.cfg.output.claim_timeout_s)
+
+    def evaluate_checkpoint(self, folder: str | Path) -> list[dict[str, Any]]:
+        """Every sampling point of one complete checkpoint not evaluated yet (by anyone); returns the results
+        written by this job (rank 0; other ranks get an empty list)."""
+        folder = resolve_checkpoint(folder)
+        if not ckpt.is_complete(folder):
+            raise EvaluationError(f"{folder} is not a complete checkpoint (no valid {ckpt.COMPLETE_MARKER} marker)")
+        store = self.store_for(folder)
+        timer = PhaseTimer(self.dist.device)
+        ctx = self.scorer.context(folder, store.cache_dir, timer)
+        setup = dict(timer.seconds)  # loading, ground truth: shared by the points below
+        ids = {"checkpoint": ctx.checkpoint_id, "evaluator": ctx.space.evaluator_id, "gt": ctx.gt.key}
+        units = [(point, self.scorer.unit_for(folder, ids, point)) for point in self.cfg.sampling.points()]
+        claimed = self.dist.broadcast_object(self._claim(store, units) if self.dist.is_main else None)
+        written = []
+        for point, unit in units:
+            if unit.key not in claimed:
+                continue
+            try:
+                before = dict(timer.seconds)
+                result = self.scorer.evaluate_point(ctx, point, timer, lambda: store.heartbeat(unit))
+                if self.dist.is_main:
+                    with timer.phase("write"):
+                        phases = {k: v - before.get(k, 0.0) for k, v in timer.seconds.items()}
+                        full = self._result(folder, ctx, point, unit, result, setup, phases)
+                        store.write_result(unit, full, table_rows(full))
+                        logger.info("%s %s: %s", folder.name, point.name, summary_line(full))
+                        self._publish(store, folder, full)
+                    written.append(full)
+            finally:
+                if self.dist.is_main:
+                    store.release(unit)
+        for phase, seconds in timer.seconds.items():
+            self.timings[phase] += seconds
+        if self.dist.is_main and all(store.is_done(unit) for _, unit in units):
+            self._finished.add(ctx.checkpoint_id)
+        return written
+
+    def _claim(self, store: ResultsStore, units: Sequence[tuple[SamplingPoint, Unit]]) -> list[str]:
+        claimed = []
+        for _, unit in units:
+            if store.is_done(unit):
+                store.append_rows(table_rows(store.read_result(unit)))  # repairs a crash before the table append
+                logger.info("%s %s: already evaluated (%s)", unit.checkpoint_name, unit.point_name,
+                            store.result_path(unit))
+            elif store.try_claim(unit):
+                claimed.append(unit.key)
+            else:
+                logger.info("%s %s: claimed by another job", unit.checkpoint_name, unit.point_name)
+        return claimed
+
+    def pending(self, run_dir: Path) -> list[Path]:
+        """Complete checkpoints of a run in the configured order (incomplete folders are ignored), less those this
+        job already found fully evaluated."""
+        complete = [path for _, path in ckpt.list_complete(ckpt.checkpoints_dir(run_dir))
+                    if _known_id(path) not in self._finished]
+        return complete[::-1] if self.cfg.output.order == "newest" else complete
+
+    def watch(self, run_dir: str | Path, once: bool = False, sleep: Callable[[float], None] = time.sleep) -> int:
+        """Evaluate every complete checkpoint of ``run_dir`` once; with ``once`` exit after one scan, else
+        rescan every ``output.poll_s`` seconds. Returns the number of units this job evaluated."""
+        run_dir = Path(run_dir)
+        if not run_dir.is_dir():
+            raise FileNotFoundError(f"--watch: no run folder at {run_dir}")
+        done = 0
+        while True:
+            folders = self.dist.broadcast_object([str(p) for p in self.pending(run_dir)] if self.dist.is_main else None)
+            for folder in folders:
+                try:
+                    done += len(self.evaluate_checkpoint(folder))
+                except (ckpt.CheckpointError, FileNotFoundError) as exc:
+                    if isinstance(exc, EvaluatorUnavailable):
+                        raise
+                    logger.warning("skipping %s: %s (deleted or damaged while waiting?)", folder, exc)
+            if once:
+                return done
+            sleep(self.cfg.output.poll_s)
+
+    def _result(self, folder: Path, ctx: CheckpointContext, point: SamplingPoint, unit: Unit,
+                computed: Mapping[str, Any], setup: Mapping[str, float],
+                phases: Mapping[str, float]) -> dict[str, Any]:
+        trained, gt = ctx.trained, ctx.gt
+        return {
+            "format": RESULT_FORMAT,
+            "key": unit.key,
+            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "checkpoint": {"path": str(folder.resolve()), "name": folder.name, "step": trained.step,
+                           "id": ctx.checkpoint_id, "weights": trained.weights, "dataset_id": trained.dataset_id,
+                           "model": "action-to-motion" if ctx.is_action else "text-to-motion",
+                           "objective": trained.objective, "diffusion_preset": trained.diffusion_preset,
+                           "conditioning": trained.model_config.conditioning, "window": trained.window},
+            "evaluator": ctx.space.describe(),
+            "data": {"manifest": ctx.manifest.location, "dataset_id": ctx.manifest.dataset_id, "split": gt.split,
+                     "num_items": len(gt), "dropped": dict(gt.dropped), "gt_key": gt.key,
+                     "gt_embeddings_from_cache": ctx.gt_from_cache},
+            "protocol": {**ctx.plan.as_dict(), "config": to_dict(self.cfg.protocol)},
+            "sampling": {**dataclasses.asdict(point), "use_ema": self.cfg.sampling.use_ema,
+                         "batch_size": self.cfg.sampling.batch_size},
+            "tasks": to_dict(self.cfg.tasks),
+            **computed,
+            "world_size": self.dist.world_size,
+            "timing_s": {k: round(v, 4) for k, v in phases.items() if v > 0},
+            "setup_timing_s": {k: round(v, 4) for k, v in setup.items()},
+        }
+
+    def _publish(self, store: ResultsStore, folder: Path, result: Mapping[str, Any]) -> None:
+        """W&B (under the training run) and the plots; failures are logged, never fatal."""
+        run_dir = run_dir_of(folder)
+        mode, project = _training_wandb(run_dir)
+        if self.cfg.output.wandb != "auto":
+            mode = self.cfg.output.wandb
+        prefix = f"{result['sampling']['solver']}-{result['sampling']['steps']}-g{result['sampling']['guidance']:g}"
+        scalars = {f"{prefix}/{k}": v for k, v in table_rows(result)[0].items()
+                   if isinstance(v, float) and not k.endswith("_ci") and math.isfinite(v)}
+        log_to_wandb(run_dir, mode, project, int(result["checkpoint"]["step"]), scalars,
+                     {"protocol": result["protocol"]["name"], "evaluator_id": result["evaluator"]["id"]})
+        if self.cfg.output.plots:
+            from pipeline.eval_plots import update_plots
+
+            try:
+                update_plots(store.table_rows(), store.plots_dir)
+            except Exception as exc:  # a plotting problem must not lose an evaluation
+                logger.warning("plots not updated: %s", exc)
+
+
+def _known_id(folder: Path) -> str | None:
+    """The checkpoint id, or None when the folder vanished meanwhile (pruned by training's keep_last)."""
+    try:
+        return checkpoint_id(folder)
+    except (ckpt.CheckpointError, OSError):
+        return None
+
+
+def _training_wandb(run_dir: Path) -> tuple[str, str]:
+    """The training run's W&B mode and project (from its config.yaml), or ('disabled', 'mfm')."""
+    config = run_dir / "config.yaml"
+    if not config.is_file():
+        return "disabled", "mfm"
+    train = (parse_yaml(config.read_text(encoding="utf-8"), str(config)) or {}).get("train", {})
+    return str(train.get("wandb", "disabled")), str(train.get("wandb_project", "mfm"))

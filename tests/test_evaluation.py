@@ -1,0 +1,347 @@
+"""The evaluation job: protocol bookkeeping, claims, results layout, the watcher, end-to-end runs on CPU.
+
+Data: the synthetic source with real MiniLM captions (80 clips, test split of 10), a tiny model trained for two
+steps in-process (checkpoints at steps 1 and 2), and a tiny evaluator trained by launch/train_evaluator.py.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from eval_worker import (
+    SMALL_PROTOCOL,
+    TINY_EVALUATOR,
+    build_synthetic_dataset,
+    random_contrastive_evaluator,
+    train_tiny_model,
+)
+from pipeline.config import ConfigError
+from pipeline.eval_config import load_eval_config, sweep_overrides
+from pipeline.eval_replications import my_batches, plan_protocol, plan_repeats, plan_rows
+from pipeline.eval_spaces import build_ground_truth
+from pipeline.eval_store import ResultsStore, Unit
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+EVALUATE = REPO_ROOT / "launch" / "evaluate.py"
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# fixtures
+
+
+@pytest.fixture(scope="session")
+def manifest(tmp_path_factory) -> Path:
+    return build_synthetic_dataset(tmp_path_factory.getbasetemp() / "eval-synthetic")
+
+
+@pytest.fixture(scope="session")
+def text_run(manifest, tmp_path_factory) -> Path:
+    return train_tiny_model(manifest, tmp_path_factory.mktemp("text-run"))
+
+
+@pytest.fixture(scope="session")
+def trained_evaluator(manifest, tmp_path_factory) -> tuple[Path, dict]:
+    from launch.train_evaluator import main
+
+    out = tmp_path_factory.mktemp("evaluator")
+    tiny = [f"model.{k}={v}" for k, v in TINY_EVALUATOR.items()]
+    assert main([f"data.manifest={manifest}", f"out_dir={out}", "optim.steps=12", "optim.log_every=6",
+                 "optim.lr=2e-3", "optim.warmup_steps=0", "data.batch_size=8", "data.window=64", *tiny]) == 0
+    return out / "contrastive.safetensors", json.loads((out / "report.json").read_text())
+
+
+def evaluate(*args: str) -> int:
+    from launch.evaluate import main
+
+    return main(list(args))
+
+
+def _fake_ids(n: int) -> Unit:
+    return Unit("step-00000001", "euler-10steps-g2.5", f"{n:064x}")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# settings and bookkeeping
+
+
+def test_protocol_presets_and_sweep_flags():
+    full, fast = load_eval_config("full"), load_eval_config("fast")
+    assert (full.protocol.replications, fast.protocol.replications) == (20, 3)
+    assert (full.protocol.r_precision_batch, full.protocol.diversity_times) == (32, 300)
+    assert (full.protocol.mm_repeats, full.protocol.mm_times, full.protocol.mm_num_texts) == (30, 10, 100)
+    swept = load_eval_config("fast", overrides=sweep_overrides("euler,midpoint", "5,10", "2.5"))
+    assert [p.name for p in swept.sampling.points()] == ["euler-5steps-g2.5", "euler-10steps-g2.5",
+                                                         "midpoint-5steps-g2.5", "midpoint-10steps-g2.5"]
+    with pytest.raises(ConfigError, match="protocol"):
+        load_eval_config("slow")
+    with pytest.raises(ConfigError, match="unknown preset"):
+        load_eval_config("fast", overrides=["tasks.editing=[teleport]"])
+    with pytest.raises(ConfigError, match="mm_times"):
+        load_eval_config("fast", overrides=["protocol.mm_times=50"])
+
+
+def test_small_test_sets_reduce_the_protocol_explicitly():
+    cfg = load_eval_config("full")
+    plan = plan_protocol(cfg, num_items=13, mm_candidates=13)
+    assert (plan.r_precision_batch, plan.diversity_times, plan.mm_num_texts) == (13, 12, 13)
+    assert len(plan.notes) == 3 and "not comparable" in plan.notes[0]
+    big = plan_protocol(cfg, num_items=4384, mm_candidates=4384)
+    assert (big.r_precision_batch, big.diversity_times, big.mm_num_texts, big.notes) == (32, 300, 100, ())
+
+
+@pytest.mark.parametrize("world_size", [1, 2, 3])
+def test_every_slot_is_generated_exactly_once_whatever_the_world_size(world_size):
+    lengths = np.random.default_rng(0).integers(40, 197, 23)
+    items = np.arange(23)
+    batches = plan_rows("main", items, lengths, 4, 0)
+    batches += plan_repeats(np.array([3, 7, 11]), lengths, 5, 12, len(batches))
+
+    class FakeDist:
+        def __init__(self, rank):
+            self.rank, self.world_size = rank, world_size
+
+    mine = [my_batches(batches, FakeDist(r)) for r in range(world_size)]
+    main = np.concatenate([b.slots for part in mine for b in part if b.kind == "main"])
+    assert sorted(main.tolist()) == list(range(23))
+    mm = [b for part in mine for b in part if b.kind == "mm"]
+    assert sorted(np.concatenate([b.slots for b in mm]).tolist()) == list(range(15))
+    for batch in mm:  # a text's repetitions never straddle batches (joint variance is per batch)
+        assert all(np.sum(batch.slots // 5 == t) == 5 for t in np.unique(batch.slots // 5))
+    # rows of a batch share similar lengths: sorted by length before chunking
+    assert all(np.all(np.diff(lengths[b.items]) >= 0) for b in batches if b.kind == "main")
+
+
+def test_claims_are_exclusive_until_released_done_or_stale(tmp_path):
+    first, second = ResultsStore(tmp_path, claim_timeout_s=60), ResultsStore(tmp_path, claim_timeout_s=60)
+    unit = _fake_ids(1)
+    assert first.try_claim(unit) and not second.try_claim(unit)
+    first.release(unit)
+    assert second.try_claim(unit)
+    # a claim whose holder stopped heartbeating is taken over; a refreshed one is not
+    old = time.time() - 120
+    os.utime(second.claim_path(unit), (old, old))
+    second.heartbeat(unit)
+    assert not first.try_claim(unit)
+    os.utime(second.claim_path(unit), (old, old))
+    assert first.try_claim(unit)
+    row = {"row_key": "k:generated", "fid": 1.0}
+    first.write_result(unit, {"key": unit.key}, [row])
+    first.release(unit)
+    assert first.is_done(unit) and not second.try_claim(unit)
+
+
+def _race(root: str, key: int, barrier, results) -> None:
+    barrier.wait()
+    results.put(ResultsStore(root).try_claim(_fake_ids(key)))
+
+
+def test_concurrent_processes_claim_a_unit_once(tmp_path):
+    context = multiprocessing.get_context("fork")
+    barrier, results = context.Barrier(4), context.Queue()
+    procs = [context.Process(target=_race, args=(str(tmp_path), 7, barrier, results)) for _ in range(4)]
+    for p in procs:
+        p.start()
+    outcomes = [results.get(timeout=30) for _ in procs]
+    for p in procs:
+        p.join(timeout=30)
+    assert sorted(outcomes) == [False, False, False, True]
+
+
+def test_table_rows_are_appended_once_and_mirrored_to_parquet(tmp_path):
+    store = ResultsStore(tmp_path)
+    rows = [{"row_key": "a:generated", "fid": 1.5, "fid_ci": 0.1}, {"row_key": "a:ground_truth", "fid": 0.01}]
+    store.append_rows(rows)
+    store.append_rows(rows)  # a repair after a crash must not duplicate
+    store.append_rows([{"row_key": "b:generated", "accuracy": 0.5}])
+    assert [r["row_key"] for r in store.table_rows()] == ["a:generated", "a:ground_truth", "b:generated"]
+    table = pq.read_table(store.table_parquet).to_pylist()
+    assert [r["fid"] for r in table] == [1.5, 0.01, None] and table[2]["accuracy"] == 0.5
+
+
+def test_ground_truth_items_are_fixed_unit_multiples(manifest):
+    a = build_ground_truth(manifest, "test", max_length=64, unit_length=4, seed=3)
+    b = build_ground_truth(manifest, "test", max_length=64, unit_length=4, seed=3)
+    c = build_ground_truth(manifest, "test", max_length=64, unit_length=4, seed=4)
+    assert len(a) == 10 and a.key == b.key != c.key
+    assert np.all(a.lengths % 4 == 0) and a.lengths.max() <= 64
+    assert all(f.shape[0] == n for f, n in zip(a.features, a.lengths))
+    assert all(np.array_equal(x, y) for x, y in zip(a.features, b.features)) and a.captions == b.captions
+    features, lengths = a.padded(np.array([0, 3]))
+    assert features.shape[0] == 2 and int(lengths.max()) == features.shape[1]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# end to end
+
+
+def test_train_evaluator_reports_held_out_retrieval(trained_evaluator, manifest):
+    path, report = trained_evaluator
+    sidecar = json.loads(path.with_suffix(".json").read_text())
+    assert sidecar["manifest_dataset_id"] == report["dataset_id"] == json.loads(manifest.read_text())["dataset_id"]
+    assert report["evaluator_id"] == sidecar["evaluator_id"]
+    test = report["held_out"]["test"]
+    assert test["num_items"] == 10 and test["retrieval_batch_size"] == 10
+    assert 0.0 <= test["retrieval_top1"] <= test["retrieval_top2"] <= test["retrieval_top3"] <= 1.0
+    assert report["losses"]["contrastive"][-1] < report["losses"]["contrastive"][0]
+    assert (path.parent / "action_classifier.safetensors").is_file() and "action_accuracy" in test
+
+
+def test_evaluate_checkpoint_with_a_steps_sweep(text_run, trained_evaluator, tmp_path, capsys):
+    checkpoint = text_run / "checkpoints" / "step-00000002"
+    out = tmp_path / "eval"
+    args = ["--checkpoint", str(checkpoint), "--protocol", "fast", "--steps", "1,3", *SMALL_PROTOCOL,
+            "output.plots=true", f"evaluator.path={trained_evaluator[0]}",
+            f"output.dir={out}"]
+    assert evaluate(*args) == 0
+    printed = capsys.readouterr().out
+    assert "2 result(s) written" in printed and "generation" in printed and "ground_truth" in printed
+
+    results = sorted((out / "results" / "step-00000002").glob("*.json"))
+    assert [p.name.rsplit(".", 2)[0] for p in results] == ["euler-1steps-g2.5", "euler-3steps-g2.5"]
+    result = json.loads(results[0].read_text())
+    evaluator_id = json.loads(trained_evaluator[0].with_suffix(".json").read_text())["evaluator_id"]
+    assert result["evaluator"]["id"] == evaluator_id and result["evaluator"]["kind"] == "contrastive"
+    assert result["data"]["dataset_id"] == result["checkpoint"]["dataset_id"] and result["checkpoint"]["step"] == 2
+    assert result["protocol"]["name"] == "fast" and result["protocol"]["replications"] == 2
+    assert result["protocol"]["r_precision_batch"] == 10 and result["protocol"]["notes"]
+    assert (result["sampling"]["solver"], result["sampling"]["steps"], result["nfe"]) == ("euler", 1, 1)
+    assert result["model_passes_per_motion"] == 2 and result["generation_seconds_per_motion"] > 0
+    for name in ("fid", "r_precision_top1", "r_precision_top2", "r_precision_top3", "mm_dist", "diversity",
+                 "multimodality", "mclip", "mid", "APE_root", "AVE_mean_local", "joint_variance"):
+        metric = result["metrics"][name]
+        assert len(metric["values"]) == 2 and np.isfinite(metric["mean"]) and metric["ci"] >= 0, name
+    assert result["metrics"]["fid"]["mean"] > 0
+    truth = result["ground_truth"]
+    assert truth["r_precision_top3"]["mean"] >= truth["r_precision_top1"]["mean"] and "multimodality" not in truth
+    for preset in ("prediction", "upper_body"):
+        edited = result["editing"][preset]
+        assert {"fid", "diversity", "ade", "fde"} <= set(edited) and edited["ade"]["ci"] is None  # 1 replication
+    assert {"generation", "features", "editing", "metrics"} <= set(result["timing_s"])
+
+    rows = ResultsStore(out).table_rows()
+    assert [(r["steps"], r["row_kind"]) for r in rows] == [(1, "generated"), (1, "ground_truth"),
+                                                          (3, "generated"), (3, "ground_truth")]
+    for row in rows:
+        assert row["evaluator_id"] == evaluator_id and row["protocol"] == "fast" and row["solver"] == "euler"
+        assert row["dataset_id"] == result["data"]["dataset_id"] and "fid_ci" in row and "r_precision_top3" in row
+    assert "edit_upper_body_ade" in rows[0] and pq.read_table(out / "results.parquet").num_rows == 4
+    assert (out / "plots" / "fid_vs_nfe_step-00000002.png").stat().st_size > 0
+    assert (out / "plots" / "metrics_vs_step.png").is_file()
+
+    before = {p: p.stat().st_mtime_ns for p in results}
+    assert evaluate(*args) == 0  # everything is done: nothing re-evaluated, no new rows
+    assert "0 result(s) written" in capsys.readouterr().out
+    assert {p: p.stat().st_mtime_ns for p in results} == before and len(ResultsStore(out).table_rows()) == 4
+
+
+def test_watchers_evaluate_each_complete_checkpoint_once(text_run, manifest, tmp_path):
+    evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
+    run = tmp_path / "run"
+    shutil.copytree(text_run, run)
+    (run / "checkpoints" / "step-00000009").mkdir()  # a save still in progress: no COMPLETE marker
+    out = tmp_path / "eval"
+    cmd = [sys.executable, str(EVALUATE), "--watch", str(run), "--once", "--protocol", "fast",
+           *SMALL_PROTOCOL, "sampling.steps=[2]", "protocol.replications=1", "tasks.editing=[]", "protocol.multimodality=false",
+           f"evaluator.path={evaluator}", f"output.dir={out}"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "WANDB_MODE": "disabled"}
+    procs = [subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    outputs = [p.communicate(timeout=240) for p in procs]
+    for proc, (stdout, stderr) in zip(procs, outputs):
+        assert proc.returncode == 0, stderr[-3000:]
+    counts = [int(stdout.split(" unit(s) evaluated")[0].split()[-1]) for stdout, _ in outputs]
+    assert sum(counts) == 2, counts  # two complete checkpoints, one setting: two units between both jobs
+
+    results = sorted(p.relative_to(out / "results").as_posix() for p in (out / "results").rglob("*.json"))
+    assert [r.split("/")[0] for r in results] == ["step-00000001", "step-00000002"]
+    rows = ResultsStore(out).table_rows()
+    assert sorted((r["checkpoint_name"], r["row_kind"]) for r in rows) == [
+        ("step-00000001", "generated"), ("step-00000001", "ground_truth"),
+        ("step-00000002", "generated"), ("step-00000002", "ground_truth")]
+    assert not list((out / "claims").glob("*.claim"))  # every claim released
+    assert len(list((out / "cache").glob("gt-*.npz"))) == 1  # ground truth embedded once, then cached
+
+
+def test_official_evaluator_without_its_files_says_what_is_missing(text_run, tmp_path, capsys):
+    code = evaluate("--checkpoint", str(text_run / "checkpoints" / "step-00000001"), "--protocol", "fast",
+                    "evaluator.kind=t2m", f"evaluator.t2m_checkpoint_dir={tmp_path / 'checkpoints'}",
+                    f"evaluator.t2m_glove_dir={tmp_path / 'glove'}", f"output.dir={tmp_path / 'eval'}")
+    message = capsys.readouterr().err
+    assert code == 2
+    for name in ("t2m/text_mot_match/model/finest.tar", "our_vab_data.npy", "our_vab_words.pkl", "our_vab_idx.pkl",
+                 "t2m_mean.npy", "evaluator.t2m_checkpoint_dir"):
+        assert name in message, name
+    assert not (tmp_path / "eval" / "results").exists()
+
+
+def test_missing_own_evaluator_says_how_to_train_one(text_run, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # evaluator.path=auto looks under ./runs/evaluators/
+    code = evaluate("--checkpoint", str(text_run / "checkpoints" / "step-00000001"), "--protocol", "fast",
+                    f"output.dir={tmp_path / 'eval'}")
+    assert code == 2 and "launch/train_evaluator.py" in capsys.readouterr().err
+
+
+def test_action_model_is_scored_with_the_classifier(manifest, trained_evaluator, tmp_path):
+    run = train_tiny_model(manifest, tmp_path / "action-run", "model.num_actions=1", steps=1)
+    classifier = trained_evaluator[0].parent / "action_classifier.safetensors"
+    out = tmp_path / "eval"
+    assert evaluate("--checkpoint", str(run / "checkpoints" / "step-00000001"), "--protocol", "fast",
+                    *SMALL_PROTOCOL, "sampling.steps=[2]", "protocol.mm_num_texts=100", f"evaluator.action_classifier={classifier}",
+                    f"output.dir={out}") == 0
+    result = json.loads(next((out / "results").rglob("*.json")).read_text())
+    assert result["checkpoint"]["model"] == "action-to-motion" and result["evaluator"]["kind"] == "action_classifier"
+    assert {"fid", "accuracy", "diversity", "multimodality"} <= set(result["metrics"])
+    assert 0.0 <= result["metrics"]["accuracy"]["mean"] <= 1.0 and "accuracy" in result["ground_truth"]
+    classes = {a for a in build_ground_truth(manifest, "test").actions}
+    assert result["protocol"]["mm_num_texts"] == len(classes)  # one MultiModality "text" per test class
+
+
+def test_an_incomplete_checkpoint_is_refused(tmp_path, capsys):
+    unfinished = tmp_path / "run" / "checkpoints" / "step-00000005"
+    unfinished.mkdir(parents=True)  # a save in progress: no COMPLETE marker
+    assert evaluate("--checkpoint", str(unfinished), f"output.dir={tmp_path / 'eval'}") == 2
+    assert "no complete checkpoint" in capsys.readouterr().err
+
+
+def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, tmp_path, capsys):
+    run = train_tiny_model(manifest, tmp_path / "diffusion-run", "train.objective=diffusion",
+                           "train.diffusion=flame", steps=1)
+    evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
+    checkpoint = str(run / "checkpoints" / "step-00000001")
+    common = [*SMALL_PROTOCOL, "protocol.replications=1", f"evaluator.path={evaluator}",
+              f"output.dir={tmp_path / 'e'}"]
+    assert evaluate("--checkpoint", checkpoint, "--protocol", "fast", *common) == 2  # euler: not for diffusion
+    assert "diffusion model" in capsys.readouterr().err
+    assert evaluate("--checkpoint", checkpoint, "--protocol", "fast", "--solver", "ddim", "--steps", "4", *common) == 0
+    result = json.loads(next((tmp_path / "e" / "results").rglob("*.json")).read_text())
+    assert result["checkpoint"]["objective"] == "diffusion" and result["checkpoint"]["diffusion_preset"] == "flame"
+    assert (result["sampling"]["solver"], result["nfe"]) == ("ddim", 4)
+    assert np.isfinite(result["metrics"]["fid"]["mean"]) and set(result["editing"]) == {"prediction", "upper_body"}
+
+
+def test_cross_attention_model_gets_the_captions_token_features(tmp_path_factory, tmp_path):
+    from preprocess.shards import BuildConfig, build_dataset
+
+    data = tmp_path_factory.getbasetemp() / "eval-synthetic-tokens"
+    build_dataset(BuildConfig(out=data, source="synthetic", source_options={"num_clips": 40}, formats=("tar",),
+                              progress=False, token_features=True, max_tokens=12))
+    run = train_tiny_model(data / "manifest.json", tmp_path / "run", "model.conditioning=cross_attention", steps=1)
+    evaluator = random_contrastive_evaluator(data / "manifest.json", tmp_path / "ev" / "contrastive.safetensors")
+    assert evaluate("--checkpoint", str(run / "checkpoints" / "step-00000001"), "--protocol", "fast",
+                    *SMALL_PROTOCOL, "sampling.steps=[1]", "protocol.replications=1", "protocol.multimodality=false",
+                    "tasks.editing=[]", f"evaluator.path={evaluator}", f"output.dir={tmp_path / 'e'}") == 0
+    result = json.loads(next((tmp_path / "e" / "results").rglob("*.json")).read_text())
+    assert result["checkpoint"]["conditioning"] == "cross_attention"
+    assert np.isfinite(result["metrics"]["fid"]["mean"])
+    assert any("windows of" in note for note in result["notes"])  # test clips longer than the training window
