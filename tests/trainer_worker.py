@@ -46,7 +46,14 @@ from pipeline.data import LoaderOptions, MotionLoader
 from pipeline.distributed import Dist
 from pipeline.trainer import Draws, Trainer, draw_for_batch
 
-REAL_LOSS = trainer_module.flow_matching_loss
+REAL_BUILD_OBJECTIVE = trainer_module.build_objective
+
+
+class HookedObjective:
+    """The config's objective with its ``loss`` replaced by the fault injector's."""
+
+    def __init__(self, loss) -> None:
+        self.loss = loss
 
 
 class Faults:
@@ -60,9 +67,10 @@ class Faults:
         nan = scenario.get("nan_at")
         self.nan_steps = set(nan[1]) if nan and nan[0] == rank else set()
         self.step_in_progress = 0
+        self.real_loss = None  # the objective's real loss, set when the trainer builds its objective
 
     def loss(self, *args: Any, **kwargs: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        loss, stats = REAL_LOSS(*args, **kwargs)
+        loss, stats = self.real_loss(*args, **kwargs)
         step = self.step_in_progress
         if step == self.kill_at:
             os.kill(os.getpid(), signal.SIGKILL)
@@ -180,7 +188,12 @@ def run_scenario(scenario: Mapping[str, Any], dist: Dist) -> int:
     cfg = tiny_config(scenario.get("overrides", []))
     result_file = out / f"result-rank{dist.rank}.json"
     faults = Faults(scenario, dist.rank)
-    trainer_module.flow_matching_loss = faults.loss
+
+    def build_faulty_objective(config: TrainConfig) -> HookedObjective:
+        faults.real_loss = REAL_BUILD_OBJECTIVE(config).loss
+        return HookedObjective(faults.loss)
+
+    trainer_module.build_objective = build_faulty_objective
     try:
         if scenario["kind"] == "equivalence":
             trainer = Trainer(cfg, dist)
@@ -194,7 +207,7 @@ def run_scenario(scenario: Mapping[str, Any], dist: Dist) -> int:
         wait_for_other_ranks(dist, after_error=True)
         raise
     finally:
-        trainer_module.flow_matching_loss = REAL_LOSS
+        trainer_module.build_objective = REAL_BUILD_OBJECTIVE
     result_file.write_text(json.dumps({"exit_code": code}))
     wait_for_other_ranks(dist, after_error=False)
     return code
