@@ -89,31 +89,36 @@ def plot_metrics_vs_step(rows: Sequence[Mapping[str, Any]], path: Path,
     return path
 
 
-def plot_fid_vs_nfe(rows: Sequence[Mapping[str, Any]], path: Path, checkpoint_name: str) -> Path | None:
-    """FID against NFE for one checkpoint (MFM Figure 1); None with fewer than two NFE values."""
-    generated = [r for r in _latest(rows) if r.get("row_kind") == "generated"
-                 and r.get("checkpoint_name") == checkpoint_name and r.get("fid") is not None]
+def plot_fid_vs_nfe(rows: Sequence[Mapping[str, Any]], path: Path, checkpoint_name: str | None = None) -> Path | None:
+    """FID against NFE (MFM Figure 1): one line per (checkpoint, solver, guidance) for one checkpoint name, or for
+    every checkpoint evaluated into this folder when ``checkpoint_name`` is None (e.g. a flow-matching run and a
+    diffusion baseline swept together). None with fewer than two NFE values."""
+    generated = [r for r in _latest(rows) if r.get("row_kind") == "generated" and r.get("fid") is not None
+                 and (checkpoint_name is None or r.get("checkpoint_name") == checkpoint_name)]
     if len({r["nfe"] for r in generated}) < 2:
         return None
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(5.5, 4))
+    fig, ax = plt.subplots(figsize=(6, 4.2))
     lines: dict[tuple, list] = defaultdict(list)
     for row in generated:
-        lines[(row["solver"], row["guidance"], row["evaluator_id"], row["protocol"])].append(row)
-    for (solver, guidance, evaluator_id, protocol), points in sorted(lines.items(), key=lambda kv: str(kv[0])):
+        run = Path(str(row["checkpoint"])).parent.parent.name  # <run>/checkpoints/step-N -> <run>
+        lines[(run, row["checkpoint_name"], row["solver"], row["guidance"], row["protocol"])].append(row)
+    for (run, name, solver, guidance, protocol), points in sorted(lines.items(), key=lambda kv: str(kv[0])):
         points.sort(key=lambda p: p["nfe"])
+        prefix = "" if checkpoint_name is not None else f"{run}/{name}: "
         ax.errorbar([p["nfe"] for p in points], [p["fid"] for p in points],
                     yerr=[p.get("fid_ci") or 0.0 for p in points], marker="o", capsize=3,
-                    label=f"{solver}, w={guidance:g} ({protocol})")
+                    label=f"{prefix}{solver}, w={guidance:g} ({protocol})")
     nfes = sorted({r["nfe"] for r in generated})
     ax.set_xscale("log", base=2)
     ax.set_xticks(nfes, [f"{n:g}" for n in nfes])
     ax.minorticks_off()
-    ax.set_xlabel("NFE (velocity evaluations per motion; ×2 model passes with guidance)")
+    ax.set_xlabel("NFE (network evaluations per motion; ×2 model passes with guidance)")
     ax.set_ylabel("FID")
-    ax.set_title(f"FID vs NFE, {checkpoint_name} (step {generated[0]['step']})")
+    title = "FID vs NFE" if checkpoint_name is None else f"FID vs NFE, {checkpoint_name} (step {generated[0]['step']})"
+    ax.set_title(title)
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     _save(fig, path)
     return path
 
@@ -128,5 +133,9 @@ def update_plots(rows: Sequence[Mapping[str, Any]], plots_dir: Path) -> list[Pat
         nfe_plot = plot_fid_vs_nfe(rows, plots_dir / f"fid_vs_nfe_{name}.png", name)
         if nfe_plot is not None:
             written.append(nfe_plot)
+    if len({r.get("checkpoint_id") for r in rows if r.get("row_kind") == "generated"}) > 1:
+        combined = plot_fid_vs_nfe(rows, plots_dir / "fid_vs_nfe_all.png")
+        if combined is not None:
+            written.append(combined)
     logger.info("plots: %s", ", ".join(p.name for p in written) or "none yet")
     return written
