@@ -345,3 +345,33 @@ def test_cross_attention_model_gets_the_captions_token_features(tmp_path_factory
     assert result["checkpoint"]["conditioning"] == "cross_attention"
     assert np.isfinite(result["metrics"]["fid"]["mean"])
     assert any("windows of" in note for note in result["notes"])  # test clips longer than the training window
+
+
+@pytest.mark.slow
+def test_embedded_default_end_to_end_with_the_fast_protocol(tmp_path_factory, tmp_path, capsys):
+    """The real DeepMimic clips (the embedded default dataset): build, train a tiny model, train the evaluator,
+    evaluate with the fast protocol through the entry point."""
+    from launch.train_evaluator import main as train_evaluator
+    from preprocess.shards import BuildConfig, build_dataset
+
+    data = tmp_path_factory.mktemp("embedded") / "deepmimic-minilm"
+    build_dataset(BuildConfig(out=data, progress=False))  # the defaults: deepmimic + minilm
+    manifest = data / "manifest.json"
+    run = train_tiny_model(manifest, tmp_path / "run", "data.window=96", "data.batch_size=5", steps=3)
+    tiny = [f"model.{k}={v}" for k, v in TINY_EVALUATOR.items()]
+    assert train_evaluator([f"data.manifest={manifest}", f"out_dir={tmp_path / 'evaluator'}", "optim.steps=6",
+                            "optim.log_every=3", "optim.warmup_steps=0", "data.window=96", *tiny]) == 0
+    report = json.loads((tmp_path / "evaluator" / "report.json").read_text())
+    assert report["held_out"]["test"]["num_items"] == 11 and "action_accuracy" in report["held_out"]["test"]
+
+    out = tmp_path / "eval"
+    assert evaluate("--checkpoint", str(run), "--protocol", "fast", *SMALL_PROTOCOL,
+                    f"evaluator.path={tmp_path / 'evaluator' / 'contrastive.safetensors'}", f"output.dir={out}") == 0
+    assert "1 result(s) written" in capsys.readouterr().out
+    (path,) = (out / "results" / "step-00000003").glob("*.json")
+    result = json.loads(path.read_text())
+    assert result["checkpoint"]["step"] == 3 and result["protocol"]["name"] == "fast"
+    assert result["data"]["dataset_id"] == json.loads(manifest.read_text())["dataset_id"]
+    for name in ("fid", "r_precision_top3", "mm_dist", "diversity", "mclip"):
+        assert np.isfinite(result["metrics"][name]["mean"]), name
+        assert np.isfinite(result["ground_truth"].get(name, {"mean": 0.0})["mean"]), name
