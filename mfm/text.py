@@ -127,6 +127,22 @@ def _encode_in_batches(texts: list[str], batch_size: int, dim: int, token_featur
     )
 
 
+class _BatchedTextEncoder:
+    """The shared ``encode``: argument checks, batching in input order, float32 numpy outputs. Subclasses set
+    ``dim`` and implement ``_encode_batch(texts, token_features, max_tokens) -> BatchOutput``."""
+
+    dim: int
+
+    def _encode_batch(self, texts: list[str], token_features: bool, max_tokens: int) -> BatchOutput:
+        raise NotImplementedError
+
+    def encode(self, texts: list[str], *, token_features: bool = False, max_tokens: int = 32,
+               batch_size: int = 64) -> TextEncoding:
+        _check_encode_args(texts, max_tokens, batch_size)
+        return _encode_in_batches(texts, batch_size, self.dim, token_features, max_tokens,
+                                  lambda batch: self._encode_batch(batch, token_features, max_tokens))
+
+
 # ---------------------------------------------------------------------------------------------------
 # all-MiniLM-L6-v2 (sentence-transformers folder, loaded with plain transformers)
 
@@ -183,7 +199,7 @@ def _hf_weights_file(folder: Path) -> Path:
     raise FileNotFoundError(f"{folder}: no weights file (looked for {', '.join(_HF_WEIGHTS_FILES)})")
 
 
-class MiniLMEncoder:
+class MiniLMEncoder(_BatchedTextEncoder):
     """all-MiniLM-L6-v2: pooled = mean of valid token states, L2-normalised; tokens = last hidden states."""
 
     id = "minilm"
@@ -216,11 +232,6 @@ class MiniLMEncoder:
         tokens, lengths = _fixed_length_tokens(hidden, batch["attention_mask"].sum(1), max_tokens)
         return pooled, tokens, lengths
 
-    def encode(self, texts: list[str], *, token_features: bool = False, max_tokens: int = 32,
-               batch_size: int = 64) -> TextEncoding:
-        _check_encode_args(texts, max_tokens, batch_size)
-        return _encode_in_batches(texts, batch_size, self.dim, token_features, max_tokens,
-                                  lambda batch: self._encode_batch(batch, token_features, max_tokens))
 
 
 def build_minilm(*, weights: str | Path | None = None, device: str = "cpu") -> MiniLMEncoder:
@@ -337,7 +348,7 @@ def _loaded_clip_text_tower(quick_gelu: bool, path: Path) -> torch.nn.Module:
     return tower
 
 
-class ClipTextEncoder:
+class ClipTextEncoder(_BatchedTextEncoder):
     """CLIP ViT-B/32 text tower: pooled = encode_text (EOT token state, projected, not normalised).
 
     Token features are the per-position outputs after ln_final and text_projection, so they share the
@@ -382,11 +393,6 @@ class ClipTextEncoder:
         tokens, lengths = _fixed_length_tokens(states, eot_index + 1, max_tokens)
         return pooled, tokens, lengths
 
-    def encode(self, texts: list[str], *, token_features: bool = False, max_tokens: int = 32,
-               batch_size: int = 64) -> TextEncoding:
-        _check_encode_args(texts, max_tokens, batch_size)
-        return _encode_in_batches(texts, batch_size, self.dim, token_features, max_tokens,
-                                  lambda batch: self._encode_batch(batch, token_features, max_tokens))
 
 
 def build_clip_vit_b_32(*, weights: str | Path | None = None, device: str = "cpu", allow_random: bool = False,
