@@ -30,7 +30,7 @@ from mfm.diffusion import GaussianDiffusion
 from mfm.guidance import classifier_free_guidance
 from mfm.editing import as_bool_mask
 from mfm.model import valid_frame_mask
-from mfm.solvers import SolveResult, model_feature_dim, model_device, check_lengths, initial_noise
+from mfm.solvers import SolveResult, check_lengths, initial_noise, model_feature_dim, sampling_inputs
 
 logger = logging.getLogger(__name__)
 
@@ -139,13 +139,7 @@ def sample_diffusion(
     clip_denoised: clamp x_0 estimates to [−c, c] (FLAME's True = 1.0 on raw SMPL features; None for normalised ones).
     feature_dim defaults to ``model.config.feature_dim``.
     """
-    if getattr(model, "training", False):
-        logger.warning("sampling from a model in training mode: dropout makes the denoiser random")
-    device = model_device(model, cond)
-    lengths = check_lengths(lengths, num_frames).to(device)
-    cond = cond.to(device)
-    if cond.shape[0] != lengths.shape[0]:
-        raise ValueError(f"cond has batch {cond.shape[0]} but {lengths.shape[0]} lengths were given")
+    device, cond, lengths = sampling_inputs(model, cond, lengths, num_frames)
     dim = model_feature_dim(model, feature_dim)
     generator = _draw_generator(seed, generator)
     frame_mask = valid_frame_mask(lengths, num_frames)

@@ -337,6 +337,20 @@ def check_lengths(lengths: Sequence[int] | Tensor, num_frames: int) -> Tensor:
 
 
 @torch.no_grad()
+def sampling_inputs(model: nn.Module, cond: Tensor, lengths: Tensor | Sequence[int],
+                    num_frames: int) -> tuple[torch.device, Tensor, Tensor]:
+    """Checked ``(device, cond, lengths)`` on the model's device, shared by the ODE and diffusion samplers
+    (warns when the model is in training mode: dropout would make the network random)."""
+    if getattr(model, "training", False):
+        logger.warning("sampling from a model in training mode: dropout makes the network random")
+    device = model_device(model, cond)
+    lengths = check_lengths(lengths, num_frames).to(device)
+    cond = cond.to(device)
+    if cond.shape[0] != lengths.shape[0]:
+        raise ValueError(f"cond has batch {cond.shape[0]} but {lengths.shape[0]} lengths were given")
+    return device, cond, lengths
+
+
 def sample(
     model: Callable[..., Tensor],
     cond: Tensor,
@@ -363,13 +377,7 @@ def sample(
     The model should be in eval mode (dropout on makes the field random). feature_dim defaults to
     ``model.config.feature_dim``.
     """
-    if getattr(model, "training", False):
-        logger.warning("sampling from a model in training mode: dropout makes the velocity field random")
-    device = model_device(model, cond)
-    lengths = check_lengths(lengths, num_frames).to(device)
-    cond = cond.to(device)
-    if cond.shape[0] != lengths.shape[0]:
-        raise ValueError(f"cond has batch {cond.shape[0]} but {lengths.shape[0]} lengths were given")
+    device, cond, lengths = sampling_inputs(model, cond, lengths, num_frames)
     shape = (lengths.shape[0], num_frames, model_feature_dim(model, feature_dim))
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)
     x0 = initial_noise(shape, seed=seed, generator=generator, device=device) * valid
