@@ -6,6 +6,8 @@
     accelerate launch --num_processes 2 launch/evaluate.py --checkpoint ...    # generation split across ranks
     python launch/evaluate.py --checkpoint ... evaluator.kind=t2m evaluator.t2m_checkpoint_dir=DIR \
         evaluator.t2m_glove_dir=DIR                                              # the official T2M evaluator
+    python launch/evaluate.py --checkpoint runs/bpe --protocol fast tasks.composition=true \
+        composition.switch=[relative,humanml3d,0.25,0.5,absolute]                # FlowMDM composition, bpe+pccat
 
 Settings: configs/eval_{full,fast}.yaml (--protocol) or --config YAML, then ``key.sub=value`` overrides
 (pipeline/eval_config.py EvalConfig). Diffusion baselines (train.objective=diffusion) take --solver ddpm|ddim and
@@ -14,6 +16,12 @@ checkpoint's dataset. Results go to <run>/eval (output.dir=): one JSON per check
 results.parquet, plots/. Concurrent jobs (cron, Slurm, CronJob) never evaluate a unit twice (claim files).
 Exit code: 0 done, 2 bad settings, a missing evaluator or checkpoint, 143 on SIGTERM (claims released), 1 other
 errors.
+
+Composition (``tasks.composition=true``, pipeline/eval_composition.py): FlowMDM's protocol on a bpe + pccat model,
+one result per switch point (``composition.switch``: flow times, 'absolute' = 1.0 the absolute-only baseline,
+'relative' = 0.0, 'humanml3d' = FlowMDM's 60 steps); ``composition.segments_per_sequence`` (32),
+``composition.num_sequences`` (0: cover the test set), ``composition.scenario`` / ``composition.length_bins``,
+``composition.transition_window`` (60 frames at 20 fps). ``tasks.text_to_motion=false`` skips the T2M units.
 """
 
 from __future__ import annotations
@@ -31,7 +39,7 @@ from pipeline.config import ConfigError
 from pipeline.distributed import Dist
 from pipeline.eval_config import load_eval_config, sweep_overrides
 from pipeline.eval_spaces import EvaluationError, EvaluatorUnavailable
-from pipeline.evaluation import EvaluationJob, summary_line
+from pipeline.evaluation import EvaluationJob, result_label, summary_line
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -62,8 +70,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.checkpoint:
                 results = job.evaluate_checkpoint(args.checkpoint)
                 for result in results:
-                    dist.print0(f"{result['sampling']['solver']} {result['sampling']['steps']} steps: "
-                                f"{summary_line(result)}")
+                    dist.print0(f"{result_label(result)}: {summary_line(result)}")
                 dist.print0(f"{len(results)} result(s) written")
             else:
                 count = job.watch(args.watch, once=args.once)

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
 
+from mfm.composition import BABEL_SWITCH, HUMANML3D_SWITCH
 from pipeline.config import ConfigError, coerce_fields, load_config, parse_yaml
 
 PROTOCOL_PRESETS = {"full": "eval_full", "fast": "eval_fast"}
@@ -104,6 +106,10 @@ class EvaluatorConfig:
 class TasksConfig:
     """Which metric families run besides text-to-motion (or action-to-motion for action models)."""
 
+    text_to_motion: bool = True
+    """The T2M protocol units (one per sampling point; with flame / editing below). false: composition only."""
+    composition: bool = False
+    """FlowMDM's composition protocol (section ``composition``; pipeline.eval_composition): bpe + pccat models."""
     flame: bool = True
     """APE/AVE, mCLIP, MID and per-text joint variance (FLAME / TEMOS)."""
     mid_eps: float = 5e-4
@@ -123,6 +129,85 @@ class TasksConfig:
         _require(self.editing_replications >= 0, "tasks.editing_replications must be >= 0")
         missing = [p for p in self.editing if p not in self.edit_rewrite_until]
         _require(not missing, f"tasks.edit_rewrite_until has no value for {missing}")
+        _require(self.text_to_motion or self.composition,
+                 "tasks.text_to_motion and tasks.composition are both false: nothing to evaluate")
+
+
+SWITCH_NAMES = {"absolute": 1.0, "relative": 0.0, "humanml3d": HUMANML3D_SWITCH, "babel": BABEL_SWITCH}
+"""composition.switch names: 'absolute' = never switch (the absolute-only baseline, flow time 1.0), 'relative' =
+relative from the start (0.0), FlowMDM's HumanML3D / Babel ``bpe_denoising_step`` (60 / 125) as flow times."""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class CompositionConfig:
+    """FlowMDM's composition evaluation (pipeline.eval_composition); runs with ``tasks.composition=true``."""
+
+    switch: tuple[float | str, ...] = ("relative", "humanml3d", "absolute")
+    """Flow times from which the bpe model runs in relative mode, one unit each; or names of SWITCH_NAMES.
+    1.0 / 'absolute' is the absolute-only baseline (same model, same noise), 0.0 / 'relative' relative-only."""
+    num_sequences: int = 0
+    """Composed sequences per replication; 0: enough for every eligible test item to appear at least once."""
+    segments_per_sequence: int = 32
+    """FlowMDM: 32 (text, length) segments per sequence (one R-precision batch); fewer eligible test items: that many
+    (recorded)."""
+    scenario: str = "all"
+    """'all' (every test item) or a key of ``length_bins``: only items whose length lies in that bin."""
+    length_bins: dict[str, tuple[int, int]] = dataclasses.field(default_factory=dict)
+    """Scenario name -> [min, max] segment length in frames (inclusive), e.g. {short: [70, 110]}."""
+    transition_window: int = 60
+    """Frames centred on every boundary for the transition metrics. FlowMDM: 60 at 20 fps (HumanML3D), 30 at 30 fps
+    (Babel); set it for other frame rates (it is recorded with its length in seconds)."""
+    gt_transitions: Literal["crops", "concatenated"] = "crops"
+    """Reference windows of the transition FID / Diversity: 'crops' = one seeded window-long crop of every test clip
+    at least that long (FlowMDM's HumanML3D 'gt_transitions' loader); 'concatenated' = the GT clips of consecutive
+    segments of the composition set joined and cropped around their boundary (a hard cut)."""
+    gt_jerk: float | None = None
+    """AUJ's reference jerk; None: the average jerk of this dataset's test clips (cached, recorded). FlowMDM's
+    constants: 0.033031363 (HumanML3D), 0.016383045 (Babel)."""
+    replications: int = 0
+    """0: protocol.replications (FlowMDM: 3 fast, 10 final)."""
+    seed: int = 0
+    """Draws the composition set and the sequences' noise (the same noise for every switch point)."""
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        _require(bool(self.switch), "composition.switch must list at least one switch point")
+        self.switch_times()  # validates
+        _require(self.num_sequences >= 0, f"composition.num_sequences must be >= 0, got {self.num_sequences}")
+        _require(self.segments_per_sequence >= 2,
+                 f"composition.segments_per_sequence must be >= 2 (transitions need two segments), got "
+                 f"{self.segments_per_sequence}")
+        _require(self.transition_window >= 4,
+                 f"composition.transition_window must be >= 4 frames (jerk needs 4), got {self.transition_window}")
+        _require(self.replications >= 0, f"composition.replications must be >= 0, got {self.replications}")
+        _require(self.seed >= 0, f"composition.seed must be >= 0, got {self.seed}")
+        _require(self.scenario == "all" or self.scenario in self.length_bins,
+                 f"composition.scenario={self.scenario!r} is neither 'all' nor a key of composition.length_bins "
+                 f"({sorted(self.length_bins)}); define it, e.g. "
+                 f"composition.length_bins={{{self.scenario}: [70, 110]}}")
+        for name, (low, high) in self.length_bins.items():
+            _require(1 <= low <= high, f"composition.length_bins.{name} must be [min, max] with 1 <= min <= max, "
+                                       f"got [{low}, {high}]")
+        _require(self.gt_jerk is None or (math.isfinite(self.gt_jerk) and self.gt_jerk >= 0),
+                 f"composition.gt_jerk must be a non-negative number or null, got {self.gt_jerk}")
+
+    def switch_times(self) -> tuple[float, ...]:
+        """The switch points as flow times in [0, 1], in the given order, each once (1.0 = absolute-only)."""
+        times: list[float] = []
+        for value in self.switch:
+            if isinstance(value, str):
+                _require(value.lower() in SWITCH_NAMES,
+                         f"composition.switch: unknown name {value!r}; use a flow time in [0, 1] or one of "
+                         f"{sorted(SWITCH_NAMES)}")
+                value = SWITCH_NAMES[value.lower()]
+            _require(0.0 <= value <= 1.0, f"composition.switch: flow times lie in [0, 1], got {value}")
+            if value not in times:
+                times.append(float(value))
+        return tuple(times)
+
+    def length_range(self) -> tuple[int, int] | None:
+        """The scenario's [min, max] segment lengths, None for 'all'."""
+        return None if self.scenario == "all" else tuple(self.length_bins[self.scenario])
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -160,6 +245,7 @@ class EvalConfig:
     sampling: SamplingConfig = dataclasses.field(default_factory=SamplingConfig)
     evaluator: EvaluatorConfig = dataclasses.field(default_factory=EvaluatorConfig)
     tasks: TasksConfig = dataclasses.field(default_factory=TasksConfig)
+    composition: CompositionConfig = dataclasses.field(default_factory=CompositionConfig)
     data: EvalDataConfig = dataclasses.field(default_factory=EvalDataConfig)
     output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
 

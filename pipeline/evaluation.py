@@ -16,6 +16,8 @@ sampling-noise floor (the reference's GT FID is likewise nonzero, its crops and 
 editing (prediction, in-between, upper body: FID, Diversity, ADE/FDE on joints; MFM Table 3), FLAME's metrics
 (APE/AVE, mCLIP, MID, per-text joint variance), and for action models FID / accuracy / Diversity /
 MultiModality in the action classifier's feature space. NFE and generation seconds per motion are reported.
+With ``tasks.composition=true`` (a bpe + pccat model), FlowMDM's composition protocol adds one unit per sampling
+point and ``composition.switch`` point (pipeline.eval_composition); ``tasks.text_to_motion=false`` runs only those.
 
 Identity. A unit's key hashes the checkpoint id (its COMPLETE marker, which lists every file's sha256), the
 evaluator id, the ground-truth identity (dataset id, split, crops), the protocol, tasks and sampling point; the
@@ -40,6 +42,14 @@ from pipeline import checkpoint as ckpt
 from pipeline.config import parse_yaml, to_dict
 from pipeline.data import Manifest, open_manifest
 from pipeline.distributed import Dist
+from pipeline.eval_composition import (
+    CompositionContext,
+    composition_rows,
+    composition_unit,
+    evaluate_switch,
+    plot_composition_switch,
+    prepare_composition,
+)
 from pipeline.eval_config import EvalConfig, SamplingPoint
 from pipeline.eval_replications import (
     CheckpointContext,
@@ -172,13 +182,33 @@ class CheckpointScorer:
 
     def unit_for(self, folder: Path, ctx_ids: Mapping[str, str], point: SamplingPoint) -> Unit:
         cfg = self.cfg
+        # The task switches are not settings of a text-to-motion unit: turning composition on keeps its key.
+        tasks = {k: v for k, v in to_dict(cfg.tasks).items() if k not in ("text_to_motion", "composition")}
         settings = {"format": RESULT_FORMAT, "ids": dict(ctx_ids), "point": dataclasses.asdict(point),
-                    "protocol": to_dict(cfg.protocol), "tasks": to_dict(cfg.tasks), "split": cfg.data.split,
+                    "protocol": to_dict(cfg.protocol), "tasks": tasks, "split": cfg.data.split,
                     "sampling": {"use_ema": cfg.sampling.use_ema, "rtol": cfg.sampling.rtol,
                                  "atol": cfg.sampling.atol}}
         return Unit(folder.name, point.name, digest(settings))
 
     # -- evaluating one unit -------------------------------------------------------------------------------------
+
+    def work(self, folder: Path, ctx: CheckpointContext, comp: CompositionContext | None) -> list[Work]:
+        """The checkpoint's units: text-to-motion per sampling point, then composition per point and switch."""
+        ids = {"checkpoint": ctx.checkpoint_id, "evaluator": ctx.space.evaluator_id, "gt": ctx.gt.key}
+        points = self.cfg.sampling.points()
+        out = []
+        if self.cfg.tasks.text_to_motion:
+            out += [Work(self.unit_for(folder, ids, point), point) for point in points]
+        if comp is not None:
+            out += [Work(composition_unit(folder.name, ids, point, switch, self.cfg, comp.cset), point, switch)
+                    for point in points for switch in self.cfg.composition.switch_times()]
+        return out
+
+    def evaluate(self, ctx: CheckpointContext, comp: CompositionContext | None, work: Work, timer: PhaseTimer,
+                 heartbeat: Callable[[], None] = lambda: None) -> dict[str, Any] | None:
+        if work.switch is None:
+            return self.evaluate_point(ctx, work.point, timer, heartbeat)
+        return evaluate_switch(self.cfg, self.dist, ctx, comp, work.point, work.switch, timer, heartbeat)
 
     def evaluate_point(self, ctx: CheckpointContext, point: SamplingPoint, timer: PhaseTimer,
                        heartbeat: Callable[[], None] = lambda: None) -> dict[str, Any] | None:
@@ -189,6 +219,15 @@ class CheckpointScorer:
             if self.dist.is_main:
                 heartbeat()
         return run.result() if self.dist.is_main else None
+
+
+@dataclasses.dataclass(frozen=True)
+class Work:
+    """A unit and what it evaluates: a sampling point, and a switch flow time for composition units."""
+
+    unit: Unit
+    point: SamplingPoint
+    switch: float | None = None
 
 
 def _max_generation_length(trained: TrainedModel) -> int:
@@ -210,7 +249,8 @@ def run_dir_of(folder: Path) -> Path:
 
 def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
     """The result's rows for the results table: the generated row and the ground-truth row, metrics flattened
-    to ``<metric>`` (mean) and ``<metric>_ci``; editing as ``edit_<preset>_<metric>``."""
+    to ``<metric>`` (mean) and ``<metric>_ci``; editing as ``edit_<preset>_<metric>``. Column ``task`` says which
+    protocol ('text_to_motion' or 'composition', whose rows add ``switch`` and the composition settings)."""
     base = {
         "checkpoint": result["checkpoint"]["path"], "checkpoint_name": result["checkpoint"]["name"],
         "step": result["checkpoint"]["step"], "checkpoint_id": result["checkpoint"]["id"],
@@ -224,6 +264,9 @@ def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
         "generation_seconds_per_motion": result["generation_seconds_per_motion"],
         "world_size": result["world_size"], "created": result["created"], "result_key": result["key"],
     }
+    if result.get("task") == "composition":
+        return composition_rows(result, base)
+    base["task"] = "text_to_motion"
     generated = {**base, "row_kind": "generated", "row_key": f"{result['key']}:generated"}
     generated.update(_flatten(result["metrics"]))
     for preset, values in result["editing"].items():
@@ -238,9 +281,18 @@ def summary_line(result: Mapping[str, Any]) -> str:
     shown = [f"{name} {v['mean']:.4g}" + ("" if v["ci"] is None else f"±{v['ci']:.2g}")
              for name, v in result["metrics"].items()
              if name in ("fid", "r_precision_top1", "r_precision_top3", "mm_dist", "diversity", "multimodality",
-                         "accuracy")]
+                         "accuracy", "transition_fid", "peak_jerk", "auj")]
     phases = ", ".join(f"{k} {v:.1f}s" for k, v in result["timing_s"].items())
     return f"{'; '.join(shown)}; NFE {result['nfe']:g}; {phases}"
+
+
+def result_label(result: Mapping[str, Any]) -> str:
+    """``euler 10 steps`` (text-to-motion) or ``composition euler 10 steps switch 0.0844 (all)``."""
+    sampling = result["sampling"]
+    label = f"{sampling['solver']} {sampling['steps']} steps"
+    if result.get("task") == "composition":
+        return f"composition {label} switch {sampling['switch']:.4g} ({result['composition']['scenario']})"
+    return label
 
 
 def _flatten(summary: Mapping[str, Mapping[str, Any]], prefix: str = "") -> dict[str, float]:
@@ -275,23 +327,27 @@ class EvaluationJob:
         store = self.store_for(folder)
         timer = PhaseTimer(self.dist.device)
         ctx = self.scorer.context(folder, store.cache_dir, timer)
-        setup = dict(timer.seconds)  # loading, ground truth: shared by the points below
-        ids = {"checkpoint": ctx.checkpoint_id, "evaluator": ctx.space.evaluator_id, "gt": ctx.gt.key}
-        units = [(point, self.scorer.unit_for(folder, ids, point)) for point in self.cfg.sampling.points()]
+        comp = None
+        if self.cfg.tasks.composition:
+            comp = prepare_composition(self.cfg, self.dist, ctx, store.cache_dir, timer)
+        setup = dict(timer.seconds)  # loading, ground truth: shared by the units below
+        work = self.scorer.work(folder, ctx, comp)
+        units = [w.unit for w in work]
         claimed = self.dist.broadcast_object(self._claim(store, units) if self.dist.is_main else None)
         written = []
-        for point, unit in units:
+        for item in work:
+            unit, point = item.unit, item.point
             if unit.key not in claimed:
                 continue
             try:
                 before = dict(timer.seconds)
-                result = self.scorer.evaluate_point(ctx, point, timer, lambda: store.heartbeat(unit))
+                result = self.scorer.evaluate(ctx, comp, item, timer, lambda: store.heartbeat(unit))
                 if self.dist.is_main:
                     with timer.phase("write"):
                         phases = {k: v - before.get(k, 0.0) for k, v in timer.seconds.items()}
                         full = self._result(folder, ctx, point, unit, result, setup, phases)
                         store.write_result(unit, full, table_rows(full))
-                        logger.info("%s %s: %s", folder.name, point.name, summary_line(full))
+                        logger.info("%s %s: %s", folder.name, unit.point_name, summary_line(full))
                         self._publish(store, folder, full)
                     written.append(full)
             finally:
@@ -299,13 +355,13 @@ class EvaluationJob:
                     store.release(unit)
         for phase, seconds in timer.seconds.items():
             self.timings[phase] += seconds
-        if self.dist.is_main and all(store.is_done(unit) for _, unit in units):
+        if self.dist.is_main and all(store.is_done(unit) for unit in units):
             self._finished.add(ctx.checkpoint_id)
         return written
 
-    def _claim(self, store: ResultsStore, units: Sequence[tuple[SamplingPoint, Unit]]) -> list[str]:
+    def _claim(self, store: ResultsStore, units: Sequence[Unit]) -> list[str]:
         claimed = []
-        for _, unit in units:
+        for unit in units:
             if store.is_done(unit):
                 store.append_rows(table_rows(store.read_result(unit)))  # repairs a crash before the table append
                 logger.info("%s %s: already evaluated (%s)", unit.checkpoint_name, unit.point_name,
@@ -349,6 +405,7 @@ class EvaluationJob:
         trained, gt = ctx.trained, ctx.gt
         return {
             "format": RESULT_FORMAT,
+            "task": "text_to_motion",
             "key": unit.key,
             "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "checkpoint": {"path": str(folder.resolve()), "name": folder.name, "step": trained.step,
@@ -377,6 +434,8 @@ class EvaluationJob:
         if self.cfg.output.wandb != "auto":
             mode = self.cfg.output.wandb
         prefix = f"{result['sampling']['solver']}-{result['sampling']['steps']}-g{result['sampling']['guidance']:g}"
+        if result.get("task") == "composition":
+            prefix = f"compose-{prefix}-s{result['sampling']['switch']:.4g}-{result['composition']['scenario']}"
         scalars = {f"{prefix}/{k}": v for k, v in table_rows(result)[0].items()
                    if isinstance(v, float) and not k.endswith("_ci") and math.isfinite(v)}
         log_to_wandb(run_dir, mode, project, int(result["checkpoint"]["step"]), scalars,
@@ -385,7 +444,10 @@ class EvaluationJob:
             from pipeline.eval_plots import update_plots
 
             try:
-                update_plots(store.table_rows(), store.plots_dir)
+                rows = store.table_rows()
+                update_plots([r for r in rows if r.get("task", "text_to_motion") == "text_to_motion"],
+                             store.plots_dir)
+                plot_composition_switch(rows, store.plots_dir / "composition_switch.png")
             except Exception as exc:  # a plotting problem must not lose an evaluation
                 logger.warning("plots not updated: %s", exc)
 
