@@ -178,6 +178,29 @@ def r_precision(
     return tuple(float(h) / (num_batches * batch_size) for h in hits)
 
 
+def r_precision_distinct_captions(text_emb: np.ndarray, motion_emb: np.ndarray, captions: Sequence[str],
+                                  batch_size: int, top_k: int = 3) -> tuple[float, ...]:
+    """FlowMDM's R-precision (utils/metrics.py ``evaluate_matching_score``): consecutive complete batches of
+    ``batch_size`` pairs; inside a batch only the first row of each distinct caption is ranked (among those rows:
+    another motion of the same caption would count as a miss), and its hits are scaled by batch / distinct rows."""
+    captions = np.asarray(captions, dtype=object)
+    num_batches = len(text_emb) // batch_size
+    if num_batches == 0:
+        raise ValueError(f"R-precision needs at least batch_size={batch_size} pairs, got {len(text_emb)}")
+    hits = np.zeros(top_k)
+    for b in range(num_batches):
+        rows = np.arange(b * batch_size, (b + 1) * batch_size)
+        _, first = np.unique(captions[rows].astype(str), return_index=True)
+        kept = rows[np.sort(first)]
+        k = min(top_k, len(kept))
+        distances = np.linalg.norm(text_emb[kept][:, None] - motion_emb[kept][None], axis=-1)
+        rank = np.argmax(np.argsort(distances, axis=1, kind="stable") == np.arange(len(kept))[:, None], axis=1)
+        counts = np.array([(rank < j).sum() for j in range(1, top_k + 1)], dtype=np.float64)
+        counts[k:] = len(kept)  # fewer distinct rows than k: every row is within the top k
+        hits += counts * batch_size / len(kept)
+    return tuple(float(h) / (num_batches * batch_size) for h in hits)
+
+
 def mm_dist(text_emb: Any, motion_emb: Any) -> float:
     """MM-Dist ("Matching Score"): mean Euclidean distance between paired text and motion embeddings, over all rows
     given (the reference averages over the samples of its full batches; pass the same rows to match it)."""

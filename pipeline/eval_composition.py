@@ -440,32 +440,9 @@ def composition_unit(checkpoint_name: str, ids: Mapping[str, str], point: Sampli
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def r_precision_distinct_captions(text_emb: np.ndarray, motion_emb: np.ndarray, captions: Sequence[str],
-                                  batch_size: int, top_k: int = 3) -> tuple[float, ...]:
-    """FlowMDM's R-precision (utils/metrics.py ``evaluate_matching_score``): consecutive complete batches of
-    ``batch_size`` pairs; inside a batch only the first row of each distinct caption is ranked (among those rows:
-    another motion of the same caption would count as a miss), and its hits are scaled by batch / distinct rows."""
-    captions = np.asarray(captions, dtype=object)
-    num_batches = len(text_emb) // batch_size
-    if num_batches == 0:
-        raise ValueError(f"R-precision needs at least batch_size={batch_size} pairs, got {len(text_emb)}")
-    hits = np.zeros(top_k)
-    for b in range(num_batches):
-        rows = np.arange(b * batch_size, (b + 1) * batch_size)
-        _, first = np.unique(captions[rows].astype(str), return_index=True)
-        kept = rows[np.sort(first)]
-        k = min(top_k, len(kept))
-        distances = np.linalg.norm(text_emb[kept][:, None] - motion_emb[kept][None], axis=-1)
-        rank = np.argmax(np.argsort(distances, axis=1, kind="stable") == np.arange(len(kept))[:, None], axis=1)
-        counts = np.array([(rank < j).sum() for j in range(1, top_k + 1)], dtype=np.float64)
-        counts[k:] = len(kept)  # fewer distinct rows than k: every row is within the top k
-        hits += counts * batch_size / len(kept)
-    return tuple(float(h) / (num_batches * batch_size) for h in hits)
-
-
 def segment_metrics(text: np.ndarray, motion: np.ndarray, captions: Sequence[str], gt_all: np.ndarray,
                     plan: CompositionPlan, diversity_rng: np.random.Generator) -> dict[str, float]:
-    top = r_precision_distinct_captions(text, motion, captions, plan.r_precision_batch)
+    top = metrics.r_precision_distinct_captions(text, motion, captions, plan.r_precision_batch)
     return {"r_precision_top1": top[0], "r_precision_top2": top[1], "r_precision_top3": top[2],
             "mm_dist": metrics.mm_dist(text, motion), "fid": metrics.fid(motion, gt_all),
             "diversity": metrics.diversity(motion, plan.diversity_times, diversity_rng)}

@@ -24,7 +24,6 @@ from pipeline.eval_composition import (
     build_composition_set,
     concatenated_windows,
     crop_windows,
-    r_precision_distinct_captions,
     transition_crops,
 )
 from pipeline.eval_config import CompositionConfig, load_eval_config
@@ -166,12 +165,12 @@ def test_gt_transition_windows_crop_natural_motion_or_the_joins_of_the_set(gt):
 def test_r_precision_with_repeated_captions_follows_flowmdm():
     rng = np.random.default_rng(0)
     text = rng.normal(size=(8, 4))
-    assert r_precision_distinct_captions(text, text + 1e-3, list("abcdefgh"), 8) == (1.0, 1.0, 1.0)
+    assert metrics.r_precision_distinct_captions(text, text + 1e-3, list("abcdefgh"), 8) == (1.0, 1.0, 1.0)
     # rows 0 and 1 share a caption: only row 0 is ranked among the 7 distinct ones, and row 1's motion (far from
     # everything) cannot steal its match
     motion = text.copy()
     motion[1] = 100.0
-    top1 = r_precision_distinct_captions(text, motion, list("aacdefgh"), 8)[0]
+    top1 = metrics.r_precision_distinct_captions(text, motion, list("aacdefgh"), 8)[0]
     assert top1 == 1.0 and metrics.r_precision(text, motion, batch_size=8)[0] == 7 / 8
 
 
