@@ -96,8 +96,6 @@ logger = logging.getLogger(__name__)
 COMPOSITION_FORMAT = 1
 NEEDED_MODEL = "model.positional=bpe model.conditioning=pccat"
 PLOT_FILE = "composition_switch.png"
-PLOT_METRICS = (("r_precision_top3", "segments: R@3"), ("fid", "segments: FID"), ("peak_jerk", "transitions: PJ"),
-                ("auj", "transitions: AUJ"))
 # Random streams of this task (the text-to-motion task uses 1-11).
 _TAG = {"draw": 21, "noise": 22, "diversity": 23, "transition_diversity": 24, "gt_crop": 25, "bootstrap": 26}
 
@@ -655,57 +653,3 @@ def composition_rows(result: Mapping[str, Any], base: Mapping[str, Any]) -> list
             row[name], row[f"{name}_ci"] = value["mean"], value["ci"]
         rows.append(row)
     return rows
-
-
-def _series_key(row: Mapping[str, Any]) -> tuple:
-    return (row.get("checkpoint_name"), row.get("solver"), row.get("steps"), row.get("guidance"),
-            row.get("scenario"), row.get("protocol"), row.get("evaluator_id"), row.get("composition_set"))
-
-
-def plot_composition_switch(rows: Sequence[Mapping[str, Any]], path: Path) -> Path | None:
-    """Per-segment R@3 / FID and transition PJ / AUJ against the switch flow time (0 = relative-only, 1 =
-    absolute-only), one line per checkpoint and setting, GT as dashed lines; a last panel puts segment FID against
-    PJ (the trade-off). None without composition rows."""
-    latest = {row["row_key"]: row for row in rows if row.get("task") == "composition"}.values()
-    generated = [r for r in latest if r["row_kind"] == "generated"]
-    if not generated:
-        return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    truth = {_series_key(r): r for r in latest if r["row_kind"] == "ground_truth"}
-    series: dict[tuple, list] = defaultdict(list)
-    for row in generated:
-        series[_series_key(row)].append(row)
-    fig, axes = plt.subplots(1, len(PLOT_METRICS) + 1, figsize=(4.2 * (len(PLOT_METRICS) + 1), 3.8))
-    for key, points in sorted(series.items(), key=lambda kv: str(kv[0])):
-        points.sort(key=lambda r: r["switch"])
-        label = f"{key[0]}: {key[1]} {key[2]} steps, w={key[3]:g} ({key[4]}, {key[5]})"
-        for ax, (metric, title) in zip(axes, PLOT_METRICS):
-            shown = [p for p in points if p.get(metric) is not None]
-            line = ax.errorbar([p["switch"] for p in shown], [p[metric] for p in shown],
-                               yerr=[p.get(f"{metric}_ci") or 0.0 for p in shown], marker="o", capsize=3, label=label)
-            if key in truth and truth[key].get(metric) is not None:
-                ax.axhline(truth[key][metric], linestyle="--", linewidth=1, color=line[0].get_color())
-            ax.set_title(title)
-            ax.set_xlabel("switch (flow time; 0 relative-only, 1 absolute-only)")
-            ax.grid(alpha=0.3)
-        trade = axes[-1]
-        trade.plot([p["peak_jerk"] for p in points], [p["fid"] for p in points], marker="o")
-        for p in points:
-            trade.annotate(f"{p['switch']:.3g}", (p["peak_jerk"], p["fid"]), fontsize=7, xytext=(3, 3),
-                           textcoords="offset points")
-    axes[-1].set_xlabel("transition peak jerk")
-    axes[-1].set_ylabel("segment FID")
-    axes[-1].set_title("trade-off (labels: switch)")
-    axes[-1].grid(alpha=0.3)
-    axes[0].legend(fontsize=6)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    os.replace(tmp, path)
-    return path

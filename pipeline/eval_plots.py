@@ -21,6 +21,8 @@ from typing import Any
 logger = logging.getLogger(__name__)
 
 STEP_METRICS = ("fid", "r_precision_top3", "mm_dist", "diversity", "multimodality", "accuracy")
+COMPOSITION_METRICS = (("r_precision_top3", "segments: R@3"), ("fid", "segments: FID"), ("peak_jerk", "transitions: PJ"),
+                ("auj", "transitions: AUJ"))
 
 
 def _pyplot():
@@ -119,6 +121,51 @@ def plot_fid_vs_nfe(rows: Sequence[Mapping[str, Any]], path: Path, checkpoint_na
     ax.set_title(title)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=7)
+    _save(fig, path)
+    return path
+
+
+def _series_key(row: Mapping[str, Any]) -> tuple:
+    return (row.get("checkpoint_name"), row.get("solver"), row.get("steps"), row.get("guidance"),
+            row.get("scenario"), row.get("protocol"), row.get("evaluator_id"), row.get("composition_set"))
+
+
+def plot_composition_switch(rows: Sequence[Mapping[str, Any]], path: Path) -> Path | None:
+    """Per-segment R@3 / FID and transition PJ / AUJ against the switch flow time (0 = relative-only, 1 =
+    absolute-only), one line per checkpoint and setting, GT as dashed lines; a last panel puts segment FID against
+    PJ (the trade-off). None without composition rows."""
+    latest = {row["row_key"]: row for row in rows if row.get("task") == "composition"}.values()
+    generated = [r for r in latest if r["row_kind"] == "generated"]
+    if not generated:
+        return None
+    plt = _pyplot()
+    truth = {_series_key(r): r for r in latest if r["row_kind"] == "ground_truth"}
+    series: dict[tuple, list] = defaultdict(list)
+    for row in generated:
+        series[_series_key(row)].append(row)
+    fig, axes = plt.subplots(1, len(COMPOSITION_METRICS) + 1, figsize=(4.2 * (len(COMPOSITION_METRICS) + 1), 3.8))
+    for key, points in sorted(series.items(), key=lambda kv: str(kv[0])):
+        points.sort(key=lambda r: r["switch"])
+        label = f"{key[0]}: {key[1]} {key[2]} steps, w={key[3]:g} ({key[4]}, {key[5]})"
+        for ax, (metric, title) in zip(axes, COMPOSITION_METRICS):
+            shown = [p for p in points if p.get(metric) is not None]
+            line = ax.errorbar([p["switch"] for p in shown], [p[metric] for p in shown],
+                               yerr=[p.get(f"{metric}_ci") or 0.0 for p in shown], marker="o", capsize=3, label=label)
+            if key in truth and truth[key].get(metric) is not None:
+                ax.axhline(truth[key][metric], linestyle="--", linewidth=1, color=line[0].get_color())
+            ax.set_title(title)
+            ax.set_xlabel("switch (flow time; 0 relative-only, 1 absolute-only)")
+            ax.grid(alpha=0.3)
+        trade = axes[-1]
+        trade.plot([p["peak_jerk"] for p in points], [p["fid"] for p in points], marker="o")
+        for p in points:
+            trade.annotate(f"{p['switch']:.3g}", (p["peak_jerk"], p["fid"]), fontsize=7, xytext=(3, 3),
+                           textcoords="offset points")
+    axes[-1].set_xlabel("transition peak jerk")
+    axes[-1].set_ylabel("segment FID")
+    axes[-1].set_title("trade-off (labels: switch)")
+    axes[-1].grid(alpha=0.3)
+    axes[0].legend(fontsize=6)
     _save(fig, path)
     return path
 

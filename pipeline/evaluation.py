@@ -47,7 +47,6 @@ from pipeline.eval_composition import (
     composition_rows,
     composition_unit,
     evaluate_switch,
-    plot_composition_switch,
     prepare_composition,
 )
 from pipeline.eval_config import EvalConfig, SamplingPoint
@@ -441,7 +440,7 @@ class EvaluationJob:
         log_to_wandb(run_dir, mode, project, int(result["checkpoint"]["step"]), scalars,
                      {"protocol": result["protocol"]["name"], "evaluator_id": result["evaluator"]["id"]})
         if self.cfg.output.plots:
-            from pipeline.eval_plots import update_plots
+            from pipeline.eval_plots import plot_composition_switch, update_plots
 
             try:
                 rows = store.table_rows()
