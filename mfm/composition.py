@@ -231,6 +231,21 @@ class Composition:
         return self.motion[start:end]
 
 
+def check_composition_budget(solver: str, steps: int, max_nfe: int = DEFAULT_MAX_NFE) -> int:
+    """The number of evaluations ``solver`` with ``steps`` makes; ValueError unless it can compose: the
+    positional mode switches at a fixed time, so a fixed-step solver, within the ``max_nfe`` budget."""
+    if solver not in FIXED_STEP_SOLVERS:
+        raise ValueError(f"composition switches positional modes at a fixed time: use a fixed-step solver "
+                         f"{sorted(FIXED_STEP_SOLVERS)}, not {solver!r}")
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+        raise ValueError(f"steps must be a positive int, got {steps!r}")
+    nfe = steps * FIXED_STEP_SOLVERS[solver].num_stages
+    if nfe > max_nfe:
+        raise ValueError(f"{solver} with {steps} steps makes {nfe} model evaluations; composition allows at most "
+                         f"{max_nfe} (max_nfe={max_nfe})")
+    return nfe
+
+
 def model_device(model: nn.Module) -> torch.device:
     parameter = next(model.parameters(), None)
     return parameter.device if parameter is not None else torch.device("cpu")
@@ -289,13 +304,7 @@ def compose(
     config = model.config
     if getattr(model, "training", False):
         logger.warning("composing with a model in training mode: dropout makes the velocity field random")
-    if solver not in FIXED_STEP_SOLVERS:
-        raise ValueError(f"compose needs a fixed-step solver {sorted(FIXED_STEP_SOLVERS)}, got {solver!r}")
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-        raise ValueError(f"steps must be a positive int, got {steps!r}")
-    nfe = steps * FIXED_STEP_SOLVERS[solver].num_stages
-    if nfe > max_nfe:
-        raise ValueError(f"{solver} with {steps} steps makes {nfe} evaluations, over the budget max_nfe={max_nfe}")
+    check_composition_budget(solver, steps, max_nfe)
     device = model_device(model)
     conds, lengths = _stack_conditions(segments)
     conds = conds.to(device)

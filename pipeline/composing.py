@@ -47,10 +47,10 @@ from tqdm.auto import tqdm
 
 from mfm.composition import (
     BABEL_SWITCH,
-    DEFAULT_MAX_NFE,
     HUMANML3D_SWITCH,
     SWITCH_TOLERANCE,
     Composition,
+    check_composition_budget,
     compose,
     extrapolate,
     read_prompt_file,
@@ -58,7 +58,6 @@ from mfm.composition import (
     segment_boundaries,
 )
 from mfm.model import ModelConfig
-from mfm.solvers import FIXED_STEP_SOLVERS
 from pipeline.inference import TrainedModel
 from pipeline.sampling import (
     RESULTS_FILE,
@@ -149,13 +148,10 @@ def check_model_can_compose(trained: TrainedModel, segments: Sequence[tuple[str,
 
 def check_integration(request: SampleRequest, integrator: Integrator) -> None:
     """The solver, evaluation budget and switch compose() will accept, checked before any output is written."""
-    if integrator.name not in FIXED_STEP_SOLVERS:
-        raise SamplingError(f"composition switches positional modes at a fixed time: use a fixed-step solver "
-                            f"{sorted(FIXED_STEP_SOLVERS)}, not {integrator.name!r}")
-    nfe = integrator.steps * FIXED_STEP_SOLVERS[integrator.name].num_stages
-    if nfe > DEFAULT_MAX_NFE:
-        raise SamplingError(f"{integrator.name} with {integrator.steps} steps makes {nfe} model evaluations; "
-                            f"composition allows at most {DEFAULT_MAX_NFE}")
+    try:
+        check_composition_budget(integrator.name, integrator.steps)
+    except ValueError as err:
+        raise SamplingError(str(err)) from err
     try:
         resolve_switch(HUMANML3D_SWITCH if request.switch is None else request.switch, integrator.steps)
     except ValueError as err:

@@ -71,9 +71,8 @@ import torch
 from torch import Tensor
 
 from mfm import metrics
-from mfm.composition import DEFAULT_MAX_NFE, SWITCH_TOLERANCE, compose, resolve_switch
+from mfm.composition import SWITCH_TOLERANCE, check_composition_budget, compose, resolve_switch
 from mfm.features import features_to_joints
-from mfm.solvers import FIXED_STEP_SOLVERS
 from pipeline.config import to_dict
 from pipeline.distributed import Dist
 from pipeline.eval_config import CompositionConfig, EvalConfig, SamplingPoint
@@ -118,13 +117,10 @@ def check_can_compose(trained: TrainedModel, points: Sequence[SamplingPoint]) ->
             f"different texts with a positional switch needs a model trained with {NEEDED_MODEL} (FlowMDM). The "
             "absolute-only baseline is that same model at composition.switch=[absolute] (flow time 1.0).")
     for point in points:
-        if point.solver not in FIXED_STEP_SOLVERS:
-            raise EvaluationError(f"tasks.composition: the positional mode switches at a fixed flow time; use a "
-                                  f"fixed-step solver {sorted(FIXED_STEP_SOLVERS)}, not {point.solver!r}")
-        nfe = point.steps * FIXED_STEP_SOLVERS[point.solver].num_stages
-        if nfe > DEFAULT_MAX_NFE:
-            raise EvaluationError(f"tasks.composition: {point.solver} with {point.steps} steps makes {nfe} "
-                                  f"evaluations; composition allows at most {DEFAULT_MAX_NFE}")
+        try:
+            check_composition_budget(point.solver, point.steps)
+        except ValueError as err:
+            raise EvaluationError(f"tasks.composition: {err}") from err
 
 
 # ---------------------------------------------------------------------------------------------------------------
