@@ -20,6 +20,16 @@ REFERENCE_DATA = SHARED_DIR / "reference-data"
 
 
 @pytest.fixture
+def single_thread():
+    """One intra-op thread for the test, restored after: thousands of tiny ops (diffusion loops, small models)
+    run several times faster without OpenMP spin-waits when other jobs share the cores."""
+    from preprocess.processing import single_threaded_torch
+
+    with single_threaded_torch():
+        yield
+
+
+@pytest.fixture
 def reference_data() -> Path:
     """The real HumanML3D clip and normalisation files (../shared/reference-data)."""
     if not REFERENCE_DATA.is_dir():

@@ -23,7 +23,8 @@ from mfm.diffusion_sampling import sample_diffusion
 from mfm.export import read_bvh
 from pipeline.inference import load_trained_model
 from pipeline.sampling import sample_seed
-from test_sample_cli import _train_once, files_described, files_on_disk, one_thread, sample, sample_entry, text_run
+from preprocess.processing import single_threaded_torch
+from test_sample_cli import _train_once, files_described, files_on_disk, sample, sample_entry, text_run
 from test_trainer import build_dataset_once, clean_env
 
 pytestmark = pytest.mark.slow
@@ -36,7 +37,7 @@ THREE_SEGMENTS = {"text": ["a person walks forward", "a person jumps", "a person
 
 @pytest.fixture(autouse=True)
 def _single_thread():
-    with one_thread():
+    with single_threaded_torch():
         yield
 
 

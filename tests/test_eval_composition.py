@@ -29,7 +29,8 @@ from pipeline.eval_composition import (
 from pipeline.eval_config import CompositionConfig, load_eval_config
 from pipeline.eval_spaces import build_ground_truth
 from pipeline.eval_store import ResultsStore
-from test_sample_cli import _train_once, one_thread
+from preprocess.processing import single_threaded_torch
+from test_sample_cli import _train_once
 from test_trainer import LAUNCH_VARS, build_dataset_once
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -42,7 +43,7 @@ SWEEP = "composition.switch=[relative,0.5,absolute]"
 
 @pytest.fixture(autouse=True)
 def _single_thread():
-    with one_thread():
+    with single_threaded_torch():
         yield
 
 

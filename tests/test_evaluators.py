@@ -31,13 +31,8 @@ from mfm.evaluators import (
 from mfm.evaluators.t2m import build_t2m_networks, sentence_tokens
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """Small tensors: one thread avoids OpenMP spin-waits on a shared 2-core machine (3x faster there)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+# Small tensors: one thread avoids OpenMP spin-waits on a shared 2-core machine (3x faster there).
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 # ----------------------------------------------------------------------------------------------------------------------

@@ -143,15 +143,6 @@ def test_objective_wraps_the_loss():
         FlowMatchingObjective(sigma_min=1.0)
 
 
-@pytest.fixture
-def single_thread():
-    """Tiny matmuls run fastest on one thread; with other jobs on the machine, extra OpenMP threads only spin."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_tiny_model_overfits_four_clips(single_thread):
     """Each clip has its own condition, so the optimal velocity is exact and the loss can approach zero.
 

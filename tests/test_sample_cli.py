@@ -3,7 +3,6 @@ synthetic dataset test_trainer.py builds, then sampling, editing and the files r
 
 from __future__ import annotations
 
-import contextlib
 import importlib.util
 import json
 from pathlib import Path
@@ -20,9 +19,11 @@ from mfm.features import features_to_joints
 from mfm.layout import FeatureLayout
 from pipeline.inference import load_trained_model
 from pipeline.sampling import edited_joints, max_sample_length
+from preprocess.processing import single_threaded_torch
 from test_trainer import build_dataset_once, train_entry
 
-pytestmark = pytest.mark.slow
+# Tiny models on a shared CPU: a second intra-op thread only adds spin-waiting.
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_thread")]
 
 
 def _load_entry_point():
@@ -35,28 +36,11 @@ def _load_entry_point():
 sample_entry = _load_entry_point()
 
 
-@contextlib.contextmanager
-def one_thread():
-    """Tiny models on a shared CPU: a second intra-op thread only adds spin-waiting."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    with one_thread():
-        yield
-
-
 def _train_once(tmp_path_factory, name: str, manifest: Path, *overrides: str) -> Path:
     """A tiny 4-step run on ``manifest``, trained once per session."""
     run = tmp_path_factory.getbasetemp() / name
     if not (run / "checkpoints").is_dir():
-        with one_thread():
+        with single_threaded_torch():
             code = train_entry.main(["--config", "tiny", f"data.manifest={manifest}", f"train.out_dir={run}",
                                      "train.max_steps=4", "train.save_every=4", *overrides])
         assert code == 0
