@@ -178,21 +178,31 @@ class _NormalisingEncoder:
         return ((features_raw.to(self.device) - self.mean) / self.std) * valid, lengths
 
 
-class ContrastiveSpace(_NormalisingEncoder):
+class _SavedEvaluatorSpace(_NormalisingEncoder):
+    """A model saved by launch/train_evaluator.py, checked to be the expected kind, trained on this dataset and
+    sized for its features (and captions, when it has a text side)."""
+
+    kind: str
+    has_text: bool
+    noun: str  # for the wrong-kind message
+
+    def __init__(self, path: Path, manifest: Manifest, device: torch.device) -> None:
+        loaded = load_evaluator(path, device)
+        if loaded.kind != self.kind:
+            raise EvaluationError(f"{path}: a {loaded.kind!r} model, not {self.noun}")
+        _check_evaluator_dataset(path, loaded.manifest_dataset_id, manifest)
+        _check_dims(path, loaded.config.feature_dim, loaded.config.text_dim if self.has_text else None, manifest)
+        super().__init__(manifest.mean, manifest.std, device)
+        self.model, self.path = loaded.model, path
+        self.evaluator_id, self.manifest_dataset_id = loaded.evaluator_id, loaded.manifest_dataset_id
+
+
+class ContrastiveSpace(_SavedEvaluatorSpace):
     """The project's motion-CLIP evaluator (mfm.evaluators.contrastive) on the manifest's normalisation."""
 
     kind = "contrastive"
     has_text = True
-
-    def __init__(self, path: Path, manifest: Manifest, device: torch.device) -> None:
-        loaded = load_evaluator(path, device)
-        if loaded.kind != "contrastive":
-            raise EvaluationError(f"{path}: a {loaded.kind!r} model, not a contrastive evaluator")
-        _check_evaluator_dataset(path, loaded.manifest_dataset_id, manifest)
-        _check_dims(path, loaded.config.feature_dim, loaded.config.text_dim, manifest)
-        super().__init__(manifest.mean, manifest.std, device)
-        self.model, self.path = loaded.model, path
-        self.evaluator_id, self.manifest_dataset_id = loaded.evaluator_id, loaded.manifest_dataset_id
+    noun = "a contrastive evaluator"
 
     @torch.no_grad()
     def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
@@ -207,22 +217,16 @@ class ContrastiveSpace(_NormalisingEncoder):
                 "manifest_dataset_id": self.manifest_dataset_id}
 
 
-class ClassifierSpace(_NormalisingEncoder):
+class ClassifierSpace(_SavedEvaluatorSpace):
     """The action classifier: its encoder features are the action-to-motion metric space; logits give accuracy."""
 
     kind = "action_classifier"
     has_text = False
+    noun = "an action classifier"
 
     def __init__(self, path: Path, manifest: Manifest, device: torch.device) -> None:
-        loaded = load_evaluator(path, device)
-        if loaded.kind != "action_classifier":
-            raise EvaluationError(f"{path}: a {loaded.kind!r} model, not an action classifier")
-        _check_evaluator_dataset(path, loaded.manifest_dataset_id, manifest)
-        _check_dims(path, loaded.config.feature_dim, None, manifest)
-        super().__init__(manifest.mean, manifest.std, device)
-        self.model, self.path = loaded.model, path
-        self.evaluator_id, self.manifest_dataset_id = loaded.evaluator_id, loaded.manifest_dataset_id
-        self.action_classes: list[str] = list(loaded.model.action_classes)
+        super().__init__(path, manifest, device)
+        self.action_classes: list[str] = list(self.model.action_classes)
 
     @torch.no_grad()
     def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
