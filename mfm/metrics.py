@@ -385,7 +385,7 @@ def transition_windows(x: Any, boundaries: Sequence[int], window: int = 60) -> t
     bounds = _as_numpy(boundaries, "boundaries", dtype=np.int64).reshape(-1)
     if np.any(bounds < 0) or np.any(bounds > t):
         raise ValueError(f"boundaries must lie in [0, {t}], got {bounds.tolist()}")
-    left, right = window // 2, window - window // 2
+    left = window // 2  # the window spans [boundary - left, boundary + window - left)
     frames = np.arange(window)[None, :] + (bounds - left)[:, None]  # (B, window) wanted frame indices
     real = (frames >= 0) & (frames < t)
     return seq[np.clip(frames, 0, t - 1)], real
