@@ -73,6 +73,7 @@ from pipeline.stages import (
     MotionRecord,
     Normalize,
     ParquetRow,
+    CAPTION_POLICIES,
     PickCaption,
     RecordSpec,
     shuffle_buffer_order,
@@ -82,6 +83,13 @@ from preprocess.shards import FORMAT_VERSION, MANIFEST_NAME, ManifestError, load
 logger = logging.getLogger(__name__)
 
 BACKENDS = ("webdataset", "parquet")
+
+
+def backend_for_format(fmt: str) -> str:
+    """The loader backend that reads a config's ``format``: "tar" shards -> webdataset, "parquet" -> parquet."""
+    if fmt not in ("tar", "parquet"):
+        raise ValueError(f"data format must be 'tar' or 'parquet', got {fmt!r}")
+    return "parquet" if fmt == "parquet" else "webdataset"
 _MANIFEST_LIST_KEY = {"webdataset": "shards", "parquet": "parquet"}
 _TAG_SHARD_SHUFFLE = 11
 _TAG_SAMPLE_SHUFFLE = 12
@@ -545,6 +553,8 @@ class LoaderOptions:
     """Shuffle shards and samples; captions and crops stay random either way."""
     shuffle_buffer: int = 512
     """Shuffle buffer size per reader (samples)."""
+    caption_policy: str = "random"
+    """Which caption a visit uses: 'random' (training) or 'first' (debugging); see stages.PickCaption."""
     backend: str = "webdataset"
     """'webdataset' (tar shards, local or any URL) or 'parquet' (the same records, Parquet parts)."""
     prefetch_factor: int = 2
@@ -556,6 +566,8 @@ class LoaderOptions:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
         if self.num_workers < 0:
             raise ValueError(f"num_workers must be >= 0, got {self.num_workers}")
+        if self.caption_policy not in CAPTION_POLICIES:
+            raise ValueError(f"caption_policy must be one of {CAPTION_POLICIES}, got {self.caption_policy!r}")
         if self.backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {self.backend!r}")
         if self.window < 1 or self.unit_length < 1 or not 0.0 <= self.shorten_prob <= 1.0:
@@ -639,7 +651,7 @@ class _RankStream(IterableDataset):
         pipeline = wds.DataPipeline(
             functools.partial(ordered_records, shards, emission, _READERS[opts.backend]),
             wds.map(_DECODERS[opts.backend](spec.record_spec)),
-            wds.map(PickCaption(opts.seed, epoch)),
+            wds.map(PickCaption(opts.seed, epoch, opts.caption_policy)),
             wds.map(CropToWindow(opts.window, opts.unit_length, opts.shorten_prob, opts.seed, epoch)),
             wds.map(Normalize(spec.mean, spec.std)),
             wds.batched(batch_size, collation_fn=Collate(opts.window, spec.action_classes), partial=False),
@@ -654,7 +666,7 @@ class _RankStream(IterableDataset):
 # ----------------------------------------------------------------------------------------------------------
 
 _PLAN_STATE_KEYS = ("split", "dataset_id", "world_size", "num_workers", "batch_size", "seed", "shuffle",
-                    "shuffle_buffer", "window", "unit_length", "shorten_prob", "excluded_shards")
+                    "shuffle_buffer", "window", "unit_length", "shorten_prob", "caption_policy", "excluded_shards")
 
 
 class MotionLoader:
@@ -738,7 +750,7 @@ class MotionLoader:
                 "num_workers": opts.num_workers, "batch_size": opts.batch_size, "seed": opts.seed,
                 "shuffle": opts.shuffle, "shuffle_buffer": opts.shuffle_buffer, "window": opts.window,
                 "unit_length": opts.unit_length, "shorten_prob": opts.shorten_prob,
-                "excluded_shards": list(self.excluded_shards)}
+                "caption_policy": opts.caption_policy, "excluded_shards": list(self.excluded_shards)}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Continue from a saved position. Refuses anything that would change the epoch plan (world size,

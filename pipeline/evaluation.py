@@ -40,7 +40,7 @@ import numpy as np
 
 from pipeline import checkpoint as ckpt
 from pipeline.config import parse_yaml, to_dict
-from pipeline.data import Manifest, open_manifest
+from pipeline.data import Manifest, backend_for_format, open_manifest
 from pipeline.distributed import Dist
 from pipeline.eval_composition import (
     CompositionContext,
@@ -156,7 +156,7 @@ class CheckpointScorer:
         key = (manifest.dataset_id, data.split, space.evaluator_id, is_action, tokens)
         if key not in self._gt:
             with timer.phase("ground_truth"):
-                backend = "parquet" if data.format == "parquet" else "webdataset"
+                backend = backend_for_format(data.format)
                 gt = build_ground_truth(manifest, data.split, max_length=p.max_length, unit_length=p.unit_length,
                                         seed=p.seed, backend=backend, require_action=is_action,
                                         token_features=tokens)

@@ -35,7 +35,7 @@ from mfm.evaluators import ActionClassifier, ContrastiveEvaluator, ContrastiveEv
 from mfm.evaluators.contrastive import retrieval_accuracy
 from mfm.metrics import R_PRECISION_BATCH_SIZE, action_accuracy
 from pipeline.config import ConfigError, coerce_fields, to_dict
-from pipeline.data import LoaderOptions, Manifest, MotionLoader, open_manifest
+from pipeline.data import LoaderOptions, Manifest, MotionLoader, backend_for_format, open_manifest
 from pipeline.distributed import Dist
 from pipeline.eval_store import atomic_write_text
 from pipeline.eval_spaces import (
@@ -244,7 +244,7 @@ def train_evaluator(cfg: EvaluatorTrainConfig, dist: Dist) -> dict[str, Any]:
     options = LoaderOptions(batch_size=batch_size, num_workers=cfg.data.num_workers, seed=cfg.data.seed,
                             window=cfg.data.window, unit_length=cfg.data.unit_length,
                             shuffle_buffer=cfg.data.shuffle_buffer,
-                            backend="parquet" if cfg.data.format == "parquet" else "webdataset")
+                            backend=backend_for_format(cfg.data.format))
 
     def loader() -> MotionLoader:
         return MotionLoader(manifest, cfg.data.split, options, rank=dist.rank, world_size=dist.world_size)

@@ -214,15 +214,24 @@ class DecodeParquetRow:
 # ----------------------------------------------------------------------------------------------------------
 
 
-class PickCaption:
-    """Pick one caption uniformly at random and cut the motion to that caption's span (HumanML3D
-    ``#from#to`` sub-clips). The pick is a function of (seed, epoch, sample id) only."""
+CAPTION_POLICIES = ("random", "first")
 
-    def __init__(self, seed: int, epoch: int):
-        self.seed, self.epoch = seed, epoch
+
+class PickCaption:
+    """Pick one caption and cut the motion to that caption's span (HumanML3D ``#from#to`` sub-clips): uniformly
+    at random (``policy="random"``, training; a function of (seed, epoch, sample id) only) or always the first
+    (``"first"``, for debugging)."""
+
+    def __init__(self, seed: int, epoch: int, policy: str = "random"):
+        if policy not in CAPTION_POLICIES:
+            raise ValueError(f"caption policy must be one of {CAPTION_POLICIES}, got {policy!r}")
+        self.seed, self.epoch, self.policy = seed, epoch, policy
 
     def __call__(self, rec: MotionRecord) -> TrainingSample:
-        c = int(sample_rng(self.seed, self.epoch, rec.id, _TAG_CAPTION).integers(len(rec.captions)))
+        if self.policy == "first":
+            c = 0
+        else:
+            c = int(sample_rng(self.seed, self.epoch, rec.id, _TAG_CAPTION).integers(len(rec.captions)))
         start, end = (int(v) for v in rec.spans[c])
         return TrainingSample(
             id=rec.id,

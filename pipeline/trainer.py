@@ -41,7 +41,7 @@ from mfm.flow import FlowMatchingObjective
 from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters, draw_cond_drop_mask, draw_positional_mode
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
-from pipeline.data import LoaderOptions, Manifest, MotionLoader, open_manifest, verify_shards
+from pipeline.data import LoaderOptions, Manifest, MotionLoader, backend_for_format, open_manifest, verify_shards
 from pipeline.distributed import Dist
 
 logger = logging.getLogger(__name__)
@@ -263,7 +263,8 @@ class Trainer:
                 window=cfg.data.window,
                 unit_length=cfg.data.unit_length,
                 shuffle_buffer=cfg.data.shuffle_buffer,
-                backend="parquet" if cfg.data.format == "parquet" else "webdataset",
+                caption_policy=cfg.data.caption_policy,
+                backend=backend_for_format(cfg.data.format),
             ),
             rank=dist.rank,
             world_size=dist.world_size,
@@ -284,7 +285,7 @@ class Trainer:
         """Rank 0 checks every train shard against the manifest (strict: raises naming the shard, before any
         training); the list of bad shards it found is broadcast so every rank drops the same ones."""
         mode = self.cfg.data.verify
-        backend = "parquet" if self.cfg.data.format == "parquet" else "webdataset"
+        backend = backend_for_format(self.cfg.data.format)
         report = None
         error: Exception | None = None
         if self.dist.is_main:

@@ -315,6 +315,20 @@ def test_pick_caption_is_deterministic_per_epoch_and_cuts_the_span(dataset):
         assert np.array_equal(p.text_emb, rec.text_emb[p.caption_index])
 
 
+def test_first_caption_policy_always_uses_caption_zero(dataset):
+    rec = DecodeTarRecord(SPEC)(_raw_records(dataset)[2])  # motion 2: three captions
+    picks = [PickCaption(seed=5, epoch=e, policy="first")(rec) for e in range(10)]
+    assert {p.caption_index for p in picks} == {0}
+    assert all(p.caption == rec.captions[0] and p.start_frame == rec.spans[0][0] for p in picks)
+    with pytest.raises(ValueError, match="caption policy"):
+        PickCaption(seed=5, epoch=0, policy="longest")
+    loader = MotionLoader(dataset, "train", opts(caption_policy="first"))
+    assert all((batch["caption_index"] == 0).all() for batch in loader.iter_epoch())
+    state = loader.state_dict()
+    with pytest.raises(ValueError, match="caption_policy"):  # the policy is part of the resume contract
+        MotionLoader(dataset, "train", opts()).load_state_dict(state)
+
+
 def _sample(length: int, sample_id="x") -> TrainingSample:
     feats = np.arange(length, dtype=np.float32)[:, None].repeat(DIM, 1)
     return TrainingSample(id=sample_id, features=feats, caption="c", caption_tokens=(), caption_index=0,
