@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=20, help="timed optimizer steps per source")
     parser.add_argument("--warmup", type=int, default=3, help="untimed steps first (allocator, loader start-up)")
     parser.add_argument("--synthetic", type=int, metavar="N", help="build N synthetic clips in a temp dir first")
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)
     sources = args.source.split(",")
     if not set(sources) <= set(SOURCES) or args.steps < 1 or args.warmup < 0:
         parser.error(f"--source must be a subset of {SOURCES}, --steps >= 1, --warmup >= 0")

@@ -14,7 +14,9 @@ as in mfm.solvers), ``grid`` the float64 ``t_model`` of each step in the order t
 
 Randomness: the initial noise and every step's noise come, in that order, from one generator (default: a CPU
 generator seeded with ``seed``), drawn on the generator's device and moved, so a seed gives the same samples on every
-device. Padded frames (``>= lengths``) of the state are zeroed after every step, so they are exactly zero in the output.
+device. ``generator`` may also be one generator per motion (:func:`mfm.solvers.seeded_generators`): each motion then
+draws its own valid frames' noise from its own stream (:func:`mfm.solvers.draw_noise`), so its sample does not depend
+on the batch it is in (the pipeline's sampling and evaluation do this, as for flow models). Padded frames (``>= lengths``) of the state are zeroed after every step, so they are exactly zero in the output.
 """
 
 from __future__ import annotations
@@ -30,7 +32,14 @@ from mfm.diffusion import GaussianDiffusion
 from mfm.guidance import classifier_free_guidance
 from mfm.editing import as_bool_mask
 from mfm.model import valid_frame_mask
-from mfm.solvers import SolveResult, check_lengths, initial_noise, model_feature_dim, sampling_inputs
+from mfm.solvers import (
+    NoiseGenerators,
+    SolveResult,
+    check_lengths,
+    draw_noise,
+    model_feature_dim,
+    sampling_inputs,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -48,7 +57,7 @@ def _schedule_for(diffusion: GaussianDiffusion, steps: int | str | Sequence[int]
     return diffusion if steps is None else diffusion.respaced(steps)
 
 
-def _draw_generator(seed: int, generator: torch.Generator | None) -> torch.Generator:
+def _draw_generator(seed: int, generator: NoiseGenerators | None) -> NoiseGenerators:
     return torch.Generator().manual_seed(seed) if generator is None else generator
 
 
@@ -58,7 +67,7 @@ def reverse_diffusion(
     diffusion: GaussianDiffusion,
     x_start: Tensor,
     *,
-    generator: torch.Generator,
+    generator: NoiseGenerators,
     sampler: str = "ddpm",
     eta: float = 0.0,
     clip_denoised: float | None = None,
@@ -78,6 +87,7 @@ def reverse_diffusion(
     if not eta >= 0.0:
         raise ValueError(f"eta must be >= 0, got {eta}")
     valid = None if frame_mask is None else frame_mask.unsqueeze(-1).to(x_start.dtype)
+    lengths = None if frame_mask is None else frame_mask.sum(dim=1)
     x = x_start
     nfe = 0
     estimates: list[Tensor] = []
@@ -96,7 +106,7 @@ def reverse_diffusion(
             mean, std = diffusion.ddim_step(prediction.x0, x, step, eta)
         # No noise at step 0 (the reference multiplies it by zero; not drawing it changes no result).
         if index > 0 and (sampler == "ddpm" or eta > 0.0):
-            x = mean + std * initial_noise(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+            x = mean + std * draw_noise(x.shape, generator, lengths=lengths, device=x.device, dtype=x.dtype)
         else:
             x = mean
         if valid is not None:
@@ -126,7 +136,7 @@ def sample_diffusion(
     null_cond: Tensor | None = None,
     clip_denoised: float | None = None,
     seed: int = 0,
-    generator: torch.Generator | None = None,
+    generator: NoiseGenerators | None = None,
     return_trajectory: bool = False,
 ) -> SolveResult:
     """Generate B = len(lengths) motions (B, num_frames, D) with a diffusion denoiser, as :func:`mfm.solvers.sample`.
@@ -143,7 +153,7 @@ def sample_diffusion(
     dim = model_feature_dim(model, feature_dim)
     generator = _draw_generator(seed, generator)
     frame_mask = valid_frame_mask(lengths, num_frames)
-    x_start = initial_noise((lengths.shape[0], num_frames, dim), generator=generator, device=device)
+    x_start = draw_noise((lengths.shape[0], num_frames, dim), generator, lengths=lengths, device=device)
     x_start = x_start * frame_mask.unsqueeze(-1)
     denoise_fn = classifier_free_guidance(model, cond, scale=guidance, lengths=lengths, null_cond=null_cond,
                                           guided_channels=dim)
@@ -176,7 +186,7 @@ def replacement_edit(
     clip_denoised: float | None = None,
     restore_known: bool = True,
     seed: int = 0,
-    generator: torch.Generator | None = None,
+    generator: NoiseGenerators | None = None,
     return_trajectory: bool = False,
 ) -> SolveResult:
     """FLAME's editing: regenerate ``x1_known`` (B, T, D) where ``keep_mask`` is False.
@@ -206,13 +216,13 @@ def replacement_edit(
     if lengths is not None:
         lengths = check_lengths(lengths, x1_known.shape[1]).to(x1_known.device)
         frame_mask = valid_frame_mask(lengths, x1_known.shape[1])
-    x_start = initial_noise(x1_known.shape, generator=generator, device=x1_known.device, dtype=x1_known.dtype)
+    x_start = draw_noise(x1_known.shape, generator, lengths=lengths, device=x1_known.device, dtype=x1_known.dtype)
     if frame_mask is not None:
         x_start = x_start * frame_mask.unsqueeze(-1).to(x_start.dtype)
 
     def replace_known(x: Tensor, index: int) -> Tensor:
         step = torch.full((x.shape[0],), index, dtype=torch.long, device=x.device)
-        noise = initial_noise(x.shape, generator=generator, device=x.device, dtype=x.dtype)
+        noise = draw_noise(x.shape, generator, lengths=lengths, device=x.device, dtype=x.dtype)
         return torch.where(keep, schedule.q_sample(x1_known, step, noise), x)
 
     result = reverse_diffusion(denoise_fn, schedule, x_start, generator=generator, sampler=sampler, eta=eta,

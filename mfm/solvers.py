@@ -308,6 +308,42 @@ def initial_noise(
     return noise.to(device=device, dtype=dtype)
 
 
+NoiseGenerators = torch.Generator | Sequence[torch.Generator]
+"""One generator for a whole batch, or one per motion (see :func:`draw_noise`)."""
+
+
+def seeded_generators(seeds: Sequence[int]) -> list[torch.Generator]:
+    """One CPU generator per motion, seeded with that motion's seed."""
+    return [torch.Generator().manual_seed(int(seed)) for seed in seeds]
+
+
+def draw_noise(
+    shape: Sequence[int],
+    generator: NoiseGenerators,
+    *,
+    lengths: Tensor | Sequence[int] | None = None,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
+    """Standard normal (B, T, ...) noise from one generator, or from one generator per motion.
+
+    One generator: the whole block in one draw (:func:`initial_noise`). One per motion: row b draws only its
+    ``lengths[b]`` valid frames (all T without ``lengths``) from its own generator and is zero after them, so a
+    motion's noise depends on its seed and length alone, not on which other motions share its batch or how long
+    the longest of them is: a seed gives the same motion at any batch size.
+    """
+    if isinstance(generator, torch.Generator):
+        return initial_noise(shape, generator=generator, device=device, dtype=dtype)
+    shape = tuple(shape)
+    if len(generator) != shape[0]:
+        raise ValueError(f"{len(generator)} generators for a batch of {shape[0]}")
+    rows = [shape[1]] * shape[0] if lengths is None else [int(n) for n in torch.as_tensor(lengths).tolist()]
+    noise = torch.zeros(shape, dtype=torch.float32)
+    for row, (row_generator, length) in enumerate(zip(generator, rows)):
+        noise[row, :length] = initial_noise((length, *shape[2:]), generator=row_generator)
+    return noise.to(device=device, dtype=dtype)
+
+
 def model_device(model: Callable[..., Tensor], fallback: Tensor) -> torch.device:
     if isinstance(model, nn.Module):
         parameter = next(model.parameters(), None)

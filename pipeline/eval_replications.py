@@ -33,7 +33,7 @@ from mfm.guidance import classifier_free_guidance
 from mfm.features import features_to_joints
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
-from mfm.solvers import FIXED_STEP_SOLVERS, guided_velocity, initial_noise, solve, zero_padded_frames
+from mfm.solvers import FIXED_STEP_SOLVERS, draw_noise, guided_velocity, seeded_generators, solve, zero_padded_frames
 from pipeline.data import Manifest
 from pipeline.distributed import Dist
 from pipeline.eval_config import EDIT_PRESETS, EvalConfig, SamplingConfig, SamplingPoint
@@ -324,15 +324,6 @@ def action_labels(trained: TrainedModel, space: EmbeddingSpace, gt: GroundTruthS
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def per_sample_noise(seeds: Sequence[int], lengths: Tensor, num_frames: int, dim: int,
-                     device: torch.device) -> Tensor:
-    """(B, T, D) initial noise: row b drawn from its own seed over its valid frames, zero after."""
-    x0 = torch.zeros(len(seeds), num_frames, dim)
-    for row, (seed, length) in enumerate(zip(seeds, lengths.tolist())):
-        x0[row, :length] = initial_noise((length, dim), seed=seed)
-    return x0.to(device)
-
-
 def check_point(trained: TrainedModel, point: SamplingPoint) -> None:
     """A flow model takes an ODE solver, a diffusion model a reverse sampler (ddpm/ddim) with respaced steps."""
     if trained.objective == "diffusion":
@@ -358,15 +349,15 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
 
     Flow models: ``mfm.solvers.solve`` of the guided velocity (``mfm.editing.edit`` for edits), each motion's
     initial noise from its own seed. Diffusion models (FLAME / FlowMDM baselines): ``sample_diffusion`` /
-    FLAME's ``replacement_edit`` on the schedule respaced to ``point.steps``; their noise comes from one generator
-    per batch, seeded by the batch's first motion (batches are the same whatever the world size).
+    FLAME's ``replacement_edit`` on the schedule respaced to ``point.steps``, each motion's initial and per-step
+    noise from its own seed's stream. So a motion's sample does not depend on the batch size or world size.
     ``extras``: per-motion model inputs (cross-attention token features), bound with ``BoundInputs``.
     """
     model = BoundInputs(trained.model, dict(extras)) if extras else trained.model
     num_frames, dim = int(lengths.max()), trained.model_config.feature_dim
     if trained.objective == "diffusion":
         schedule = trained.diffusion.respaced(point.steps)
-        generator = torch.Generator().manual_seed(seeds[0])
+        generator = seeded_generators(seeds)
         if keep is None:
             result = sample_diffusion(model, schedule, cond, lengths, num_frames=num_frames, feature_dim=dim,
                                       sampler=point.solver, guidance=point.guidance, generator=generator)
@@ -376,7 +367,8 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
                                       generator=generator)
     else:
         velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths)
-        x0 = per_sample_noise(seeds, lengths, num_frames, dim, trained.device)
+        x0 = draw_noise((len(seeds), num_frames, dim), seeded_generators(seeds), lengths=lengths,
+                        device=trained.device)
         if keep is None:
             result = solve(zero_padded_frames(velocity, lengths), x0, solver=point.solver, steps=point.steps,
                            rtol=sampling.rtol, atol=sampling.atol)

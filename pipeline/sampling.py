@@ -71,9 +71,10 @@ from mfm.model import valid_frame_mask
 from mfm.solvers import (
     FIXED_STEP_SOLVERS,
     SolveResult,
+    draw_noise,
     guided_velocity,
-    initial_noise,
     sample_lengths,
+    seeded_generators,
     solve,
     zero_padded_frames,
 )
@@ -525,15 +526,6 @@ def conditioned_model(trained: TrainedModel, conditions: PromptConditions) -> to
     return BoundInputs(trained.model, conditions.extras) if conditions.extras else trained.model
 
 
-def _initial_noise(specs: Sequence[SampleSpec], num_frames: int, dim: int, device: torch.device) -> torch.Tensor:
-    """(B, T, D): each sample's own noise for its valid frames (from its seed), zeros past its length."""
-    x0 = torch.zeros(len(specs), num_frames, dim, device=device)
-    for row, spec in enumerate(specs):
-        generator = torch.Generator().manual_seed(spec.seed)
-        x0[row, :spec.length] = initial_noise((spec.length, dim), generator=generator, device=device)
-    return x0
-
-
 def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Tensor, num_frames: int) -> torch.Tensor:
     """(B, T, D) the source motion cropped/zero-padded to every sample's length."""
     known = torch.zeros(lengths.shape[0], num_frames, trained.model_config.feature_dim, device=trained.device)
@@ -564,8 +556,8 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
         keep = keep_mask(request, options, lengths, num_frames, FeatureLayout(trained.skeleton),
                          source.features.shape[0]).to(device)
     if integrator.objective == "diffusion":
-        # One generator per batch (mfm.diffusion_sampling draws the batch's noise from it): see the module docstring.
-        generator = torch.Generator().manual_seed(specs[0].seed)
+        # Each sample's initial and per-step noise from its own seed: the same sample at any --batch-size.
+        generator = seeded_generators([s.seed for s in specs])
         if source is None:
             result: SolveResult = sample_diffusion(
                 model, integrator.diffusion, cond, lengths, num_frames=num_frames, feature_dim=dim,
@@ -577,7 +569,8 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
                                       lengths=lengths, generator=generator, return_trajectory=request.plot_trajectory)
     else:
         velocity = guided_velocity(model, cond, scale=scale, lengths=lengths)
-        x0 = _initial_noise(specs, num_frames, dim, device)
+        x0 = draw_noise((len(specs), num_frames, dim), seeded_generators([s.seed for s in specs]), lengths=lengths,
+                        device=device)
         if source is None:
             result = solve(zero_padded_frames(velocity, lengths), x0, solver=integrator.name, steps=integrator.steps,
                            return_trajectory=request.plot_trajectory)

@@ -231,9 +231,17 @@ def test_diffusion_checkpoints_sample_with_ddpm_and_ddim(run_fixture, preset, re
     assert (ddpm["objective"], ddpm["sampler"], ddpm["steps"], ddpm["guidance"]) == ("diffusion", "ddpm", 5, 2.5)
     assert ddpm["nfe_per_batch"] == [5]  # one guided (batched) denoiser pass per step
     assert ddpm["diffusion"]["preset"] == preset and len(ddpm["diffusion"]["model_steps"]) == 5
+    one_by_one = sample(run, tmp_path / "ddpm-b1", "--text", "a person walks", "--text", "a person jumps",
+                        "--length", "20", "--solver", "ddpm", "--steps", "5", "--no-video", "--no-bvh",
+                        "--batch-size", "1")
+    assert one_by_one["nfe_per_batch"] == [5, 5]
     for index in range(2):
         features = features_file(tmp_path / "ddpm", ddpm, index)
         assert features.shape == (20, 263) and np.isfinite(features).all()
+        # Every step's noise comes from the sample's own seed: the same motion whatever the batching.
+        # Float noise scaled to the features: an untrained FLAME model's learned variance makes values of ~1e4.
+        np.testing.assert_allclose(features, features_file(tmp_path / "ddpm-b1", one_by_one, index), rtol=0,
+                                   atol=1e-5 * max(1.0, float(np.abs(features).max())))
 
     args = ["--text", "a person walks", "--length", "20", "--solver", "ddim", "--steps", "5", "--no-video", "--no-bvh"]
     ddim = sample(run, tmp_path / "ddim", *args)

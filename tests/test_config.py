@@ -19,7 +19,7 @@ from pipeline.config import (
     to_yaml,
 )
 
-PRESETS = ["default", "humanml3d", "kit", "tiny"]
+PRESETS = ["default", "humanml3d", "kit", "synthetic", "tiny"]
 
 
 def test_all_expected_presets_exist():

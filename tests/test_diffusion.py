@@ -21,6 +21,7 @@ from mfm.flow import masked_mse
 from mfm.layout import FeatureLayout
 from mfm.model import ModelConfig, valid_frame_mask
 from mfm.skeleton import HUMANML3D
+from mfm.solvers import seeded_generators
 
 COSINE = GaussianDiffusion()  # 1000 cosine steps, built once (the tables are read-only)
 
@@ -464,6 +465,40 @@ def test_sampling_is_seeded_and_zeroes_padding():
         sample_diffusion(AffineDenoiser(), diffusion, cond, lengths, sampler="ddpm", eta=0.5, **kwargs)
     with pytest.raises(ValueError, match="sampler"):
         sample_diffusion(AffineDenoiser(), diffusion, cond, lengths, sampler="euler", **kwargs)
+
+
+@pytest.mark.parametrize("sampler", ["ddpm", "ddim"])
+def test_per_motion_generators_make_samples_independent_of_the_batch(sampler):
+    # One generator per motion: a motion's initial and per-step noise depend on its seed and length only, so it
+    # comes out the same alone or batched with a longer motion (the denoiser treats rows independently).
+    diffusion = GaussianDiffusion()
+    cond = torch.randn(2, 3, generator=gen(0))
+    kwargs = dict(feature_dim=2, steps=10, guidance=2.0, sampler=sampler, eta=0.5 if sampler == "ddim" else 0.0)
+    batched = sample_diffusion(AffineDenoiser(), diffusion, cond, [6, 4], num_frames=6,
+                               generator=seeded_generators([7, 8]), **kwargs)
+    alone = sample_diffusion(AffineDenoiser(), diffusion, cond[1:], [4], num_frames=4,
+                             generator=seeded_generators([8]), **kwargs)
+    torch.testing.assert_close(batched.x1[1, :4], alone.x1[0], rtol=0, atol=1e-6)
+    assert batched.x1[1, 4:].abs().max().item() == 0.0
+    swapped = sample_diffusion(AffineDenoiser(), diffusion, cond.flip(0), [4, 6], num_frames=6,
+                               generator=seeded_generators([8, 7]), **kwargs)
+    torch.testing.assert_close(swapped.x1.flip(0), batched.x1, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="3 generators for a batch of 2"):
+        sample_diffusion(AffineDenoiser(), diffusion, cond, [6, 4], num_frames=6,
+                         generator=seeded_generators([1, 2, 3]), **kwargs)
+
+
+def test_replacement_edit_with_per_motion_generators_is_independent_of_the_batch():
+    layout = FeatureLayout(HUMANML3D)
+    lengths = torch.tensor([40, 32])
+    keep = edit_mask("inbetween", lengths, 40, layout)
+    reference = torch.randn(2, 40, layout.dim, generator=gen(0)) * valid_frame_mask(lengths, 40).unsqueeze(-1)
+    denoise = point_eps_oracle(COSINE, torch.full((layout.dim,), 0.25))
+    batched = replacement_edit(denoise, COSINE, reference, keep, steps=8, lengths=lengths,
+                               generator=seeded_generators([3, 4]), restore_known=False)
+    alone = replacement_edit(denoise, COSINE, reference[1:, :32], keep[1:, :32], steps=8, lengths=lengths[1:],
+                             generator=seeded_generators([4]), restore_known=False)
+    torch.testing.assert_close(batched.x1[1, :32], alone.x1[0], rtol=0, atol=1e-5)
 
 
 # ---------------------------------------------------------------------------------------------- editing

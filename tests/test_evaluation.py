@@ -323,7 +323,9 @@ def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, tmp_pat
               f"output.dir={tmp_path / 'e'}"]
     assert evaluate("--checkpoint", checkpoint, "--protocol", "fast", *common) == 2  # euler: not for diffusion
     assert "diffusion model" in capsys.readouterr().err
-    assert evaluate("--checkpoint", checkpoint, "--protocol", "fast", "--solver", "ddim", "--steps", "4", *common) == 0
+    # Overrides on both sides of the options (argparse's intermixed parse; a plain parse_args refuses this).
+    assert evaluate("--checkpoint", checkpoint, *common[:2], "--protocol", "fast", "--solver", "ddim", "--steps", "4",
+                    *common[2:]) == 0
     result = json.loads(next((tmp_path / "e" / "results").rglob("*.json")).read_text())
     assert result["checkpoint"]["objective"] == "diffusion" and result["checkpoint"]["diffusion_preset"] == "flame"
     assert (result["sampling"]["solver"], result["nfe"]) == ("ddim", 4)

@@ -9,8 +9,10 @@ from mfm.solvers import (
     FIXED_STEP_SOLVERS,
     check_grid,
     guided_velocity,
+    draw_noise,
     initial_noise,
     sample,
+    seeded_generators,
     sample_lengths,
     solve,
     uniform_grid,
@@ -308,3 +310,16 @@ def test_sample_lengths_draws_from_the_distribution_deterministically():
     assert clipped.max().item() == 100
     with pytest.raises(ValueError, match="non-empty"):
         sample_lengths([], 3)
+
+
+def test_draw_noise_per_motion_depends_on_seed_and_length_only():
+    lengths = torch.tensor([5, 3])
+    batched = draw_noise((2, 5, 4), seeded_generators([1, 2]), lengths=lengths)
+    assert batched[1, 3:].abs().max().item() == 0.0
+    torch.testing.assert_close(batched[1, :3], initial_noise((3, 4), seed=2), rtol=0, atol=0)
+    torch.testing.assert_close(batched[0], initial_noise((5, 4), seed=1), rtol=0, atol=0)
+    # One generator: the whole block in one draw, as initial_noise.
+    torch.testing.assert_close(draw_noise((2, 5, 4), torch.Generator().manual_seed(9)),
+                               initial_noise((2, 5, 4), seed=9), rtol=0, atol=0)
+    # No lengths: every frame of every row.
+    assert draw_noise((2, 5, 4), seeded_generators([1, 2]))[1, 3:].abs().min().item() > 0.0
