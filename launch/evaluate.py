@@ -4,6 +4,9 @@
     python launch/evaluate.py --watch runs/default --once                      # every complete checkpoint, once
     python launch/evaluate.py --watch runs/default --steps 2,5,10,20,50 --solver euler,midpoint   # FID vs NFE
     accelerate launch --num_processes 2 launch/evaluate.py --checkpoint ...    # generation split across ranks
+    python launch/evaluate.py --checkpoint runs/flow --checkpoint runs/diffusion --protocol fast \
+        --solver euler,midpoint,dopri5,ddim,ddpm --steps 5,10,20,50,100,1000 --steps midpoint=5,10,25,50 \
+        output.dir=eval-nfe              # MFM's FID vs NFE, flow vs diffusion: one sweep, one plot
     python launch/evaluate.py --checkpoint ... evaluator.kind=t2m evaluator.t2m_checkpoint_dir=DIR \
         evaluator.t2m_glove_dir=DIR                                              # the official T2M evaluator
     python launch/evaluate.py --checkpoint runs/bpe --protocol fast tasks.composition=true \
@@ -11,7 +14,9 @@
 
 Settings: configs/eval_{full,fast}.yaml (--protocol) or --config YAML, then ``key.sub=value`` overrides
 (pipeline/eval_config.py EvalConfig). Diffusion baselines (train.objective=diffusion) take --solver ddpm|ddim and
---steps respaced from their training steps (e.g. 1000 or 50). The evaluator defaults to the one launch/train_evaluator.py trained on the
+--steps respaced from their training steps (e.g. 1000 or 50); a sweep listing both kinds runs each checkpoint's own
+(flow: ODE solvers, diffusion: ddpm/ddim). ``--steps SOLVER=a,b`` gives one solver its own step counts; adaptive
+solvers (dopri5) run once whatever the steps. The evaluator defaults to the one launch/train_evaluator.py trained on the
 checkpoint's dataset. Results go to <run>/eval (output.dir=): one JSON per checkpoint and setting, results.jsonl /
 results.parquet, plots/. Concurrent jobs (cron, Slurm, CronJob) never evaluate a unit twice (claim files).
 Exit code: 0 done, 2 bad settings, a missing evaluator or checkpoint, 143 on SIGTERM (claims released), 1 other
@@ -45,13 +50,15 @@ from pipeline.evaluation import EvaluationJob, result_label, summary_line
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     target = parser.add_mutually_exclusive_group(required=True)
-    target.add_argument("--checkpoint", help="a step-XXXXXXXX folder (or a run folder: its newest complete one)")
+    target.add_argument("--checkpoint", action="append", help="a step-XXXXXXXX folder (or a run folder: its newest "
+                                                                "complete one); repeat it to sweep several in one job")
     target.add_argument("--watch", metavar="RUN_DIR", help="evaluate every complete checkpoint of a run, once each")
     parser.add_argument("--once", action="store_true", help="with --watch: one scan, then exit (cron / CronJob)")
     parser.add_argument("--protocol", choices=("full", "fast"), default="full", help="20 or 3 replications")
     parser.add_argument("--config", help="a YAML preset instead of configs/eval_<protocol>.yaml")
     parser.add_argument("--solver", help="comma list, e.g. euler,midpoint")
-    parser.add_argument("--steps", help="comma list, e.g. 5,10,20")
+    parser.add_argument("--steps", action="append", help="comma list, e.g. 5,10,20; again as SOLVER=5,10 for one "
+                                                         "solver's own counts")
     parser.add_argument("--guidance", help="comma list, e.g. 1,2.5")
     parser.add_argument("overrides", nargs="*", metavar="key.sub=value", help="config overrides")
     args = parser.parse_intermixed_args(argv)
@@ -68,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
         job = EvaluationJob(cfg, dist)
         try:
             if args.checkpoint:
-                results = job.evaluate_checkpoint(args.checkpoint)
+                results = [result for folder in args.checkpoint for result in job.evaluate_checkpoint(folder)]
                 for result in results:
                     dist.print0(f"{result_label(result)}: {summary_line(result)}")
                 dist.print0(f"{len(results)} result(s) written")

@@ -210,7 +210,7 @@ def _solve_fixed_step(
     return SolveResult(x1=x, nfe=counted.calls, x1_hat=x1_hat, x1_hat_times=x1_hat_times, grid=times)
 
 
-def _is_torchdiffeq_fixed_grid(method: str) -> bool:
+def is_torchdiffeq_fixed_grid(method: str) -> bool:
     # torchdiffeq exposes no public "is fixed grid" flag; its solver classes are the only source of truth.
     from torchdiffeq._impl.odeint import SOLVERS
     from torchdiffeq._impl.solvers import FixedGridODESolver
@@ -239,7 +239,7 @@ def _solve_torchdiffeq(
     counted = _CountedVelocity(velocity_fn, record_every_call=return_trajectory)
     # Adaptive methods only need the end points (asking for every grid time would keep N + 1 states in memory);
     # torchdiffeq's fixed-grid methods take the output times as their step grid when no step_size is given.
-    if options is None and _is_torchdiffeq_fixed_grid(method):
+    if options is None and is_torchdiffeq_fixed_grid(method):
         output_times = times
     else:
         output_times = times[[0, -1]]

@@ -397,7 +397,7 @@ def prepare_composition(cfg: EvalConfig, dist: Dist, ctx: CheckpointContext, cac
                         timer: PhaseTimer) -> CompositionContext:
     """The checkpoint's composition context: checks the model, builds (and stores) the set, the GT transitions and
     the GT jerk (rank 0), the plan (every rank)."""
-    check_can_compose(ctx.trained, cfg.sampling.points())
+    check_can_compose(ctx.trained, ctx.points)
     if not ctx.space.has_text:
         raise EvaluationError(f"tasks.composition needs an evaluator with a text tower, not {ctx.space.kind}")
     ccfg = cfg.composition

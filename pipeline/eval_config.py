@@ -12,6 +12,8 @@ from pathlib import Path
 from typing import Literal
 
 from mfm.composition import BABEL_SWITCH, HUMANML3D_SWITCH
+from mfm.diffusion_sampling import SAMPLERS
+from mfm.solvers import FIXED_STEP_SOLVERS, is_torchdiffeq_fixed_grid
 from pipeline.config import ConfigError, coerce_fields, load_config, parse_yaml
 
 PROTOCOL_PRESETS = {"full": "eval_full", "fast": "eval_fast"}
@@ -63,8 +65,13 @@ class SamplingConfig:
     """How motions are generated; every (solver, steps, guidance) combination is one unit (a sweep)."""
 
     solvers: tuple[str, ...] = ("euler",)
-    """mfm.solvers names: euler, midpoint, heun, rk4 or a torchdiffeq method (dopri5, ...)."""
+    """mfm.solvers names: euler, midpoint, heun, rk4 or a torchdiffeq method (dopri5, ...) for flow checkpoints;
+    ddpm, ddim for diffusion checkpoints. A sweep may list both: each checkpoint runs the points of its objective."""
     steps: tuple[int, ...] = (10,)
+    steps_per_solver: dict[str, tuple[int, ...]] = dataclasses.field(default_factory=dict)
+    """Step counts for particular solvers instead of ``steps``, e.g. {midpoint: [5, 10, 25, 50]} (two evaluations
+    per step: the NFE of euler's 10 to 100). Adaptive solvers (dopri5, ...) choose their own steps: one point each,
+    named with the first of their step counts."""
     guidance: tuple[float, ...] = (2.5,)
     use_ema: bool = True
     batch_size: int = 64
@@ -77,10 +84,21 @@ class SamplingConfig:
         _require(bool(self.solvers) and bool(self.steps) and bool(self.guidance),
                  "sampling.solvers, sampling.steps and sampling.guidance must each list at least one value")
         _require(all(s >= 1 for s in self.steps), f"sampling.steps must be >= 1, got {self.steps}")
+        for solver, steps in self.steps_per_solver.items():
+            _require(solver in self.solvers, f"sampling.steps_per_solver names {solver!r}, which is not one of "
+                                             f"sampling.solvers {list(self.solvers)}")
+            _require(bool(steps) and all(s >= 1 for s in steps),
+                     f"sampling.steps_per_solver.{solver} must list step counts >= 1, got {steps}")
         _require(self.batch_size >= 1, f"sampling.batch_size must be >= 1, got {self.batch_size}")
 
     def points(self) -> list[SamplingPoint]:
-        return [SamplingPoint(s, n, float(g)) for s in self.solvers for n in self.steps for g in self.guidance]
+        points = []
+        for solver in self.solvers:
+            steps = self.steps_per_solver.get(solver, self.steps)
+            if is_adaptive(solver):
+                steps = steps[:1]  # the same integration whatever the step count: one unit, not duplicates
+            points += [SamplingPoint(solver, n, float(g)) for n in steps for g in self.guidance]
+        return points
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -261,13 +279,35 @@ def load_eval_config(protocol: str = "full", preset: str | Path | None = None,
     return load_config(EvalConfig, preset, overrides)
 
 
-def sweep_overrides(solvers: str | None, steps: str | None, guidance: str | None) -> list[str]:
-    """``--solver euler,midpoint --steps 5,10 --guidance 2.5`` as config overrides (comma lists)."""
+def is_adaptive(solver: str) -> bool:
+    """An adaptive-step ODE solver (torchdiffeq's dopri5, ...), whose step count is not a setting."""
+    if solver in FIXED_STEP_SOLVERS or solver in SAMPLERS:
+        return False
+    from torchdiffeq._impl.odeint import SOLVERS  # the only list of torchdiffeq's methods
+
+    return solver in SOLVERS and not is_torchdiffeq_fixed_grid(solver)
+
+
+def _comma_list(text: str, flag: str) -> list:
+    return [parse_yaml(v.strip(), source=flag) for v in text.split(",") if v.strip()]
+
+
+def sweep_overrides(solvers: str | None, steps: str | Sequence[str] | None, guidance: str | None) -> list[str]:
+    """``--solver euler,midpoint --steps 5,10 --guidance 2.5`` as config overrides (comma lists). ``--steps`` may
+    be given again as ``SOLVER=5,10,25`` for one solver's own step counts (``sampling.steps_per_solver``)."""
     out = []
-    for key, text in (("solvers", solvers), ("steps", steps), ("guidance", guidance)):
+    for key, text in (("solvers", solvers), ("guidance", guidance)):
         if text:
-            values = [parse_yaml(v.strip(), source=f"--{key}") for v in text.split(",") if v.strip()]
-            out.append(f"sampling.{key}={json.dumps(values)}")
+            out.append(f"sampling.{key}={json.dumps(_comma_list(text, f'--{key}'))}")
+    per_solver = {}
+    for text in [steps] if isinstance(steps, str) else (steps or []):
+        solver, sep, counts = text.partition("=")
+        if sep:
+            per_solver[solver.strip()] = _comma_list(counts, "--steps")
+        else:
+            out.append(f"sampling.steps={json.dumps(_comma_list(text, '--steps'))}")
+    if per_solver:
+        out.append(f"sampling.steps_per_solver={json.dumps(per_solver)}")
     return out
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -39,6 +40,8 @@ from pipeline.distributed import Dist
 from pipeline.eval_config import EDIT_PRESETS, EvalConfig, SamplingConfig, SamplingPoint
 from pipeline.eval_spaces import ClassifierSpace, EmbeddingSpace, EvaluationError, GroundTruthSet
 from pipeline.inference import TrainedModel
+
+logger = logging.getLogger(__name__)
 
 # Task tags keep the random streams of different uses independent (noise, subsets, shuffles, draws).
 _TAG = {"main": 1, "mm": 2, "edit": 3, "subset": 4, "mm_texts": 5, "shuffle": 6, "diversity": 7,
@@ -295,6 +298,8 @@ class CheckpointContext:
     """Action models: each item's class index in the model's (= classifier's) classes."""
     mm_candidates: np.ndarray
     """Items MultiModality may pick (one per class for action models)."""
+    points: tuple[SamplingPoint, ...] = ()
+    """The sweep's sampling points this checkpoint runs (those of its objective, :func:`points_for`)."""
     notes: tuple[str, ...] = ()
     """Caveats about this checkpoint's evaluation, copied into every result."""
 
@@ -338,6 +343,21 @@ def check_point(trained: TrainedModel, point: SamplingPoint) -> None:
     elif point.solver in SAMPLERS:
         raise EvaluationError(f"{trained.checkpoint} is a flow-matching model: {point.solver!r} is a diffusion "
                               "sampler; use an ODE solver (euler, midpoint, heun, rk4, dopri5, ...)")
+
+
+def points_for(trained: TrainedModel, points: Sequence[SamplingPoint]) -> tuple[SamplingPoint, ...]:
+    """The points of a sweep that fit ``trained``: ODE solvers for a flow model, ddpm/ddim for a diffusion model.
+    One sweep may so list both kinds for flow and diffusion checkpoints (MFM's FID-vs-NFE comparison); the others
+    are logged as skipped. None fitting, or a fitting one the model cannot run: :class:`EvaluationError`."""
+    wanted = trained.objective == "diffusion"
+    fitting = tuple(point for point in points if (point.solver in SAMPLERS) == wanted)
+    for point in fitting or points[:1]:
+        check_point(trained, point)
+    skipped = [point.name for point in points if point not in fitting]
+    if skipped:
+        logger.info("%s is a %s model: skipping the sweep's points for the other objective: %s", trained.checkpoint,
+                    trained.objective, ", ".join(skipped))
+    return fitting
 
 
 @torch.no_grad()

@@ -54,9 +54,10 @@ from pipeline.eval_replications import (
     CheckpointContext,
     PhaseTimer,
     PointRun,
-    ground_truth_embeddings,
     action_labels,
+    ground_truth_embeddings,
     plan_protocol,
+    points_for,
 )
 from pipeline.eval_spaces import (
     CLASSIFIER_FILE,
@@ -147,6 +148,7 @@ class CheckpointScorer:
     def context(self, folder: Path, cache_dir: Path, timer: PhaseTimer) -> CheckpointContext:
         with timer.phase("load"):
             trained = load_trained_model(folder, use_ema=self.cfg.sampling.use_ema, device=self.dist.device)
+            points = points_for(trained, self.cfg.sampling.points())
             manifest = self.manifest_for(trained)
             check_compatible(trained, manifest)
             space = self.space_for(trained, manifest)
@@ -177,7 +179,7 @@ class CheckpointScorer:
             labels, candidates = action_labels(trained, space, gt, p.seed)
         plan = plan_protocol(self.cfg, len(gt), len(candidates))
         return CheckpointContext(trained, checkpoint_id(folder), manifest, gt, space, emb, cached, plan, labels,
-                                 candidates, tuple(notes))
+                                 candidates, points, tuple(notes))
 
     def unit_for(self, folder: Path, ctx_ids: Mapping[str, str], point: SamplingPoint) -> Unit:
         cfg = self.cfg
@@ -194,7 +196,7 @@ class CheckpointScorer:
     def work(self, folder: Path, ctx: CheckpointContext, comp: CompositionContext | None) -> list[Work]:
         """The checkpoint's units: text-to-motion per sampling point, then composition per point and switch."""
         ids = {"checkpoint": ctx.checkpoint_id, "evaluator": ctx.space.evaluator_id, "gt": ctx.gt.key}
-        points = self.cfg.sampling.points()
+        points = ctx.points
         out = []
         if self.cfg.tasks.text_to_motion:
             out += [Work(self.unit_for(folder, ids, point), point) for point in points]

@@ -83,6 +83,14 @@ def test_protocol_presets_and_sweep_flags():
     swept = load_eval_config("fast", overrides=sweep_overrides("euler,midpoint", "5,10", "2.5"))
     assert [p.name for p in swept.sampling.points()] == ["euler-5steps-g2.5", "euler-10steps-g2.5",
                                                          "midpoint-5steps-g2.5", "midpoint-10steps-g2.5"]
+    # Per-solver step counts; an adaptive solver runs once; flow and diffusion samplers may share a sweep.
+    mixed = load_eval_config("fast", overrides=sweep_overrides(
+        "euler,midpoint,dopri5,ddim", ["5,10,1000", "midpoint=5,25"], None))
+    assert [p.name for p in mixed.sampling.points()] == [
+        "euler-5steps-g2.5", "euler-10steps-g2.5", "euler-1000steps-g2.5", "midpoint-5steps-g2.5",
+        "midpoint-25steps-g2.5", "dopri5-5steps-g2.5", "ddim-5steps-g2.5", "ddim-10steps-g2.5", "ddim-1000steps-g2.5"]
+    with pytest.raises(ConfigError, match="steps_per_solver names 'heun'"):
+        load_eval_config("fast", overrides=sweep_overrides("euler", ["5", "heun=2"], None))
     with pytest.raises(ConfigError, match="protocol"):
         load_eval_config("slow")
     with pytest.raises(ConfigError, match="unknown preset"):
@@ -314,7 +322,7 @@ def test_an_incomplete_checkpoint_is_refused(tmp_path, capsys):
     assert "no complete checkpoint" in capsys.readouterr().err
 
 
-def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, tmp_path, capsys):
+def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, text_run, tmp_path, capsys):
     run = train_tiny_model(manifest, tmp_path / "diffusion-run", "train.objective=diffusion",
                            "train.diffusion=flame", steps=1)
     evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
@@ -323,13 +331,20 @@ def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, tmp_pat
               f"output.dir={tmp_path / 'e'}"]
     assert evaluate("--checkpoint", checkpoint, "--protocol", "fast", *common) == 2  # euler: not for diffusion
     assert "diffusion model" in capsys.readouterr().err
+    # One sweep over a flow and a diffusion checkpoint (MFM's FID vs NFE): each runs its own objective's points.
     # Overrides on both sides of the options (argparse's intermixed parse; a plain parse_args refuses this).
-    assert evaluate("--checkpoint", checkpoint, *common[:2], "--protocol", "fast", "--solver", "ddim", "--steps", "4",
-                    *common[2:]) == 0
-    result = json.loads(next((tmp_path / "e" / "results").rglob("*.json")).read_text())
-    assert result["checkpoint"]["objective"] == "diffusion" and result["checkpoint"]["diffusion_preset"] == "flame"
-    assert (result["sampling"]["solver"], result["nfe"]) == ("ddim", 4)
-    assert np.isfinite(result["metrics"]["fid"]["mean"]) and set(result["editing"]) == {"prediction", "upper_body"}
+    flow_checkpoint = str(text_run / "checkpoints" / "step-00000001")
+    assert evaluate("--checkpoint", flow_checkpoint, "--checkpoint", checkpoint, *common[:2], "--protocol", "fast",
+                    "--solver", "euler,ddim", "--steps", "4", "--steps", "ddim=2,3", *common[2:],
+                    "output.plots=true") == 0
+    results = [json.loads(path.read_text()) for path in (tmp_path / "e" / "results").rglob("*.json")]
+    runs = sorted((r["checkpoint"]["objective"], r["sampling"]["solver"], r["nfe"]) for r in results)
+    assert runs == [("diffusion", "ddim", 2), ("diffusion", "ddim", 3), ("flow", "euler", 4)]
+    for result in results:
+        if result["checkpoint"]["objective"] == "diffusion":
+            assert result["checkpoint"]["diffusion_preset"] == "flame"
+        assert np.isfinite(result["metrics"]["fid"]["mean"]) and set(result["editing"]) == {"prediction", "upper_body"}
+    assert (tmp_path / "e" / "plots" / "fid_vs_nfe_all.png").is_file()  # both runs in one plot
 
 
 def test_cross_attention_model_gets_the_captions_token_features(tmp_path_factory, tmp_path):
