@@ -48,3 +48,24 @@ class SkippedInput:
     path: str
     reason: str  # a short machine-readable category, e.g. "unreadable", "bad_shape", "no_captions"
     detail: str = ""
+
+
+# Skip reasons a source may report (the processing stage adds bad_fps/too_short/too_long/feature_error).
+UNREADABLE = "unreadable"
+BAD_SHAPE = "bad_shape"
+NAN_FRAMES = "nan_frames"
+NO_CAPTIONS = "no_captions"
+
+
+def check_joints(joints: np.ndarray, num_joints: int) -> tuple[str, str] | None:
+    """Why ``joints`` cannot be a clip of a ``num_joints`` skeleton, as ``(reason, detail)``; None if it can.
+    Sources call it on what they read; the processing stage again on every clip (any source, any caller)."""
+    if joints.ndim != 3 or joints.shape[1:] != (num_joints, 3) or joints.shape[0] == 0:
+        return BAD_SHAPE, f"expected (T>0, {num_joints}, 3) joint positions, got shape {joints.shape}"
+    if not np.issubdtype(joints.dtype, np.number):
+        return BAD_SHAPE, f"expected numbers, got dtype {joints.dtype}"
+    finite = np.isfinite(joints).all(axis=(1, 2))
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        return NAN_FRAMES, f"{bad.size} of {joints.shape[0]} frames hold NaN/inf (first: frame {bad[0]})"
+    return None

@@ -21,7 +21,7 @@ import torch
 
 from mfm.features import joints_to_features, resample_joints
 from mfm.skeleton import Skeleton
-from preprocess.clip import Caption, Clip, SkippedInput
+from preprocess.clip import Caption, Clip, SkippedInput, check_joints
 
 log = logging.getLogger(__name__)
 
@@ -119,14 +119,10 @@ def process_clip(
     if clip.skeleton != skeleton.name:
         raise ValueError(f"clip {clip.id!r} is for skeleton {clip.skeleton!r}, processing expects {skeleton.name!r}")
     joints = np.asarray(clip.joints)
-    expected = f"(T, {skeleton.num_joints}, 3)"
-    if joints.ndim != 3 or joints.shape[1:] != (skeleton.num_joints, 3):
-        return skip("bad_shape", f"joints have shape {joints.shape}, expected {expected} for {skeleton.name}")
-    if not np.issubdtype(joints.dtype, np.number):
-        return skip("bad_shape", f"joints have dtype {joints.dtype}, expected a float array {expected}")
-    bad_frames = np.flatnonzero(~np.isfinite(joints).all(axis=(1, 2)))
-    if bad_frames.size:
-        return skip("nan_frames", f"{bad_frames.size} of {len(joints)} frames hold NaN/inf (first: frame {bad_frames[0]})")
+    problem = check_joints(joints, skeleton.num_joints)
+    if problem is not None:
+        reason, detail = problem
+        return skip(reason, f"{detail} ({skeleton.name} skeleton)")
     if not (math.isfinite(clip.fps) and clip.fps > 0):
         return skip("bad_fps", f"frame rate {clip.fps!r} is not a positive number")
 

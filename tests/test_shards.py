@@ -107,6 +107,7 @@ def bad_items() -> dict:
         "b_inf": make_clip("b_inf", joints=inf),
         "b_joints": make_clip("b_joints", joints=make_joints(81)[:, :21]),
         "b_ndim": make_clip("b_ndim", joints=make_joints(81).reshape(81, -1)),
+        "b_empty": make_clip("b_empty", joints=make_joints(81)[:0]),
         "b_short": make_clip("b_short", frames=30),
         "b_long": make_clip("b_long", frames=260),
         "b_nocap": make_clip("b_nocap", captions=[]),
@@ -117,7 +118,7 @@ def bad_items() -> dict:
 
 
 EXPECTED_REASONS = {
-    "b_nan": "nan_frames", "b_inf": "nan_frames", "b_joints": "bad_shape", "b_ndim": "bad_shape",
+    "b_nan": "nan_frames", "b_inf": "nan_frames", "b_joints": "bad_shape", "b_ndim": "bad_shape", "b_empty": "bad_shape",
     "b_short": "too_short", "b_long": "too_long", "b_nocap": "no_captions", "b_emptycap": "no_captions",
     "b_unreadable": "unreadable", "b_raises": "unreadable",
 }
@@ -316,7 +317,7 @@ def test_skip_report_names_every_bad_item(built):
     assert report["total"] == len(EXPECTED_REASONS)
     assert {item["id"]: item["reason"] for item in report["items"]} == EXPECTED_REASONS
     assert [item["id"] for item in report["items"]] == sorted(EXPECTED_REASONS)  # list_items order
-    assert report["by_reason"] == {"bad_shape": 2, "nan_frames": 2, "no_captions": 2, "too_long": 1,
+    assert report["by_reason"] == {"bad_shape": 3, "nan_frames": 2, "no_captions": 2, "too_long": 1,
                                    "too_short": 1, "unreadable": 2}
     by_id = {item["id"]: item for item in report["items"]}
     assert by_id["b_nan"]["path"] == "/data/listsource/b_nan.npy" and "frame 10" in by_id["b_nan"]["detail"]

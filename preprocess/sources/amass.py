@@ -49,15 +49,11 @@ import torch
 
 from mfm.rotations import axis_angle_to_matrix
 from mfm.skeleton import HUMANML3D
-from preprocess.clip import Caption, Clip, SkippedInput
+from preprocess.clip import BAD_SHAPE, NO_CAPTIONS, UNREADABLE, Caption, Clip, SkippedInput, check_joints
 from preprocess.sources.humanml3d import (
-    BAD_SHAPE,
-    NO_CAPTIONS,
     SPLIT_NAMES,
-    UNREADABLE,
     as_bool,
     as_name_list,
-    check_joints,
     check_splits,
     hash_split,
     motion_id,

@@ -32,17 +32,19 @@ from pathlib import Path
 import numpy as np
 
 from mfm.skeleton import Skeleton, get_skeleton
-from preprocess.clip import Caption, Clip, SkippedInput
+from preprocess.clip import (
+    NO_CAPTIONS,
+    UNREADABLE,
+    Caption,
+    Clip,
+    SkippedInput,
+    check_joints,
+)
 
 log = logging.getLogger(__name__)
 
 SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
 
-# Skip reasons a source may report (the processing stage adds too_short/too_long/feature_error).
-UNREADABLE = "unreadable"
-BAD_SHAPE = "bad_shape"
-NAN_FRAMES = "nan_frames"
-NO_CAPTIONS = "no_captions"
 
 _INVALID_ID_CHARS = re.compile(r"[^A-Za-z0-9_-]")
 
@@ -97,19 +99,6 @@ def hash_split(key: str, val_fraction: float = 0.1, test_fraction: float = 0.1) 
     if u < test_fraction + val_fraction:
         return "val"
     return "train"
-
-
-def check_joints(joints: np.ndarray, num_joints: int) -> tuple[str, str] | None:
-    """Why ``joints`` cannot be a clip of a ``num_joints`` skeleton, as ``(reason, detail)``; None if it can."""
-    if joints.ndim != 3 or joints.shape[1:] != (num_joints, 3) or joints.shape[0] == 0:
-        return BAD_SHAPE, f"expected (T>0, {num_joints}, 3) joint positions, got shape {joints.shape}"
-    if not np.issubdtype(joints.dtype, np.number):
-        return BAD_SHAPE, f"expected numbers, got dtype {joints.dtype}"
-    finite = np.isfinite(joints).all(axis=(1, 2))
-    if not finite.all():
-        bad = np.flatnonzero(~finite)
-        return NAN_FRAMES, f"{bad.size} of {joints.shape[0]} frames hold NaN/inf (first: frame {bad[0]})"
-    return None
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -33,8 +33,8 @@ import torch
 
 from mfm.rotations import axis_angle_to_matrix
 from mfm.skeleton import HUMANML3D
-from preprocess.clip import Caption, Clip, SkippedInput
-from preprocess.sources.humanml3d import NO_CAPTIONS, as_name_list, check_joints, hash_split
+from preprocess.clip import NO_CAPTIONS, Caption, Clip, SkippedInput, check_joints
+from preprocess.sources.humanml3d import as_name_list, hash_split
 
 FPS = 20.0
 FOOT_JOINTS = (7, 8, 10, 11)
