@@ -345,7 +345,7 @@ def test_two_builds_are_byte_identical_whatever_the_worker_count(built, tmp_path
 
 def test_strict_names_the_first_bad_file(tmp_path, encoder):
     source = ListSource({**good_items(3), **bad_items()})
-    with pytest.raises(BadInputError, match=r"/data/listsource/b_emptycap\.npy: no_captions"):
+    with pytest.raises(BadInputError, match=r"/data/listsource/b_empty\.npy: bad_shape \(expected \(T>0, 22, 3\)"):
         build_dataset(BuildConfig(out=tmp_path / "ds", strict=True, progress=False), source=source, text_encoder=encoder)
     assert not (tmp_path / "ds" / "manifest.json").exists()
     assert not (tmp_path / "ds" / ".build-tmp").exists()
