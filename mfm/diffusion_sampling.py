@@ -16,7 +16,8 @@ Randomness: the initial noise and every step's noise come, in that order, from o
 generator seeded with ``seed``), drawn on the generator's device and moved, so a seed gives the same samples on every
 device. ``generator`` may also be one generator per motion (:func:`mfm.solvers.seeded_generators`): each motion then
 draws its own valid frames' noise from its own stream (:func:`mfm.solvers.draw_noise`), so its sample does not depend
-on the batch it is in (the pipeline's sampling and evaluation do this, as for flow models). Padded frames (``>= lengths``) of the state are zeroed after every step, so they are exactly zero in the output.
+on the batch it is in (the pipeline's sampling and evaluation do this, as for flow models). Padded frames
+(``>= lengths``) of the state are zeroed after every step, so they are exactly zero in the output.
 """
 
 from __future__ import annotations

@@ -210,6 +210,16 @@ def _solve_fixed_step(
     return SolveResult(x1=x, nfe=counted.calls, x1_hat=x1_hat, x1_hat_times=x1_hat_times, grid=times)
 
 
+def is_adaptive(method: str) -> bool:
+    """A torchdiffeq adaptive-step method (dopri5, ...): its step count is not a setting. False for our fixed-step
+    solvers, torchdiffeq's fixed-grid ones and unknown names."""
+    if method in FIXED_STEP_SOLVERS:
+        return False
+    from torchdiffeq._impl.odeint import SOLVERS  # torchdiffeq's only list of its methods
+
+    return method in SOLVERS and not is_torchdiffeq_fixed_grid(method)
+
+
 def is_torchdiffeq_fixed_grid(method: str) -> bool:
     # torchdiffeq exposes no public "is fixed grid" flag; its solver classes are the only source of truth.
     from torchdiffeq._impl.odeint import SOLVERS

@@ -12,8 +12,7 @@ from pathlib import Path
 from typing import Literal
 
 from mfm.composition import BABEL_SWITCH, HUMANML3D_SWITCH
-from mfm.diffusion_sampling import SAMPLERS
-from mfm.solvers import FIXED_STEP_SOLVERS, is_torchdiffeq_fixed_grid
+from mfm.solvers import is_adaptive
 from pipeline.config import ConfigError, coerce_fields, load_config, parse_yaml
 
 PROTOCOL_PRESETS = {"full": "eval_full", "fast": "eval_fast"}
@@ -277,15 +276,6 @@ def load_eval_config(protocol: str = "full", preset: str | Path | None = None,
             raise ConfigError(f"--protocol must be one of {sorted(PROTOCOL_PRESETS)}, got {protocol!r}")
         preset = PROTOCOL_PRESETS[protocol]
     return load_config(EvalConfig, preset, overrides)
-
-
-def is_adaptive(solver: str) -> bool:
-    """An adaptive-step ODE solver (torchdiffeq's dopri5, ...), whose step count is not a setting."""
-    if solver in FIXED_STEP_SOLVERS or solver in SAMPLERS:
-        return False
-    from torchdiffeq._impl.odeint import SOLVERS  # the only list of torchdiffeq's methods
-
-    return solver in SOLVERS and not is_torchdiffeq_fixed_grid(solver)
 
 
 def _comma_list(text: str, flag: str) -> list:

@@ -323,3 +323,10 @@ def test_draw_noise_per_motion_depends_on_seed_and_length_only():
                                initial_noise((2, 5, 4), seed=9), rtol=0, atol=0)
     # No lengths: every frame of every row.
     assert draw_noise((2, 5, 4), seeded_generators([1, 2]))[1, 3:].abs().min().item() > 0.0
+
+
+def test_is_adaptive_names_torchdiffeqs_adaptive_methods_only():
+    from mfm.solvers import is_adaptive
+
+    assert is_adaptive("dopri5") and is_adaptive("adaptive_heun")
+    assert not any(is_adaptive(m) for m in ("euler", "midpoint", "rk4", "implicit_adams", "ddpm", "unknown"))
