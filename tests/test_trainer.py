@@ -253,7 +253,10 @@ class SignalAtStep:
         self.calls += 1
         if self.calls == self.step:
             for _ in range(self.times):
-                os.kill(os.getpid(), self.signum)
+                # raise_signal, not os.kill: the process-directed kill may land on a torch worker thread and two
+                # of them can then coalesce into one Python handler call; raise_signal delivers to this thread
+                # and runs the handler before it returns, once per signal.
+                signal.raise_signal(self.signum)
         return self.__wrapped__(*args, **kwargs)
 
 
