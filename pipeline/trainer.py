@@ -150,7 +150,12 @@ class StopSignal:
         self.restore()
         if callable(previous):
             previous(signum, frame)
-        elif previous == signal.SIG_DFL:
+        elif signum == signal.SIGINT:
+            # SIGINT was ignored (a job started in the background by a non-interactive shell) or default before
+            # install: the user still sent it twice, so stop now, through Python's unwinding.
+            raise KeyboardInterrupt
+        else:
+            signal.signal(signum, signal.SIG_DFL)
             signal.raise_signal(signum)
 
     def flags(self) -> list[float]:
