@@ -295,17 +295,16 @@ def test_a_second_signal_aborts_at_once(dataset, tmp_path, monkeypatch, sigint_b
     """Ctrl-C twice: the user does not want to wait for the step to end (e.g. a hung data read). Also when the
     process started with SIGINT ignored, as a job a non-interactive shell puts in the background does."""
     run = tmp_path / "run"
-    if sigint_before == "ignored":
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    before = signal.SIG_IGN if sigint_before == "ignored" else signal.default_int_handler
+    original = signal.signal(signal.SIGINT, before)  # set both ways: a background job starts with SIG_IGN
     try:
         patch_loss(monkeypatch, SignalAtStep(2, signal.SIGINT, times=2))
         with pytest.raises(KeyboardInterrupt):
             train_entry.main(["--config", "tiny", *base_overrides(dataset, run, "train.max_steps=50")])
         assert complete_steps(run) == []
-        expected = signal.SIG_IGN if sigint_before == "ignored" else signal.default_int_handler
-        assert signal.getsignal(signal.SIGINT) == expected  # the trainer put back what it found
+        assert signal.getsignal(signal.SIGINT) == before  # the trainer put back what it found
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, original)
 
 
 # ---------------------------------------------------------------------------------------------------------------
