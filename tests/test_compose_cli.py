@@ -23,22 +23,15 @@ from mfm.diffusion_sampling import sample_diffusion
 from mfm.export import read_bvh
 from pipeline.inference import load_trained_model
 from pipeline.sampling import sample_seed
-from preprocess.processing import single_threaded_torch
 from test_sample_cli import _train_once, files_described, files_on_disk, sample, sample_entry, text_run
 from test_trainer import build_dataset_once, clean_env
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_thread")]
 
 __all__ = ["text_run"]  # the 'prefix' flow model fixture, shared with test_sample_cli.py
 
 THREE_SEGMENTS = {"text": ["a person walks forward", "a person jumps", "a person turns around"],
                   "lengths": [30, 25, 40]}
-
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    with single_threaded_torch():
-        yield
 
 
 @pytest.fixture(scope="session")

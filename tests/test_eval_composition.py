@@ -29,22 +29,16 @@ from pipeline.eval_composition import (
 from pipeline.eval_config import CompositionConfig, load_eval_config
 from pipeline.eval_spaces import build_ground_truth
 from pipeline.eval_store import ResultsStore
-from preprocess.processing import single_threaded_torch
 from test_sample_cli import _train_once
 from test_trainer import LAUNCH_VARS, build_dataset_once
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 SMALL = ["--protocol", "fast", "--steps", "2", "tasks.text_to_motion=false", "tasks.composition=true",
          "protocol.replications=2", "composition.segments_per_sequence=3", "composition.num_sequences=4",
          "composition.transition_window=20", "output.wandb=disabled", "output.plots=true"]
 SWEEP = "composition.switch=[relative,0.5,absolute]"
-
-
-@pytest.fixture(autouse=True)
-def _single_thread():
-    with single_threaded_torch():
-        yield
 
 
 @pytest.fixture(scope="module")
