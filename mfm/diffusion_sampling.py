@@ -88,7 +88,8 @@ def reverse_diffusion(
     if not eta >= 0.0:
         raise ValueError(f"eta must be >= 0, got {eta}")
     valid = None if frame_mask is None else frame_mask.unsqueeze(-1).to(x_start.dtype)
-    lengths = None if frame_mask is None else frame_mask.sum(dim=1)
+    # Per-motion noise draws need each row's length every step: read it off the device once, not per step.
+    lengths = None if frame_mask is None else frame_mask.sum(dim=1).tolist()
     x = x_start
     nfe = 0
     estimates: list[Tensor] = []
@@ -217,13 +218,15 @@ def replacement_edit(
     if lengths is not None:
         lengths = check_lengths(lengths, x1_known.shape[1]).to(x1_known.device)
         frame_mask = valid_frame_mask(lengths, x1_known.shape[1])
-    x_start = draw_noise(x1_known.shape, generator, lengths=lengths, device=x1_known.device, dtype=x1_known.dtype)
+    row_lengths = None if lengths is None else lengths.tolist()  # once, not per step (see reverse_diffusion)
+    x_start = draw_noise(x1_known.shape, generator, lengths=row_lengths, device=x1_known.device,
+                         dtype=x1_known.dtype)
     if frame_mask is not None:
         x_start = x_start * frame_mask.unsqueeze(-1).to(x_start.dtype)
 
     def replace_known(x: Tensor, index: int) -> Tensor:
         step = torch.full((x.shape[0],), index, dtype=torch.long, device=x.device)
-        noise = draw_noise(x.shape, generator, lengths=lengths, device=x.device, dtype=x.dtype)
+        noise = draw_noise(x.shape, generator, lengths=row_lengths, device=x.device, dtype=x.dtype)
         return torch.where(keep, schedule.q_sample(x1_known, step, noise), x)
 
     result = reverse_diffusion(denoise_fn, schedule, x_start, generator=generator, sampler=sampler, eta=eta,

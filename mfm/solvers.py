@@ -347,7 +347,10 @@ def draw_noise(
     shape = tuple(shape)
     if len(generator) != shape[0]:
         raise ValueError(f"{len(generator)} generators for a batch of {shape[0]}")
-    rows = [shape[1]] * shape[0] if lengths is None else [int(n) for n in torch.as_tensor(lengths).tolist()]
+    if lengths is None:
+        rows = [shape[1]] * shape[0]
+    else:
+        rows = [int(n) for n in (lengths.tolist() if isinstance(lengths, Tensor) else lengths)]
     noise = torch.zeros(shape, dtype=torch.float32)
     for row, (row_generator, length) in enumerate(zip(generator, rows)):
         noise[row, :length] = initial_noise((length, *shape[2:]), generator=row_generator)
