@@ -18,9 +18,7 @@ from typing import Any, Protocol
 import torch
 
 from mfm.model import valid_frame_mask
-
-SIGMA_MIN = 1e-4
-"""MFM's σ_min (FlowMatching.training_losses default)."""
+from mfm.path import SIGMA_MIN
 
 
 class VelocityModel(Protocol):

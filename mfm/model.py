@@ -60,9 +60,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from mfm.path import velocity_from_data
+
 ACTIVATIONS = {"gelu": F.gelu, "relu": F.relu, "silu": F.silu}
 POSITIONAL_ENCODINGS = ("absolute", "bpe")
 CONDITIONINGS = ("prefix", "pccat", "cross_attention")
+PREDICTIONS = ("velocity", "data")
+CONDITION_SCALINGS = ("none", "rms")
 
 # MFM feeds the sinusoidal table with t*1000 (its diffusion-step scale); keep the scale so the embedding matches.
 TIME_SCALE = 1000.0
@@ -116,6 +120,22 @@ class ModelConfig:
     """One of CONDITIONINGS: 'prefix' (MFM), 'pccat' (FlowMDM), 'cross_attention' (FLAME)."""
     token_dim: int | None = None
     """cross_attention: size of the token-level text features (manifest ``text_encoder.dim``); None = cond_dim."""
+    cond_scaling: str = "none"
+    """How a text embedding is scaled before its projection (one of CONDITION_SCALINGS). 'none': as given (MFM/MDM,
+    whose CLIP ``encode_text`` output has a norm near 10). 'rms': to unit root-mean-square per channel
+    (``c·√cond_dim/‖c‖``; a dropped, all-zero condition stays zero). Sentence encoders such as all-MiniLM-L6-v2 emit
+    unit-norm vectors, about √cond_dim ≈ 20× smaller per channel than that CLIP output: through a default-initialised
+    Linear the condition is then a ~0.03 ripple on the time embedding, and since Adam moves a weight by about lr per
+    step, the projection needs most of a short run to grow the gain that makes captions distinguishable. Not MFM's
+    choice: our presets say where they use it."""
+    prediction: str = "velocity"
+    """What the network's output layer predicts (one of PREDICTIONS); ``forward`` returns a velocity either way.
+    'velocity': MFM (the output is v itself). 'data': the output is the clean motion x1 and ``forward`` converts
+    it with :func:`mfm.path.velocity_from_data`. A velocity target contains the noise x0 — white in all
+    ``feature_dim`` channels — so a velocity network must carry its input through the Transformer almost
+    unchanged; when ``latent_dim`` is not well above ``feature_dim`` (256 vs 263 in the CPU presets) it cannot,
+    and the leftover noise shows as jitter, stretching bones and sliding feet. An x1 target is smooth and
+    low-dimensional. Not MFM's choice: our presets say where they use it."""
 
     def __post_init__(self) -> None:
         positive = {
@@ -158,6 +178,17 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.activation must be one of {sorted(ACTIVATIONS)}, got {self.activation!r}")
         if self.positional not in POSITIONAL_ENCODINGS:
             raise ValueError(f"ModelConfig.positional must be one of {POSITIONAL_ENCODINGS}, got {self.positional!r}")
+        if self.cond_scaling not in CONDITION_SCALINGS:
+            raise ValueError(
+                f"ModelConfig.cond_scaling must be one of {CONDITION_SCALINGS}, got {self.cond_scaling!r}"
+            )
+        if self.prediction not in PREDICTIONS:
+            raise ValueError(f"ModelConfig.prediction must be one of {PREDICTIONS}, got {self.prediction!r}")
+        if self.prediction == "data" and self.output_size != self.feature_dim:
+            raise ValueError(
+                f"ModelConfig.prediction='data' predicts the motion itself: output_dim must be feature_dim "
+                f"({self.feature_dim}), got {self.output_dim}"
+            )
         if self.conditioning not in CONDITIONINGS:
             raise ValueError(f"ModelConfig.conditioning must be one of {CONDITIONINGS}, got {self.conditioning!r}")
         if self.conditioning != "prefix" and self.is_action_model:
@@ -703,6 +734,8 @@ class MotionFlowTransformer(nn.Module):
         for layer in self.layers:
             tokens = layer(tokens, attention, condition=condition, memory=memory, memory_mask=memory_mask)
         velocity = self.output_proj(self.final_norm(tokens[:, len(aux) :]))
+        if config.prediction == "data":
+            velocity = velocity_from_data(velocity.float(), x.float(), t.to(x.device).float())
         if frame_mask is not None:
             velocity = velocity * frame_mask.unsqueeze(-1)
         return velocity.to(x.dtype)
@@ -716,7 +749,15 @@ class MotionFlowTransformer(nn.Module):
             cond_embedding = self.action_embedding(cond)
             return cond_embedding if keep is None else cond_embedding * keep
         # Zero the raw embedding before the projection, as MDM's mask_cond: the null condition is the bias.
+        cond = self._scaled_text(cond)
         return self.cond_proj(cond if keep is None else cond * keep)
+
+    def _scaled_text(self, text: Tensor) -> Tensor:
+        """A text embedding (..., cond_dim) as the projection sees it (ModelConfig.cond_scaling)."""
+        if self.config.cond_scaling == "none":
+            return text
+        rms = text.float().square().mean(dim=-1, keepdim=True).sqrt()
+        return (text.float() / rms.clamp_min(1e-12)).to(text.dtype)
 
     def _auxiliary_tokens(
         self, time: Tensor, cond: Tensor, cond_mask: Tensor | None, lengths: Tensor | None
@@ -740,7 +781,7 @@ class MotionFlowTransformer(nn.Module):
             frame_cond = cond.unsqueeze(1).expand(-1, num_frames, -1)
         if cond_mask is not None:
             frame_cond = frame_cond * (~cond_mask)[:, None, None].to(frame_cond.dtype)
-        return time.unsqueeze(1) + self.cond_proj(frame_cond)
+        return time.unsqueeze(1) + self.cond_proj(self._scaled_text(frame_cond))
 
     def _text_memory(
         self, aux: list[Tensor], text_tokens: Tensor, text_token_len: Tensor, cond_mask: Tensor | None

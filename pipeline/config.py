@@ -86,7 +86,12 @@ class OptimConfig:
     """AdamW, linear warm-up, gradient clipping and accumulation, and the EMA of the weights."""
 
     lr: float = 1e-4
-    """Peak learning rate (reached after warmup_steps, constant afterwards)."""
+    """Peak learning rate (reached after warmup_steps; then constant or decayed, see ``schedule``)."""
+    schedule: Literal["constant", "cosine"] = "constant"
+    """After warm-up: 'constant' (MFM) or 'cosine' decay from lr to ``min_lr_ratio``·lr at train.max_steps (not MFM:
+    a short run that must end fitted, like the CPU default, gains most in its last, low-lr steps)."""
+    min_lr_ratio: float = 0.0
+    """cosine: the final learning rate as a fraction of lr."""
     weight_decay: float = 0.0
     betas: tuple[float, float] = (0.9, 0.999)
     warmup_steps: int = 0
@@ -106,6 +111,7 @@ class OptimConfig:
         _require(self.weight_decay >= 0.0, f"optim.weight_decay must be >= 0, got {self.weight_decay}")
         _require(all(0.0 <= b < 1.0 for b in self.betas), f"optim.betas must lie in [0, 1), got {self.betas}")
         _require(self.warmup_steps >= 0, f"optim.warmup_steps must be >= 0, got {self.warmup_steps}")
+        _require(0.0 <= self.min_lr_ratio <= 1.0, f"optim.min_lr_ratio must lie in [0, 1], got {self.min_lr_ratio}")
         _require(self.grad_clip >= 0.0, f"optim.grad_clip must be >= 0 (0 disables), got {self.grad_clip}")
         _require(self.grad_accum >= 1, f"optim.grad_accum must be >= 1, got {self.grad_accum}")
         _require(0.0 <= self.ema_decay < 1.0, f"optim.ema_decay must lie in [0, 1), got {self.ema_decay}")
@@ -172,6 +178,11 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         coerce_fields(self)
+        _require(
+            self.train.objective == "flow" or self.model.prediction == "velocity",
+            f"model.prediction={self.model.prediction!r} is a flow-matching parametrisation; the diffusion objective "
+            "sets its own target (train.diffusion): use model.prediction=velocity",
+        )
         prefix = self.model.num_prefix_tokens
         _require(
             self.data.window + prefix <= self.model.max_len,

@@ -107,14 +107,19 @@ class EMA:
         self.num_updates = num_updates
 
 
-def warmup_lambda(warmup_steps: int):
-    """LR multiplier: linear warm-up from ~0 to 1 over ``warmup_steps`` optimizer steps, then constant (MFM uses
-    a constant 1e-4 with no warm-up: warmup_steps=0)."""
+def lr_lambda(warmup_steps: int, schedule: str = "constant", total_steps: int = 0, min_ratio: float = 0.0):
+    """LR multiplier per optimizer step: linear warm-up from ~0 to 1 over ``warmup_steps``, then constant (MFM: a
+    constant 1e-4, no warm-up) or a cosine from 1 down to ``min_ratio`` at ``total_steps``."""
 
-    def factor(step: int) -> float:
-        return 1.0 if warmup_steps == 0 else min(1.0, (step + 1) / warmup_steps)
+    def multiplier(step: int) -> float:
+        if step < warmup_steps:
+            return (step + 1) / warmup_steps
+        if schedule == "constant" or total_steps <= warmup_steps:
+            return 1.0
+        progress = min(1.0, (step - warmup_steps) / (total_steps - warmup_steps))
+        return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
-    return factor
+    return multiplier
 
 
 class StopSignal:
@@ -252,7 +257,10 @@ class Trainer:
             model.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas, weight_decay=cfg.optim.weight_decay,
             fused=fused or None,
         )
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_lambda(cfg.optim.warmup_steps))
+        scheduler = torch.optim.lr_scheduler.LambdaLR(
+            optimizer,
+            lr_lambda(cfg.optim.warmup_steps, cfg.optim.schedule, cfg.train.max_steps, cfg.optim.min_lr_ratio),
+        )
         if cfg.train.compile:
             model = torch.compile(model)
         self.model, self.optimizer, self.scheduler = dist.prepare(model, optimizer, scheduler)

@@ -70,6 +70,9 @@ def test_pre_norm_adds_only_a_final_layer_norm():
         (dict(cond_dim=0), "cond_dim"),
         (dict(num_actions=-1), "num_actions"),
         (dict(length_token=True, max_frames=200, max_len=100), "max_frames"),
+        (dict(prediction="epsilon"), "prediction"),
+        (dict(prediction="data", output_dim=14), "output_dim"),
+        (dict(cond_scaling="layernorm"), "cond_scaling"),
     ],
 )
 def test_config_rejects_bad_values(overrides, field):
@@ -230,6 +233,39 @@ def test_no_condition_dropout_in_eval_mode():
             model(x, t, cond, generator=torch.Generator().manual_seed(0)),
             model(x, t, cond, cond_mask=torch.zeros(64, dtype=torch.bool)),
         )
+
+
+def test_data_prediction_returns_the_velocity_towards_its_output():
+    """prediction='data': forward(x_t, t) = (x̂1 − (1 − σ)·x_t) / (1 − (1 − σ)·t), x̂1 being the network output."""
+    torch.manual_seed(0)
+    velocity_model = tiny_model(prediction="velocity").eval()
+    data_model = tiny_model(prediction="data").eval()
+    data_model.load_state_dict(velocity_model.state_dict())  # same network: its raw output is x̂1 for data_model
+    x, cond = torch.randn(3, 6, 7), torch.randn(3, 5)
+    t = torch.tensor([0.0, 0.5, 0.99])
+    with torch.no_grad():
+        x1_hat = velocity_model(x, t, cond)
+        velocity = data_model(x, t, cond)
+    sigma = 1e-4
+    noise_scale = torch.clamp(1 - (1 - sigma) * t, min=0.05)[:, None, None]  # floored near t = 1
+    torch.testing.assert_close(velocity, (x1_hat - (1 - sigma) * x) / noise_scale)
+    # One Euler step from t over the rest of the path lands on x̂1 (up to σ, while the floor is not reached).
+    torch.testing.assert_close(x[:2] + (1 - t[:2, None, None]) * velocity[:2], x1_hat[:2], atol=1e-3, rtol=0)
+
+
+def test_rms_condition_scaling_makes_the_condition_scale_free_and_keeps_the_null_condition():
+    model = tiny_model(cond_scaling="rms").eval()
+    x, t, cond = torch.randn(4, 6, 7), torch.rand(4), torch.randn(4, 5)
+    drop = torch.tensor([True, False, True, False])
+    with torch.no_grad():
+        base = model(x, t, cond)
+        torch.testing.assert_close(model(x, t, 0.01 * cond), base)  # a unit-norm encoder's small vectors
+        torch.testing.assert_close(model(x, t, cond, cond_mask=drop)[drop], model(x, t, torch.zeros_like(cond))[drop])
+        rms_scaled = cond * math.sqrt(5) / cond.norm(dim=-1, keepdim=True)
+        torch.testing.assert_close(model.cond_proj(rms_scaled), model._pooled_condition(cond, None))
+    unscaled = tiny_model(cond_scaling="none").eval()
+    with torch.no_grad():
+        assert not torch.allclose(unscaled(x, t, 0.01 * cond), unscaled(x, t, cond))
 
 
 def test_action_model():

@@ -432,3 +432,23 @@ def test_tolerant_verification_skips_the_shard_and_reports_it(corrupted_dataset,
     assert [b["path"] for b in report["bad"]] == [bad] and "corrupted" in report["bad"][0]["reason"]
     assert bad in caplog.text and "skipping 1 bad shard" in caplog.text
     assert len(seen) > 30 and not seen & bad_ids  # 12 steps x 4 samples read, none from the bad shard
+
+
+def test_learning_rate_schedules():
+    """Warm-up is linear to 1; 'constant' stays there (MFM), 'cosine' falls to min_ratio exactly at total_steps."""
+    from pipeline.trainer import lr_lambda
+
+    constant = lr_lambda(4, "constant", total_steps=100)
+    assert [constant(s) for s in range(5)] == [0.25, 0.5, 0.75, 1.0, 1.0] and constant(10_000) == 1.0
+    cosine = lr_lambda(4, "cosine", total_steps=104, min_ratio=0.1)
+    assert [cosine(s) for s in range(4)] == [0.25, 0.5, 0.75, 1.0]
+    assert cosine(54) == pytest.approx(0.55)  # half way: the middle of [0.1, 1]
+    assert cosine(104) == pytest.approx(0.1) and cosine(500) == pytest.approx(0.1)
+    values = [cosine(s) for s in range(4, 105)]
+    assert all(a >= b for a, b in zip(values, values[1:]))
+    with pytest.raises(Exception, match="min_lr_ratio"):
+        load_config(TrainConfig, "tiny", ["optim.min_lr_ratio=1.5"])
+    with pytest.raises(Exception, match="schedule"):
+        load_config(TrainConfig, "tiny", ["optim.schedule=linear"])
+    with pytest.raises(Exception, match="prediction"):
+        load_config(TrainConfig, "tiny", ["train.objective=diffusion", "model.prediction=data"])
