@@ -1,4 +1,5 @@
-"""Evaluate checkpoints: text-to-motion (or action-to-motion) metrics, editing and FLAME metrics, with 95 % CIs.
+"""Evaluate checkpoints: text-to-motion (or action-to-motion) metrics, editing and FLAME metrics, with 95 % CIs, and
+plausibility figures (bone lengths, floor penetration, foot skating, jerk vs ground truth) beside the ground truth's.
 
     python launch/evaluate.py --checkpoint runs/default/checkpoints/step-00001500 --protocol fast
     python launch/evaluate.py --watch runs/default --once                      # every complete checkpoint, once

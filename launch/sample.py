@@ -12,8 +12,9 @@ outputs in pipeline/sampling.py and pipeline/composing.py.
 
 --checkpoint takes a step-XXXXXXXX folder or a run folder (its newest complete checkpoint; EMA weights unless
 --model-weights model). Per sample: sample_NNN/{features.npy, joints.npy, motion.mp4|gif, motion.bvh,
-keep_mask.npy (edits), trajectory.png (--plot-trajectory)}, all described in results.json. Edits: --keep
-prefix=F / suffix=F (prediction, inbetween), every=K (interpolate), joints=A,B[,..] frames=S:E (joints).
+keep_mask.npy (edits), trajectory.png (--plot-trajectory)}, all described in results.json. joints.npy is recovered
+from the ric block, or with --decode rigid also fitted onto the skeleton's fixed bone lengths (the BVH always is).
+Edits: --keep prefix=F / suffix=F (prediction, inbetween), every=K (interpolate), joints=A,B[,..] frames=S:E (joints).
 
 Flow checkpoints take ODE solvers (default euler, 10 steps); diffusion checkpoints (train.objective=diffusion) take
 --solver ddpm (default) or ddim, --steps respaced from the training steps (default all 1000); nfe = steps.
@@ -35,7 +36,7 @@ if __package__ in (None, ""):  # run as a script: make the project importable fr
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.composing import parse_switch, run_composition
-from pipeline.sampling import EDIT_PRESETS, SampleRequest, SamplingError, read_prompts, run_sampling
+from pipeline.sampling import EDIT_PRESETS, JOINT_DECODES, SampleRequest, SamplingError, read_prompts, run_sampling
 
 
 def key_value(text: str) -> tuple[str, str]:
@@ -85,6 +86,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--no-video", action="store_true")
     add("--video-format", choices=("auto", "mp4", "gif"), default="auto", help="auto: MP4 if ffmpeg is found")
     add("--no-bvh", action="store_true")
+    add("--decode", choices=sorted(JOINT_DECODES), default="ric", help="joints.npy and video: ric positions as "
+                                                                      "recovered (default) or rigid: fitted onto the "
+                                                                      "skeleton's bone lengths (the BVH always is)")
     add("--device", default="auto", help="auto (cuda when available), cpu, cuda, cuda:1, ...")
     add("--model-weights", choices=("ema", "model"), default="ema")
     add("--text-weights", help="text encoder weights (CLIP datasets), checked against the checkpoint's hash")
@@ -104,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
             device=args.device, text_weights=args.text_weights, edit=args.edit, source_motion=args.source_motion,
             keep=dict(args.keep), rewrite_until=args.rewrite_until, video=not args.no_video,
             video_format=args.video_format, bvh=not args.no_bvh, plot_trajectory=args.plot_trajectory,
-            overwrite=args.overwrite, compose_file=args.compose, extrapolate=args.extrapolate,
+            decode=args.decode, overwrite=args.overwrite, compose_file=args.compose, extrapolate=args.extrapolate,
             num_segments=args.num_segments, switch=args.switch, attention_chunk=args.attention_chunk,
         )
         results = run_composition(request) if request.composes else run_sampling(request)

@@ -3,7 +3,9 @@
 Vectorised re-implementation of EricGuo5513/HumanML3D ``motion_representation`` (``process_file``,
 ``recover_from_ric``, ``recover_from_rot``) and ``cal_mean_variance``. Everything runs batched over clips,
 frames and joints in torch (float64 for extraction); the only Python loop is over the depth levels of
-the skeleton (at most 7) when ``features_to_joints_fk`` chains rotations.
+the skeleton (at most 7) when ``features_to_joints_fk`` chains rotations or ``rigid_joints`` places bones.
+``rigid_joints`` / ``features_to_joints_rigid`` (not in the reference) fit recovered positions onto the
+skeleton's fixed bone lengths, for exports.
 
 Compatibility with the published dataset (``compat=True``, the default). The reference
 ``Skeleton.inverse_kinematics_np`` has three quirks the dataset was generated with:
@@ -530,6 +532,72 @@ def features_to_joints_fk(
     bones = (torch.stack(global_rot[1:], dim=-3) @ offsets[1:, :, None]).squeeze(-1)  # (..., T, J-1, 3)
     positions = _sum_bones_cf(root, bones.movedim(-1, 0).movedim(-1, 1), topo)  # (3, J, ..., T)
     return _like_input(positions.movedim(0, -1).movedim(0, -2).contiguous(), features)
+
+
+def rigid_joints(joints: ArrayLike, skeleton: Skeleton, bone_lengths: ArrayLike | None = None) -> ArrayLike:
+    """Joint positions (..., T, J, 3) fitted onto the skeleton with fixed bone lengths (numpy or torch like
+    the input; float64 stays float64, anything else float32).
+
+    Positions recovered from the ric block of generated features (``features_to_joints``) have bones whose
+    length changes from frame to frame; a rig (BVH, a game engine) cannot play that. This is an
+    inverse-kinematics fit onto the skeleton followed by forward kinematics: the root keeps its position,
+    then, parents before children, each bone gets the rotation that turns its rest offset (the skeleton's
+    rest direction times its length) towards the observed child *as seen from the parent already placed*,
+    and FK puts the child at the end of that offset. As the offsets lie along the rest directions that
+    rotation's result is just the unit aim direction times the bone length, which is what is computed.
+
+    Aiming from the placed parent (not along the observed bone) puts every joint at the point nearest its
+    observed position on the sphere the bone allows, so errors do not add up along a chain: on noisy
+    features this brings the joints about 40% closer to the observed ones than keeping each bone's
+    observed direction does (measured below). Where the aim has zero length the bone takes its rest direction.
+
+    ``bone_lengths`` (J,) (root entry ignored): default ``skeleton.bone_lengths`` (the target skeleton every
+    clip was retargeted to; a checkpoint's skeleton carries the dataset manifest's
+    ``feature_spec.bone_lengths``); for a skeleton without them, each clip's median bone lengths over time.
+
+    Distance to the ric positions it fits (mean / max over joints and frames; ``benchmarks/bench_rigid.py``),
+    on HumanML3D clip 012314 (170 frames): clean features 0.0002 / 0.002 mm (its bones already have the
+    target lengths); features + σ·Std·N(0, 1) noise (Std: the dataset's normalisation), where the ric bones'
+    lengths vary by up to 63 / 122 / 235 mm over the clip for σ = 0.05 / 0.1 / 0.2: 6.8 / 36 mm,
+    13.4 / 67 mm and 28.0 / 128 mm. Keeping each bone's observed direction instead gives 11.4 / 48,
+    23.0 / 84 and 50.6 / 170 mm; the 6D-rotation decode ``features_to_joints_fk`` 19.3 / 79, 36.1 / 144 and
+    72.0 / 295 mm.
+    """
+    x = _as_tensor(joints, _float_dtype_of(joints))
+    if x.ndim < 3 or tuple(x.shape[-2:]) != (skeleton.num_joints, 3):
+        raise ValueError(f"joints must be (..., T, {skeleton.num_joints}, 3) for skeleton {skeleton.name!r}, "
+                         f"got shape {tuple(x.shape)}")
+    if not _all_finite(x):
+        raise ValueError("joints contain NaN or inf")
+    topo = _topology_of(skeleton, chains_from_root=False)  # rotation_ref = parent: levels are tree depths
+    parents = _joint_index(topo.parents, x).clamp(min=0)
+    if bone_lengths is None and skeleton.bone_lengths is None:
+        observed = torch.linalg.vector_norm(x - x.index_select(-2, parents), dim=-1)  # (..., T, J)
+        lengths = torch.quantile(observed, 0.5, dim=-2, keepdim=True)[..., None]  # (..., 1, J, 1), numpy's median
+    else:
+        lengths = _as_tensor(skeleton.bone_lengths if bone_lengths is None else bone_lengths, x.dtype).to(x.device)
+        if lengths.shape != (skeleton.num_joints,):
+            raise ValueError(f"bone_lengths must be ({skeleton.num_joints},), got {tuple(lengths.shape)}")
+        lengths = lengths[:, None]
+    rest = torch.as_tensor(skeleton.raw_offsets, dtype=x.dtype, device=x.device)
+    out = x.clone()  # the root stays where it was recovered; every other joint is overwritten below
+    for level in topo.levels:  # a level's parents are all placed: its bones go in one batched step
+        child = _joint_index(level, x)
+        placed_parent = out.index_select(-2, parents[child])
+        aim = x.index_select(-2, child) - placed_parent
+        norm = torch.linalg.vector_norm(aim, dim=-1, keepdim=True)
+        direction = torch.where(norm > 0, aim / norm.clamp(min=torch.finfo(x.dtype).tiny), rest[child])
+        out[..., child, :] = placed_parent + direction * lengths[..., child, :]
+    return _like_input(out, joints)
+
+
+def features_to_joints_rigid(
+    features: ArrayLike, skeleton: Skeleton, bone_lengths: ArrayLike | None = None
+) -> ArrayLike:
+    """``features_to_joints`` (recover_from_ric) fitted onto the skeleton with fixed bone lengths
+    (:func:`rigid_joints`, which states the error against the ric positions): the decode for exports that
+    need a rig (BVH)."""
+    return rigid_joints(features_to_joints(features, skeleton), skeleton, bone_lengths)
 
 
 # ---------------------------------------------------------------------------------------------------

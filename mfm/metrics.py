@@ -6,6 +6,8 @@ Definitions follow the reference implementations the field reports numbers with:
   in batches of 32, MM-Dist ("Matching Score"), Diversity, MultiModality, 95% confidence intervals.
 * Editing (MFM Table 3): ADE / FDE, mean over joints of the per-joint Euclidean error.
 * Transitions (FlowMDM ``utils/metrics.py::evaluate_jerk``): per-frame jerk curve, Peak Jerk, Area Under the Jerk.
+* Physical plausibility of joint positions, per clip: bone-length consistency, floor penetration, foot skating (GMD
+  ``calculate_skating_ratio`` thresholds, as OmniControl), mean jerk and its ratio to the ground truth's.
 * FLAME / TEMOS: APE / AVE (TEMOS ``ComputeMetrics``), mCLIP score, Mutual Information Divergence
   (Kim et al. 2022, naver-ai/mid.metric ``_compute_pmi``), per-text joint variance.
 * Action-to-motion: recogniser accuracy (FID/diversity/multimodality reuse the text-to-motion functions).
@@ -16,6 +18,7 @@ replication is reproducible without touching numpy's global state (the reference
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Sequence
 from typing import Any
@@ -23,6 +26,8 @@ from typing import Any
 import numpy as np
 from scipy import linalg
 from scipy.spatial.distance import cdist
+
+from mfm.skeleton import Skeleton
 
 logger = logging.getLogger(__name__)
 
@@ -389,6 +394,269 @@ def transition_windows(x: Any, boundaries: Sequence[int], window: int = 60) -> t
     frames = np.arange(window)[None, :] + (bounds - left)[:, None]  # (B, window) wanted frame indices
     real = (frames >= 0) & (frames < t)
     return seq[np.clip(frames, 0, t - 1)], real
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Physical plausibility: bone lengths, floor penetration, foot skating, jerk (per clip, then medians)
+# ---------------------------------------------------------------------------------------------------------------
+
+# GMD's foot-skating thresholds (Karunratanakul et al. 2023, ``calculate_skating_ratio``; OmniControl reuses them).
+FOOT_CONTACT_HEIGHT = 0.05  # m: a foot joint lower than this touches the floor
+FOOT_SKATING_SPEED = 0.5  # m/s in xz: a touching foot joint faster than this skates (2.5 cm/frame at 20 fps)
+# A bone this short on average (two coincident joints) has no meaningful relative deviation: it is left out of it.
+MIN_BONE_LENGTH = 1e-6  # m
+METRES_PER_UNIT = {"m": 1.0, "mm": 1e-3}  # Skeleton.unit -> metres
+
+
+def _clips(joints: Any, name: str = "joints") -> np.ndarray:
+    """(N, T, J, 3) positions from (N, T, J, 3) clips or one (T, J, 3) clip (a batch of one)."""
+    pos = _as_numpy(joints, name)
+    if pos.ndim == 3:
+        pos = pos[None]
+    _check_joints(pos, name)
+    return pos
+
+
+def _frame_mask(lens: np.ndarray, t: int) -> np.ndarray:
+    """(N, T) True on each clip's frames ``< lengths[i]``."""
+    return np.arange(t)[None, :] < lens[:, None]
+
+
+def _masked_mean(values: np.ndarray, mask: np.ndarray, empty: float) -> np.ndarray:
+    """Per clip (axis 0) mean of ``values`` where ``mask``; ``empty`` for a clip with nothing masked in."""
+    axes = tuple(range(1, values.ndim))
+    count = mask.sum(axis=axes)
+    out = np.full(values.shape[0], empty, dtype=np.float64)
+    np.divide(np.where(mask, values, 0.0).sum(axis=axes), count, out=out, where=count > 0)
+    return out
+
+
+def bone_lengths(joints: Any, parents: Sequence[int]) -> np.ndarray:
+    """(N, T, J − 1) length of every bone per frame: bone k joins non-root joint ``k + 1`` (in joint order) to its
+    parent (``Skeleton.parents``, −1 for the root). Inputs (N, T, J, 3) or (T, J, 3)."""
+    pos = _clips(joints)
+    par = np.asarray(parents, dtype=np.int64).reshape(-1)
+    if par.shape[0] != pos.shape[2]:
+        raise ValueError(f"parents lists {par.shape[0]} joints, joints have {pos.shape[2]}")
+    children = np.flatnonzero(par >= 0)
+    return np.linalg.norm(pos[:, :, children] - pos[:, :, par[children]], axis=-1)
+
+
+def bone_length_consistency(joints: Any, parents: Sequence[int], lengths: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per clip, how much the bone lengths change over the clip's frames ``< lengths[i]`` (a rigid body keeps them):
+
+    * range: the largest over bones of (longest − shortest length of the bone) [the joints' unit];
+    * relative deviation: mean over bones and frames of ``|length − mean length of the bone| / mean length``; bones
+      whose mean length is below :data:`MIN_BONE_LENGTH` are left out (NaN if every bone is).
+
+    HumanML3D's ground truth is retargeted to one skeleton, so its joints give ~0 for both (its clip 012314: 2e-6 m);
+    the ric block a network generates is free to stretch bones. Returns ``(range (N,), relative deviation (N,))``.
+    """
+    length = bone_lengths(joints, parents)  # (N, T, B)
+    n, t, _ = length.shape
+    lens = _lengths_or_full(lengths, n, t)
+    valid = _frame_mask(lens, t)[..., None]  # (N, T, 1)
+    spread = np.where(valid, length, -np.inf).max(axis=1) - np.where(valid, length, np.inf).min(axis=1)  # (N, B)
+    mean = np.where(valid, length, 0.0).sum(axis=1) / lens[:, None]  # (N, B)
+    measurable = mean >= MIN_BONE_LENGTH
+    deviation = np.abs(length - mean[:, None]) / np.where(measurable, mean, 1.0)[:, None]
+    return spread.max(axis=1), _masked_mean(deviation, valid & measurable[:, None], np.nan)
+
+
+def floor_penetration(joints: Any, foot_joints: Sequence[int], lengths: Any = None) -> np.ndarray:
+    """(N,) how far the lowest foot joint goes below the floor (y = 0, y up: HumanML3D puts the floor at 0),
+    ``max(0, −min over frames < lengths[i] and foot joints of y)`` [input unit]."""
+    pos = _clips(joints)
+    n, t = pos.shape[:2]
+    lowest_foot = pos[:, :, list(foot_joints), 1].min(axis=-1)  # (N, T)
+    lowest = np.where(_frame_mask(_lengths_or_full(lengths, n, t), t), lowest_foot, np.inf).min(axis=1)
+    return np.where(lowest < 0.0, -lowest, 0.0)  # not max(0, −lowest): that is −0.0 for a foot exactly on the floor
+
+
+@dataclasses.dataclass(frozen=True)
+class FootSkating:
+    """Per-clip foot-skating figures of :func:`foot_skating`, each (N,)."""
+
+    ratio: np.ndarray
+    """Fraction of frame pairs in which some foot joint skates."""
+    contact_speed: np.ndarray
+    """Mean horizontal speed of the foot joints while they touch the floor [m/s]; NaN if they never do."""
+    skating_speed: np.ndarray
+    """Mean horizontal speed over the skating joint-frame pairs [m/s]; 0 if none skates."""
+
+
+def foot_skating(joints: Any, foot_joints: Sequence[int], fps: float, lengths: Any = None, *,
+                 contact_height: float = FOOT_CONTACT_HEIGHT, skating_speed: float = FOOT_SKATING_SPEED) -> FootSkating:
+    """Foot skating as GMD's ``calculate_skating_ratio`` (y up, floor at 0, positions in metres):
+
+    for every pair of consecutive frames (t, t + 1) inside a clip and every foot joint, the joint touches the floor
+    when its height is below ``contact_height`` (0.05 m) in both frames, and its horizontal speed is
+    ``‖xz[t + 1] − xz[t]‖ · fps``; a touching joint faster than ``skating_speed`` (0.5 m/s) skates. The ratio is
+    (frame pairs where any foot joint skates) / (frame pairs, ``lengths[i] − 1``). Unlike GMD (toes only, a 5-frame
+    moving average that must also exceed the speed, ratio over the padded length) every given foot joint counts, a
+    single fast pair skates and padding is not counted. A clip of one frame has no pair: NaN for all three.
+    """
+    if fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    pos = _clips(joints)
+    n, t = pos.shape[:2]
+    pairs = _lengths_or_full(lengths, n, t) - 1
+    feet = pos[:, :, list(foot_joints)]  # (N, T, F, 3)
+    speed = np.linalg.norm(np.diff(feet[..., [0, 2]], axis=1), axis=-1) * fps  # (N, T-1, F)
+    low = feet[..., 1] < contact_height  # (N, T, F)
+    in_clip = _frame_mask(pairs, t - 1)  # (N, T-1) frame pairs before each clip's end
+    contact = low[:, :-1] & low[:, 1:] & in_clip[..., None]
+    skating = contact & (speed > skating_speed)
+    ratio = _masked_mean(skating.any(axis=-1).astype(np.float64), in_clip, np.nan)
+    skating_mean = _masked_mean(speed, skating, 0.0)
+    skating_mean[pairs == 0] = np.nan
+    return FootSkating(ratio, _masked_mean(speed, contact, np.nan), skating_mean)
+
+
+def mean_jerk(joints: Any, lengths: Any = None) -> np.ndarray:
+    """(N,) mean jerk of each clip: :func:`jerk_curve` (FlowMDM's per-frame jerk: third finite difference, L1 over
+    xyz, max over joints; per frame, no fps scaling) averaged over the clip's ``lengths[i] − 3`` entries that use
+    no padding frame. NaN for a clip shorter than 4 frames."""
+    pos = _clips(joints)
+    n, t = pos.shape[:2]
+    lens = _lengths_or_full(lengths, n, t)
+    out = np.full(n, np.nan)
+    if t < 4:
+        return out
+    entries = lens - 3
+    np.divide(jerk_curve(pos, lens).sum(axis=1), entries, out=out, where=entries > 0)  # jerk_curve zeroes the rest
+    return out
+
+
+def _jerk_ratio(jerk: np.ndarray, reference: Any) -> np.ndarray:
+    """``jerk / reference`` (reference (N,) or a scalar); NaN where the reference is not positive or undefined."""
+    ref = np.asarray(reference, dtype=np.float64)
+    if ref.ndim > 0 and ref.shape != jerk.shape:
+        raise ValueError(f"{ref.size} reference jerks for {jerk.size} clips: give one per clip or one for all")
+    ref = np.broadcast_to(ref, jerk.shape)
+    out = np.full(jerk.shape, np.nan)
+    np.divide(jerk, ref, out=out, where=np.nan_to_num(ref, nan=0.0) > 0)
+    return out
+
+
+def jerk_ratio(joints: Any, gt_joints: Any, lengths: Any = None, gt_lengths: Any = None) -> np.ndarray:
+    """(N,) each clip's :func:`mean_jerk` divided by that of its ground-truth clip (row i pairs with row i; the two
+    may differ in length). 1 for a clip against itself; above 1 for a clip shakier than its ground truth. NaN where
+    either clip is shorter than 4 frames or the ground truth does not move (zero jerk)."""
+    return _jerk_ratio(mean_jerk(joints, lengths), mean_jerk(gt_joints, gt_lengths))
+
+
+@dataclasses.dataclass(frozen=True)
+class PlausibilityFigures:
+    """Per-clip plausibility figures of :func:`plausibility`, each an (N,) array in metres / seconds; NaN where a
+    figure is undefined for a clip (too short, or ``contact_foot_speed`` of a clip that never touches the floor).
+    :meth:`summary` gives the medians over clips."""
+
+    bone_length_range: np.ndarray
+    """Largest over bones of (longest − shortest) bone length [m] (:func:`bone_length_consistency`)."""
+    bone_length_deviation: np.ndarray
+    """Mean relative deviation of the bone lengths from their clip means (:func:`bone_length_consistency`)."""
+    floor_penetration: np.ndarray
+    """Depth of the lowest foot joint below the floor [m] (:func:`floor_penetration`)."""
+    foot_skating_ratio: np.ndarray
+    """Fraction of frame pairs in which a foot joint skates (:func:`foot_skating`)."""
+    contact_foot_speed: np.ndarray
+    """Mean horizontal foot-joint speed while touching the floor [m/s] (:func:`foot_skating`)."""
+    skating_foot_speed: np.ndarray
+    """Mean horizontal speed of the skating foot joints [m/s], 0 without skating (:func:`foot_skating`)."""
+    mean_jerk: np.ndarray
+    """Mean per-frame jerk [m per frame³] (:func:`mean_jerk`)."""
+    jerk_ratio: np.ndarray | None = None
+    """``mean_jerk`` over a reference jerk (the paired ground-truth clip's, or a dataset average); None: no
+    reference given."""
+
+    def __len__(self) -> int:
+        return len(self.mean_jerk)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The figures this object holds (``jerk_ratio`` only with a reference)."""
+        return tuple(f.name for f in dataclasses.fields(self) if getattr(self, f.name) is not None)
+
+    def _map(self, fn) -> PlausibilityFigures:
+        return PlausibilityFigures(**{f.name: None if (v := getattr(self, f.name)) is None else fn(v)
+                                      for f in dataclasses.fields(self)})
+
+    def select(self, indices: Any) -> PlausibilityFigures:
+        """The figures of clips ``indices`` (any numpy index: reorders, repeats, masks)."""
+        index = np.asarray(indices)
+        return self._map(lambda v: v[index])
+
+    @staticmethod
+    def concatenate(parts: Sequence[PlausibilityFigures]) -> PlausibilityFigures:
+        """Clips of every part, in order; ``jerk_ratio`` is kept only if every part has one."""
+        if not parts:
+            raise ValueError("nothing to concatenate")
+        names = set.intersection(*(set(p.names) for p in parts))
+        return PlausibilityFigures(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in names})
+
+    def with_jerk_reference(self, reference_jerk: Any) -> PlausibilityFigures:
+        """A copy whose ``jerk_ratio`` is ``mean_jerk / reference_jerk``: one value per clip (its ground-truth clip's
+        mean jerk) or one for all (e.g. a dataset's average jerk); NaN where the reference is not positive."""
+        return dataclasses.replace(self, jerk_ratio=_jerk_ratio(self.mean_jerk, reference_jerk))
+
+    def clip(self, index: int) -> dict[str, float | None]:
+        """One clip's figures by name; None where undefined."""
+        return {name: _number_or_none(getattr(self, name)[index]) for name in self.names}
+
+    def summary(self) -> dict[str, float | None]:
+        """The median over clips of every figure, ignoring clips where it is undefined; None if it is for all."""
+        return {name: _median_or_none(getattr(self, name)) for name in self.names}
+
+
+def _number_or_none(value: float) -> float | None:
+    return None if np.isnan(value) else float(value)
+
+
+def _median_or_none(values: np.ndarray) -> float | None:
+    defined = values[~np.isnan(values)]
+    return float(np.median(defined)) if defined.size else None
+
+
+def plausibility(joints: Any, skeleton: Skeleton, lengths: Any = None, *, gt_joints: Any = None,
+                 gt_lengths: Any = None, contact_height: float = FOOT_CONTACT_HEIGHT,
+                 skating_speed: float = FOOT_SKATING_SPEED) -> PlausibilityFigures:
+    """Every plausibility figure of (N, T, J, 3) or (T, J, 3) joint positions on ``skeleton`` (y up, floor at 0, as
+    ``mfm.features.features_to_joints`` recovers them), in metres whatever ``skeleton.unit``: bones from
+    ``skeleton.parents``, foot joints = ``skeleton.foot_left + foot_right`` (ankles and toes), fps =
+    ``skeleton.fps``; thresholds as :func:`foot_skating`. With ``gt_joints`` (paired row by row, ``gt_lengths``)
+    ``jerk_ratio`` is each clip's mean jerk over its ground-truth clip's."""
+    scale = METRES_PER_UNIT[skeleton.unit]
+    pos = _clips(joints) * scale
+    if pos.shape[2] != skeleton.num_joints:
+        raise ValueError(f"joints have {pos.shape[2]} joints, skeleton {skeleton.name!r} {skeleton.num_joints}")
+    feet = skeleton.foot_left + skeleton.foot_right
+    bone_range, bone_deviation = bone_length_consistency(pos, skeleton.parents, lengths)
+    skating = foot_skating(pos, feet, skeleton.fps, lengths, contact_height=contact_height,
+                           skating_speed=skating_speed)
+    figures = PlausibilityFigures(
+        bone_length_range=bone_range, bone_length_deviation=bone_deviation,
+        floor_penetration=floor_penetration(pos, feet, lengths), foot_skating_ratio=skating.ratio,
+        contact_foot_speed=skating.contact_speed, skating_foot_speed=skating.skating_speed,
+        mean_jerk=mean_jerk(pos, lengths))
+    if gt_joints is None:
+        return figures
+    return figures.with_jerk_reference(mean_jerk(_clips(gt_joints, "gt_joints") * scale, gt_lengths))
+
+
+def plausibility_settings(skeleton: Skeleton, *, contact_height: float = FOOT_CONTACT_HEIGHT,
+                          skating_speed: float = FOOT_SKATING_SPEED) -> dict[str, Any]:
+    """What :func:`plausibility` measures ``skeleton``'s clips with (the same keywords), for results files."""
+    return {"unit": "m", "fps": skeleton.fps, "foot_joints": [skeleton.joint_names[j] for j in
+                                                               skeleton.foot_left + skeleton.foot_right],
+            "foot_contact_height_m": contact_height, "foot_skating_speed_m_per_s": skating_speed}
+
+
+def plausibility_side_by_side(generated: PlausibilityFigures,
+                              ground_truth: PlausibilityFigures) -> dict[str, dict[str, float | None]]:
+    """``{figure: {"generated": median, "ground_truth": median}}`` for every figure both hold."""
+    gen, gt = generated.summary(), ground_truth.summary()
+    return {name: {"generated": gen[name], "ground_truth": gt[name]} for name in gen if name in gt}
 
 
 # ---------------------------------------------------------------------------------------------------------------

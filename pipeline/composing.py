@@ -5,7 +5,8 @@ A :class:`pipeline.sampling.SampleRequest` with ``compose_file`` (FlowMDM's ``{"
 or ``extrapolate`` (one text, or action, repeated over segments) is generated as ONE sequence of Σ lengths frames
 per sample by :func:`mfm.composition.compose` / :func:`mfm.composition.extrapolate`, and written as::
 
-    results.json                 the segments (text, length, start/end frame), boundaries, switch, nfe, files
+    results.json                 the segments (text, length, start/end frame), boundaries, switch, nfe, files, and
+                                 the plausibility figures of each whole sequence (transitions included)
     sample_000/features.npy      (Σ L, D) float32 features of the whole sequence, un-normalised
     sample_000/joints.npy        (Σ L, J, 3) float32 joint positions
     sample_000/motion.mp4|.gif   one video of the whole sequence; the caption changes at every segment start
@@ -282,9 +283,9 @@ def run_composition(request: SampleRequest) -> dict[str, Any]:
         features = trained.denormalize(composition.motion).float().cpu().numpy()
         x1_hat = None if composition.result.x1_hat is None else composition.result.x1_hat[:, 0].float().cpu().numpy()
         times = None if composition.result.x1_hat_times is None else composition.result.x1_hat_times.numpy()
-        files = writer.write(index, np.ascontiguousarray(features, dtype=np.float32), title, None, x1_hat, times)
+        written = writer.write(index, np.ascontiguousarray(features, dtype=np.float32), title, None, x1_hat, times)
         samples.append({"index": index, "length": total, "seconds": round(total / trained.fps, 6),
-                        "noise_seed": seed, "nfe": composition.nfe, "files": files})
+                        "noise_seed": seed, "nfe": composition.nfe, **written})
     total_s = time.perf_counter() - started
 
     results = {

@@ -37,6 +37,11 @@ Per replication (FlowMDM ``runners/eval.py``; noise seeded by (seed, replication
   dataset's GT test clips (mfm.metrics.dataset_average_jerk; cached in ``cache/gt-jerk-*.json`` and recorded) unless
   ``composition.gt_jerk`` sets it (FlowMDM's HumanML3D constant is 0.033031363).
 
+* plausibility (mfm.metrics.plausibility) of every whole composed sequence (its transitions included): bone-length
+  range / deviation, floor penetration, foot skating, mean jerk, and the jerk ratio against the dataset's average
+  GT jerk (the AUJ reference above: a composed sequence has no GT clip of its own); medians over sequences. The
+  ground-truth row gives the same figures of the test clips of the set's segments (each as often as it is used).
+
 NFE and ``model_passes_per_motion`` are per sequence (one composition = one ODE solve),
 ``generation_seconds_per_motion`` per segment (``generation_seconds_per_sequence`` beside it). Mean ± 1.96·std/√R
 over ``composition.replications`` (0: ``protocol.replications``). The ground-truth row scores the GT items of the
@@ -82,6 +87,7 @@ from pipeline.eval_replications import (
     derive_seed,
     gather_rows,
     gather_stats,
+    plausibility_record,
     rng_of,
     summarise,
 )
@@ -498,7 +504,8 @@ class CompositionRun:
             all_stats = gather_stats(self.dist, stats)
         if self.dist.is_main:
             with self.timer.phase("metrics"):
-                self._metrics(replication, segments, transitions, curves)
+                sequences = metrics.PlausibilityFigures.concatenate([s["plausibility"] for _, _, s in all_stats])
+                self._metrics(replication, segments, transitions, curves, sequences)
                 self.sequence_stats += [s for _, _, s in all_stats]
 
     def _run_sequence(self, index: int, replication: int, parts: dict[str, list]) -> dict[str, Any]:
@@ -527,14 +534,18 @@ class CompositionRun:
             transition_emb = space.encode_motions(windows_t.to(trained.device), window_lengths)
         with self.timer.phase("joints"):
             curves = metrics.jerk_curve(features_to_joints(windows_t.double(), trained.skeleton).numpy())
+            joints = features_to_joints(raw.double(), trained.skeleton).cpu().numpy()
+            plausibility = metrics.plausibility(joints, trained.skeleton)  # the whole sequence, transitions included
         per = self.cset.segments_per_sequence
         parts["segments"].append((index * per + np.arange(len(lengths)), segment_emb))
         transition_slots = index * (per - 1) + np.arange(len(lengths) - 1)
         parts["transitions"].append((transition_slots, transition_emb))
         parts["jerk"].append((transition_slots, torch.from_numpy(curves)))
-        return {"sequence": index, "nfe": composition.nfe, "seconds": seconds, "frames": sum(lengths)}
+        return {"sequence": index, "nfe": composition.nfe, "seconds": seconds, "frames": sum(lengths),
+                "plausibility": plausibility}
 
-    def _metrics(self, replication: int, segments: np.ndarray, transitions: np.ndarray, curves: np.ndarray) -> None:
+    def _metrics(self, replication: int, segments: np.ndarray, transitions: np.ndarray, curves: np.ndarray,
+                 sequences: metrics.PlausibilityFigures) -> None:
         seed, gt_emb, gt = self.ccfg.seed, self.ctx.gt_emb, self.ctx.gt
         items = self.cset.segment_items()
         text, captions = gt_emb.text[items], [gt.captions[i] for i in items.tolist()]
@@ -551,6 +562,11 @@ class CompositionRun:
         boot = draws("bootstrap").integers(0, len(gt_t.embeddings), len(gt_t.embeddings))
         truth.update(transition_metrics(gt_t.embeddings[boot], gt_t.curves, gt_t.embeddings, gt_jerk,
                                         self.plan.gt_transition_diversity_times, draws("transition_diversity")))
+        # A composed sequence has no ground-truth clip: its jerk ratio is against the dataset's average GT jerk
+        # (AUJ's reference), in metres as the plausibility figures.
+        reference_jerk = gt_jerk * metrics.METRES_PER_UNIT[self.ctx.trained.skeleton.unit]
+        generated.update(sequences.with_jerk_reference(reference_jerk).summary())
+        truth.update(self.ctx.gt_plausibility.select(items).with_jerk_reference(reference_jerk).summary())
         self.generated.append(generated)
         self.ground_truth.append(truth)
         self.curves.append(curves.mean(axis=0))
@@ -605,6 +621,9 @@ class CompositionRun:
                 "gt_jerk": self.cctx.gt_jerk,
                 "ranks": self.dist.world_size, "config": to_dict(self.ccfg),
             },
+            "plausibility": plausibility_record(
+                self.ctx.trained.skeleton, "the dataset's average ground-truth jerk (composition.gt_jerk, AUJ's "
+                "reference); generated figures are per composed sequence, ground-truth ones per segment's test clip"),
             "jerk_curve": {"frames_from_boundary": list(range(-left, self.window - left - 3)),
                            "generated": np.mean(self.curves, axis=0).tolist(),
                            "ground_truth": self.cctx.gt_transitions.curves.mean(axis=0).tolist()},

@@ -34,6 +34,7 @@ from mfm.guidance import classifier_free_guidance
 from mfm.features import features_to_joints
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
+from mfm.skeleton import Skeleton
 from mfm.solvers import FIXED_STEP_SOLVERS, draw_noise, guided_velocity, seeded_generators, solve, zero_padded_frames
 from pipeline.data import Manifest
 from pipeline.distributed import Dist
@@ -204,6 +205,24 @@ def _read_gt_cache(path: Path, gt: GroundTruthSet) -> GroundTruthEmbeddings:
                                      data["logits"] if "logits" in data else None)
 
 
+def ground_truth_plausibility(gt: GroundTruthSet, skeleton: Skeleton, batch_size: int) -> metrics.PlausibilityFigures:
+    """Plausibility figures of every item in item order, its joints recovered from its features as the generated
+    motions' are; no jerk ratio (each result row picks its reference). Cheap next to the embeddings: not cached."""
+    parts = []
+    for start in range(0, len(gt), batch_size):
+        features, lengths = gt.padded(np.arange(start, min(start + batch_size, len(gt))))
+        joints = features_to_joints(features.double(), skeleton).numpy()
+        parts.append(metrics.plausibility(joints, skeleton, lengths.numpy()))
+    return metrics.PlausibilityFigures.concatenate(parts)
+
+
+def plausibility_record(skeleton: Skeleton, jerk_reference: str) -> dict[str, Any]:
+    """A result's description of its plausibility figures (metrics, ground_truth, editing sections)."""
+    return {**metrics.plausibility_settings(skeleton), "jerk_ratio_reference": jerk_reference,
+            "statistic": "median over the clips of a replication, then mean ± 95 % CI over replications",
+            "ground_truth": "the same figures of the ground-truth clips the row uses (joints from their features)"}
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Protocol sizes actually used
 # ---------------------------------------------------------------------------------------------------------------
@@ -302,6 +321,8 @@ class CheckpointContext:
     """The sweep's sampling points this checkpoint runs (those of its objective, :func:`points_for`)."""
     notes: tuple[str, ...] = ()
     """Caveats about this checkpoint's evaluation, copied into every result."""
+    gt_plausibility: metrics.PlausibilityFigures | None = None
+    """Every ground-truth item's plausibility figures (:func:`ground_truth_plausibility`); rank 0 only."""
 
     @property
     def is_action(self) -> bool:
@@ -502,7 +523,7 @@ class PointRun:
             parts[kind].append((batch.slots, self.space.encode_motions(raw, lengths)))
             if kind == "main" and isinstance(self.space, ClassifierSpace):
                 parts["logits"].append((batch.slots, self.space.logits(raw, lengths)))
-        if kind.startswith("edit:") or (self.flame and kind in ("main", "mm")):
+        if kind == "main" or kind.startswith("edit:") or (self.flame and kind == "mm"):
             with self.timer.phase("joints"):
                 stats.update(self._joint_stats(batch, kind, raw, lengths, gt_raw))
         return stats
@@ -516,15 +537,19 @@ class PointRun:
             return {"joint_variance": [
                 (int(t), metrics.joint_variance(joints[texts == t][:, : lens[texts == t][0]]))
                 for t in np.unique(texts)]}
+        # Per clip, with its slot: medians need every clip of the replication, and the jerk ratio its item.
+        stats: dict[str, Any] = {"plausibility": (batch.slots, metrics.plausibility(joints, self.skeleton, lens))}
+        if kind == "main" and not self.flame:
+            return stats
         if gt_raw is None:
             gt_raw, _ = self.gt.padded(batch.items, raw.device)
         gt_joints = features_to_joints(gt_raw.double(), self.skeleton).cpu().numpy()
         if kind == "main":
             ape = metrics.ape_ave(joints, gt_joints, lens, face_joints=self.skeleton.face_joints)
-            return {"ape_ave": ape, "frames": int(lens.sum())}
+            return {**stats, "ape_ave": ape, "frames": int(lens.sum())}
         keep = edit_mask(kind[5:], lengths.cpu(), raw.shape[1], self.layout).numpy()
         regenerated = ~keep.all(axis=-1)  # frames with at least one generated dim
-        return {"ade": metrics.ade(joints, gt_joints, lens, mask_frames=regenerated),
+        return {**stats, "ade": metrics.ade(joints, gt_joints, lens, mask_frames=regenerated),
                 "fde": metrics.fde(joints, gt_joints, lens)}
 
     # -- metrics (rank 0) ----------------------------------------------------------------------------------------
@@ -538,8 +563,11 @@ class PointRun:
             return rng_of(seed, _TAG[tag], replication)
 
         gen = self._spread(rows["main"], gt_all, draws)
+        gen.update(self._plausibility(stats, "main", items))
         boot = draws("bootstrap").integers(0, len(gt_motion), len(gt_motion))
         truth = {"fid": metrics.fid(gt_motion[boot], gt_all), **self._spread(gt_motion, None, draws)}
+        gt_figures = self.ctx.gt_plausibility.select(items)
+        truth.update(gt_figures.with_jerk_reference(gt_figures.mean_jerk).summary())
         if self.ctx.is_action:
             labels = self.ctx.labels[items]
             gen["accuracy"] = metrics.action_accuracy(logits, labels)
@@ -568,10 +596,20 @@ class PointRun:
             n = sum(r for *_, r in per_batch)
             edited["ade"] = sum(a * r for a, _, r in per_batch) / n
             edited["fde"] = sum(f * r for _, f, r in per_batch) / n
+            edited.update(self._plausibility(stats, kind, items))
             self.edited[preset].append(edited)
         main = [s for _, kind, s in stats if kind == "main"]
         self.nfe += [(s["nfe"], s["rows"]) for s in main]
         self.gen_seconds += [(s["seconds"], s["rows"]) for s in main]
+
+    def _plausibility(self, stats: Sequence[tuple[int, str, dict]], kind: str,
+                      items: np.ndarray) -> dict[str, float | None]:
+        """Medians over the replication's clips of ``kind``; the jerk ratio of the clip in slot s is against the
+        ground-truth clip of ``items[s]`` (the one it was generated for, or edited from)."""
+        parts = [s["plausibility"] for _, k, s in stats if k == kind]
+        slots = np.concatenate([part[0] for part in parts])
+        figures = metrics.PlausibilityFigures.concatenate([part[1] for part in parts]).select(np.argsort(slots))
+        return figures.with_jerk_reference(self.ctx.gt_plausibility.mean_jerk[items]).summary()
 
     def _spread(self, motion: np.ndarray, gt_all: np.ndarray | None,
                 draws: Callable[[str], np.random.Generator]) -> dict[str, float]:
@@ -607,5 +645,7 @@ class PointRun:
             "nfe": nfe,
             "model_passes_per_motion": nfe * passes,
             "generation_seconds_per_motion": sum(s for s, _ in self.gen_seconds) / rows,
+            "plausibility": plausibility_record(self.skeleton, "the mean jerk of the ground-truth clip each motion "
+                                                               "was generated for (editing: edited from)"),
             "notes": self.notes,
         }

@@ -16,6 +16,10 @@ sampling-noise floor (the reference's GT FID is likewise nonzero, its crops and 
 editing (prediction, in-between, upper body: FID, Diversity, ADE/FDE on joints; MFM Table 3), FLAME's metrics
 (APE/AVE, mCLIP, MID, per-text joint variance), and for action models FID / accuracy / Diversity /
 MultiModality in the action classifier's feature space. NFE and generation seconds per motion are reported.
+Plausibility (mfm.metrics.plausibility, on joints recovered from the features): bone-length range and relative
+deviation, floor penetration, foot skating ratio / contact and skating foot speeds, mean jerk and its ratio to the
+paired ground-truth clip's, as medians over the clips of a replication, for generated and edited motions (metric
+names as the PlausibilityFigures fields) and for the ground truth (computed once per test set, rank 0).
 With ``tasks.composition=true`` (a bpe + pccat model), FlowMDM's composition protocol adds one unit per sampling
 point and ``composition.switch`` point (pipeline.eval_composition); ``tasks.text_to_motion=false`` runs only those.
 
@@ -56,6 +60,7 @@ from pipeline.eval_replications import (
     PointRun,
     action_labels,
     ground_truth_embeddings,
+    ground_truth_plausibility,
     plan_protocol,
     points_for,
 )
@@ -163,8 +168,11 @@ class CheckpointScorer:
                                         seed=p.seed, backend=backend, require_action=is_action,
                                         token_features=tokens)
                 emb, cached = ground_truth_embeddings(gt, space, self.dist, cache_dir, self.cfg.sampling.batch_size)
-            self._gt[key] = (gt, emb, cached)
-        gt, emb, cached = self._gt[key]
+                figures = None
+                if self.dist.is_main:  # only rank 0 computes metrics
+                    figures = ground_truth_plausibility(gt, trained.skeleton, self.cfg.sampling.batch_size)
+            self._gt[key] = (gt, emb, cached, figures)
+        gt, emb, cached, gt_figures = self._gt[key]
         limit = _max_generation_length(trained)
         if int(gt.lengths.max()) > limit:
             raise EvaluationError(f"test clips reach {int(gt.lengths.max())} frames but {trained.checkpoint} "
@@ -179,7 +187,7 @@ class CheckpointScorer:
             labels, candidates = action_labels(trained, space, gt, p.seed)
         plan = plan_protocol(self.cfg, len(gt), len(candidates))
         return CheckpointContext(trained, checkpoint_id(folder), manifest, gt, space, emb, cached, plan, labels,
-                                 candidates, points, tuple(notes))
+                                 candidates, points, tuple(notes), gt_figures)
 
     def unit_for(self, folder: Path, ctx_ids: Mapping[str, str], point: SamplingPoint) -> Unit:
         cfg = self.cfg

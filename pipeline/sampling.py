@@ -4,12 +4,16 @@
 A :class:`SampleRequest` says what to generate; :func:`run_sampling` loads the checkpoint, generates every sample
 in batches of ``batch_size`` and writes, into ``out_dir``::
 
-    results.json                 describes every file below (and nothing else) plus the settings and timings
+    results.json                 describes every file below (and nothing else) plus the settings and timings, and
+                                 each sample's plausibility figures (mfm.metrics.plausibility of its joints:
+                                 bone-length range / deviation, floor penetration, foot skating, mean jerk)
     sample_000/features.npy      (L, D) float32 features, un-normalised (the dataset's HumanML3D-style vector)
-    sample_000/joints.npy        (L, J, 3) float32 joint positions, recovered from the ric block (recover_from_ric)
+    sample_000/joints.npy        (L, J, 3) float32 joint positions, recovered from the ric block (recover_from_ric;
+                                 ``decode='rigid'``: then fitted onto the skeleton's fixed bone lengths)
     sample_000/motion.mp4|.gif   stick figure, caption as title (GIF when ffmpeg is missing or asked for)
     sample_000/motion.bvh        BVH for Blender (mfm.export.bvh: metres, Y up, channels Yrotation Xrotation
-                                 Zrotation i.e. R = Ry·Rx·Rz, Blender Euler order ZXY)
+                                 Zrotation i.e. R = Ry·Rx·Rz, Blender Euler order ZXY) of the rigid decode
+                                 (mfm.features.rigid_joints), whatever ``decode`` says: a rig needs fixed bones
     sample_000/keep_mask.npy     edits only: (L, D) bool, True = taken from the source motion
     sample_000/trajectory.png    on request: x̂1 estimates along the ODE trajectory (MFM Figure 4 style)
 
@@ -57,6 +61,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from mfm import metrics
 from mfm.composition import BoundInputs
 from mfm.diffusion import GaussianDiffusion
 from mfm.diffusion_sampling import SAMPLERS, replacement_edit, sample_diffusion
@@ -64,10 +69,11 @@ from mfm.editing import edit, edit_mask, joint_frame_mask, motion_to_features
 from mfm.export import plot_x1_trajectory, render_motion, write_bvh
 from mfm.export.bvh import JOINT_CHANNELS, ROOT_CHANNELS
 from mfm.export.render import Captions
-from mfm.features import features_to_joints
+from mfm.features import features_to_joints, rigid_joints
 from mfm.guidance import classifier_free_guidance
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
+from mfm.skeleton import Skeleton
 from mfm.solvers import (
     FIXED_STEP_SOLVERS,
     SolveResult,
@@ -124,6 +130,11 @@ def known_solvers() -> list[str]:
 DEFAULT_FLOW_SOLVER = "euler"
 DEFAULT_FLOW_STEPS = 10
 DEFAULT_DIFFUSION_SAMPLER = "ddpm"  # FLAME's and FlowMDM's sampler; its default steps are the training steps
+# How joints.npy (and the video) are decoded from the features, as results.json describes them.
+JOINT_DECODES = {
+    "ric": "features_to_joints (recover_from_ric)",
+    "rigid": "features_to_joints_rigid (recover_from_ric fitted onto the skeleton's fixed bone lengths)",
+}
 
 
 def _positive_int(name: str, value: Any) -> None:
@@ -158,6 +169,7 @@ class SampleRequest:
     video_format: str = "auto"  # "auto" (MP4 if ffmpeg is on PATH, else GIF), "mp4" or "gif"
     bvh: bool = True
     plot_trajectory: bool = False
+    decode: str = "ric"  # joints.npy and the video: a key of JOINT_DECODES (the BVH is always rigid)
     overwrite: bool = False  # replace the outputs of an earlier run in out_dir
     progress: bool | None = None  # None: progress bars when stderr is a terminal
     # Composition (pipeline/composing.py): one sequence made of (text, frames) segments.
@@ -183,6 +195,8 @@ class SampleRequest:
                                 f"{list(SAMPLERS)} for diffusion models")
         if self.video_format not in ("auto", "mp4", "gif"):
             raise SamplingError(f"video_format must be 'auto', 'mp4' or 'gif', got {self.video_format!r}")
+        if self.decode not in JOINT_DECODES:
+            raise SamplingError(f"decode must be one of {sorted(JOINT_DECODES)}, got {self.decode!r}")
         if self.composes:
             self._check_composition()
         elif self.num_segments is not None or self.switch is not None or self.attention_chunk is not None:
@@ -621,19 +635,22 @@ class SampleWriter:
         return {"path": path.relative_to(self.out_dir).as_posix(), "kind": kind, **info}
 
     def write(self, index: int, features: np.ndarray, title: Captions, keep: np.ndarray | None = None,
-              x1_hat: np.ndarray | None = None, x1_hat_times: np.ndarray | None = None) -> list[dict[str, Any]]:
+              x1_hat: np.ndarray | None = None, x1_hat_times: np.ndarray | None = None) -> dict[str, Any]:
         """Sample ``index``'s files from its un-normalised features (L, D); ``title``: a caption, or
-        ``[(start_frame, caption), ...]`` for captions that change over the motion (composition)."""
+        ``[(start_frame, caption), ...]`` for captions that change over the motion (composition). Returns the
+        sample's results.json fields ``files`` and ``plausibility`` (:func:`plausibility_record`)."""
         folder = self.out_dir / SAMPLE_DIR.format(index)
         folder.mkdir(parents=True, exist_ok=True)
-        joints = features_to_joints(features, self.skeleton).astype(np.float32)
+        ric = features_to_joints(features, self.skeleton)
+        rigid = rigid_joints(ric, self.skeleton)  # fixed bone lengths: the only joints a rig (the BVH) can play
+        joints = (rigid if self.request.decode == "rigid" else ric).astype(np.float32)
         files = []
         np.save(folder / "features.npy", features)
         files.append(self._entry(folder / "features.npy", "features", shape=list(features.shape),
                                  normalized=False, dtype="float32"))
         np.save(folder / "joints.npy", joints)
         files.append(self._entry(folder / "joints.npy", "joints", shape=list(joints.shape), unit=self.skeleton.unit,
-                                 recovered_with="features_to_joints (recover_from_ric)", dtype="float32"))
+                                 recovered_with=JOINT_DECODES[self.request.decode], dtype="float32"))
         if keep is not None:
             np.save(folder / "keep_mask.npy", keep)
             files.append(self._entry(folder / "keep_mask.npy", "keep_mask", shape=list(keep.shape),
@@ -647,8 +664,9 @@ class SampleWriter:
                                      colors="kept blue, edited red" if keep is not None else "one colour per chain",
                                      **captions))
         if self.request.bvh:
-            bvh = write_bvh(folder / "motion.bvh", joints, self.skeleton, self.trained.fps)
+            bvh = write_bvh(folder / "motion.bvh", rigid, self.skeleton, self.trained.fps)
             files.append(self._entry(bvh, "bvh", skeleton=self.skeleton.name, unit="m", up="Y",
+                                     recovered_with=JOINT_DECODES["rigid"],
                                      root_channels=list(ROOT_CHANNELS), joint_channels=list(JOINT_CHANNELS),
                                      rotation_order="R = Ry @ Rx @ Rz (Blender Euler ZXY)", fps=self.trained.fps))
         if x1_hat is not None:
@@ -658,7 +676,15 @@ class SampleWriter:
             # Flow: t of each x̂1 estimate (1 = data); diffusion: the denoiser's t_model (0 = data).
             files.append(self._entry(png, "trajectory_plot", times=[round(float(t), 6) for t in x1_hat_times],
                                      time_convention=TIME_CONVENTIONS[self.trained.objective]))
-        return files
+        return {"files": files, "plausibility": plausibility_record(joints, self.skeleton)}
+
+
+def plausibility_record(joints: np.ndarray, skeleton: Skeleton) -> dict[str, float | None]:
+    """A sample's plausibility figures (mfm.metrics.plausibility of the (L, J, 3) joints written to joints.npy;
+    thresholds in results.json's ``plausibility_thresholds``), rounded; None where undefined (the contact foot
+    speed of a motion whose feet never touch the floor). No ground truth here, so no jerk ratio."""
+    figures = metrics.plausibility(joints, skeleton).clip(0)
+    return {name: None if value is None else round(value, 6) for name, value in figures.items()}
 
 
 def _edit_record(request: SampleRequest, integrator: Integrator, source: SourceMotion, options: Mapping[str, Any],
@@ -729,6 +755,7 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
         "guidance": request.guidance if conditioned else 0.0,
         "seed": request.seed,
         "device": str(trained.device),
+        "plausibility_thresholds": metrics.plausibility_settings(trained.skeleton),
     }
 
 
@@ -765,8 +792,8 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
                 keep = None if batch.keep is None else batch.keep[row, :spec.length].numpy()
                 x1_hat = None if batch.x1_hat is None else batch.x1_hat[:, row, :spec.length].numpy()
                 times = None if batch.x1_hat_times is None else batch.x1_hat_times.numpy()
-                files = writer.write(spec.index, np.ascontiguousarray(features[row, :spec.length], dtype=np.float32),
-                                     caption(request, spec), keep, x1_hat, times)
+                sample_features = np.ascontiguousarray(features[row, :spec.length], dtype=np.float32)
+                written = writer.write(spec.index, sample_features, caption(request, spec), keep, x1_hat, times)
                 samples[spec.index] = {
                     "index": spec.index,
                     "text": request.texts[spec.prompt] if request.texts and spec.prompt is not None else None,
@@ -776,7 +803,7 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
                     # Diffusion samplers seed one generator per batch (module docstring).
                     "noise_seed": chunk[0].seed if integrator.objective == "diffusion" else spec.seed,
                     "nfe": batch.nfe,
-                    "files": files,
+                    **written,
                     **({"edit": _edit_record(request, integrator, source, options, keep)} if keep is not None else {}),
                 }
             bar.update(len(chunk))

@@ -34,6 +34,8 @@ from pipeline.eval_store import ResultsStore, Unit
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 EVALUATE = REPO_ROOT / "launch" / "evaluate.py"
+PLAUSIBILITY = {"bone_length_range", "bone_length_deviation", "floor_penetration", "foot_skating_ratio",
+                "contact_foot_speed", "skating_foot_speed", "mean_jerk", "jerk_ratio"}
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -235,6 +237,15 @@ def test_evaluate_checkpoint_with_a_steps_sweep(text_run, trained_evaluator, tmp
     for preset in ("prediction", "upper_body"):
         edited = result["editing"][preset]
         assert {"fid", "diversity", "ade", "fde"} <= set(edited) and edited["ade"]["ci"] is None  # 1 replication
+    # Plausibility medians beside the ground truth's; contact_foot_speed may be undefined (feet off the floor).
+    for section in (result["metrics"], result["ground_truth"], *result["editing"].values()):
+        assert PLAUSIBILITY - {"contact_foot_speed"} <= set(section)
+        assert all(np.isfinite(v["mean"]) for k, v in section.items() if k in PLAUSIBILITY)
+    truth = result["ground_truth"]
+    assert truth["jerk_ratio"]["mean"] == pytest.approx(1.0)  # each GT clip against itself
+    assert truth["bone_length_range"]["mean"] < 1e-3 < result["metrics"]["bone_length_range"]["mean"]  # rigid GT
+    assert result["plausibility"]["foot_contact_height_m"] == 0.05
+    assert "ground-truth clip" in result["plausibility"]["jerk_ratio_reference"]
     assert {"generation", "features", "editing", "metrics"} <= set(result["timing_s"])
 
     rows = ResultsStore(out).table_rows()
@@ -244,6 +255,8 @@ def test_evaluate_checkpoint_with_a_steps_sweep(text_run, trained_evaluator, tmp
         assert row["evaluator_id"] == evaluator_id and row["protocol"] == "fast" and row["solver"] == "euler"
         assert row["dataset_id"] == result["data"]["dataset_id"] and "fid_ci" in row and "r_precision_top3" in row
     assert "edit_upper_body_ade" in rows[0] and pq.read_table(out / "results.parquet").num_rows == 4
+    assert {"foot_skating_ratio", "jerk_ratio", "edit_prediction_jerk_ratio"} <= set(rows[0])
+    assert "foot_skating_ratio" in rows[1]
     assert (out / "plots" / "fid_vs_nfe_step-00000002.png").stat().st_size > 0
     assert (out / "plots" / "metrics_vs_step.png").is_file()
 

@@ -43,5 +43,7 @@ def test_metrics_are_identical_on_one_and_two_ranks(tmp_path_factory):
     for section in ("metrics", "ground_truth", "editing"):
         assert one[section] == two[section], section  # every replication's value, exactly
     assert {"fid", "r_precision_top3", "multimodality", "APE_root", "joint_variance"} <= set(one["metrics"])
+    # plausibility medians need every clip of a replication: gathered from both ranks, paired with their GT clips
+    assert {"foot_skating_ratio", "jerk_ratio"} <= set(one["metrics"]) & set(one["editing"]["prediction"])
     assert set(one["editing"]) == {"prediction", "upper_body"}
     assert one["nfe"] == two["nfe"] == 2

@@ -25,6 +25,7 @@ from mfm.export import (
 )
 from mfm.export.bvh import _axis_rotation, _euler_yxz_degrees
 from mfm.export.render import caption_per_frame, edited_per_frame
+from mfm.features import features_to_joints_rigid
 from mfm.skeleton import HUMANML3D, KIT
 
 # ---------------------------------------------------------------------------------------------------
@@ -257,6 +258,20 @@ def test_blender_imports_the_bvh_at_the_input_positions(reference_data, tmp_path
 # ---------------------------------------------------------------------------------------------------
 # videos
 
+
+
+def test_bvh_of_the_rigid_decode_of_noisy_features_reparses_to_it(reference_data, tmp_path, caplog):
+    """Generated-like features (the real clip + 0.1 Std of noise): their ric bones stretch, the rigid decode's do
+    not, so its BVH reproduces it exactly (what pipeline/sampling.py writes)."""
+    folder = reference_data / "humanml3d"
+    features = np.load(folder / "new_joint_vecs_012314.npy")[:60]
+    noisy = features + 0.1 * np.load(folder / "Std.npy") * np.random.default_rng(1).standard_normal(features.shape)
+    rigid = features_to_joints_rigid(noisy.astype(np.float32), HUMANML3D)
+    with caplog.at_level(logging.WARNING, logger="mfm.export.bvh"):
+        path = write_bvh(tmp_path / "rigid.bvh", rigid, HUMANML3D)
+    assert not caplog.records  # no drifting bone lengths to warn about
+    parsed = read_bvh(path, HUMANML3D.joint_names).joints
+    np.testing.assert_allclose(parsed, rigid, rtol=0, atol=1e-5)
 
 def gif_frames(path) -> list[np.ndarray]:
     with Image.open(path) as im:

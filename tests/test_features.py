@@ -193,6 +193,73 @@ def test_root_angular_velocity_has_no_sign_flip_when_turning_past_180_degrees():
 
 
 # ---------------------------------------------------------------------------------------------------
+# rigid decode: ric positions fitted onto fixed bone lengths
+
+
+def bone_lengths_of(joints, skeleton: Skeleton = HUMANML3D) -> np.ndarray:
+    """(..., T, J, 3) -> (..., T, J-1) lengths of the bones ending at joints 1..J-1."""
+    return np.linalg.norm(joints[..., 1:, :] - joints[..., skeleton.parents[1:], :], axis=-1)
+
+
+@pytest.fixture
+def noisy_features(published, reference_data) -> np.ndarray:
+    """The published features + 0.1 * Std of Gaussian noise: what an imperfect generator gives."""
+    std = np.load(reference_data / "humanml3d" / "Std.npy").astype(np.float64)
+    features = published[1].astype(np.float64)
+    return features + 0.1 * std * np.random.default_rng(0).standard_normal(features.shape)
+
+
+def test_rigid_decode_of_clean_features_is_the_ric_decode(published):
+    features = published[1]
+    ric, rigid = F.features_to_joints(features, HUMANML3D), F.features_to_joints_rigid(features, HUMANML3D)
+    lengths = bone_lengths_of(rigid)
+    assert (lengths.max(axis=0) - lengths.min(axis=0)).max() < 1e-6  # float32 noise
+    assert np.abs(lengths - HUMANML3D.bone_lengths[1:]).max() < 1e-6
+    assert np.linalg.norm(rigid - ric, axis=-1).max() < 1e-5  # the preset's lengths are rounded to 1e-6 m
+
+
+def test_rigid_decode_of_noisy_features_keeps_the_skeleton_exactly(noisy_features):
+    ric = F.features_to_joints(noisy_features, HUMANML3D)
+    rigid = F.features_to_joints_rigid(noisy_features, HUMANML3D)
+    ric_lengths = bone_lengths_of(ric)
+    assert (ric_lengths.max(axis=0) - ric_lengths.min(axis=0)).max() > 0.05  # ric bones stretch by centimetres
+    np.testing.assert_allclose(bone_lengths_of(rigid), np.broadcast_to(HUMANML3D.bone_lengths[1:], ric_lengths.shape),
+                               rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(rigid[:, 0], ric[:, 0])  # the root stays where it was recovered
+    distance = np.linalg.norm(rigid - ric, axis=-1)
+    assert distance.mean() < 0.02 and distance.max() < 0.1  # rigid_joints' docstring: about 13 / 67 mm at this noise
+    # Every joint lies where its bone, aimed from the placed parent at the ric joint, ends: the nearest point
+    # to the ric joint the fixed bone allows.
+    parents = HUMANML3D.parents[1:]
+    aim = ric[:, 1:] - rigid[:, parents]
+    expected = rigid[:, parents] + aim / np.linalg.norm(aim, axis=-1, keepdims=True) * HUMANML3D.bone_lengths[1:, None]
+    np.testing.assert_allclose(rigid[:, 1:], expected, atol=1e-12)
+
+
+def test_rigid_decode_batches_takes_torch_and_other_bone_lengths(published, noisy_features):
+    batch = np.stack([noisy_features, published[1].astype(np.float64)])
+    rigid = F.features_to_joints_rigid(torch.from_numpy(batch), HUMANML3D)
+    assert isinstance(rigid, torch.Tensor) and rigid.dtype == torch.float64
+    for clip, features in zip(rigid.numpy(), batch):
+        np.testing.assert_allclose(clip, F.features_to_joints_rigid(features, HUMANML3D), atol=1e-12)
+    assert F.features_to_joints_rigid(published[1], HUMANML3D).dtype == np.float32
+
+    doubled = 2.0 * HUMANML3D.bone_lengths
+    lengths = bone_lengths_of(F.features_to_joints_rigid(noisy_features, HUMANML3D, bone_lengths=doubled))
+    np.testing.assert_allclose(lengths, np.broadcast_to(doubled[1:], lengths.shape), atol=1e-12)
+    # A skeleton without target lengths keeps each clip's median bone lengths.
+    unknown = dataclasses.replace(HUMANML3D, bone_lengths=None)
+    ric = F.features_to_joints(batch, HUMANML3D)
+    lengths = bone_lengths_of(F.rigid_joints(ric, unknown))
+    np.testing.assert_allclose(lengths, np.broadcast_to(np.median(bone_lengths_of(ric), axis=1)[:, None],
+                                                        lengths.shape), atol=1e-12)
+    with pytest.raises(ValueError, match="bone_lengths must be"):
+        F.rigid_joints(ric, HUMANML3D, bone_lengths=np.ones(3))
+    with pytest.raises(ValueError, match="joints must be"):
+        F.rigid_joints(ric[..., :3, :], HUMANML3D)
+
+
+# ---------------------------------------------------------------------------------------------------
 # KIT
 
 

@@ -14,8 +14,9 @@ from matplotlib import rcParams
 from PIL import Image
 
 from conftest import REPO_ROOT
+from mfm import metrics
 from mfm.export import read_bvh
-from mfm.features import features_to_joints
+from mfm.features import features_to_joints, features_to_joints_rigid, rigid_joints
 from mfm.layout import FeatureLayout
 from pipeline.inference import load_trained_model
 from pipeline.sampling import edited_joints, max_sample_length
@@ -34,6 +35,8 @@ def _load_entry_point():
 
 
 sample_entry = _load_entry_point()
+PLAUSIBILITY_FIGURES = {"bone_length_range", "bone_length_deviation", "floor_penetration", "foot_skating_ratio",
+                        "contact_foot_speed", "skating_foot_speed", "mean_jerk"}
 
 
 def _train_once(tmp_path_factory, name: str, manifest: Path, *overrides: str) -> Path:
@@ -82,10 +85,6 @@ def features_of(out: Path, results: dict) -> list[np.ndarray]:
     return [np.load(out / f["path"]) for s in results["samples"] for f in s["files"] if f["kind"] == "features"]
 
 
-def unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 def test_text_request_writes_every_file_and_describes_exactly_those(text_run, tmp_path, monkeypatch):
     monkeypatch.setitem(rcParams, "animation.ffmpeg_path", "no-such-ffmpeg-binary")  # force the GIF fallback
     out = tmp_path / "out"
@@ -101,26 +100,46 @@ def test_text_request_writes_every_file_and_describes_exactly_those(text_run, tm
         ("a person walks forward", 20, 1.0), ("a person walks forward", 20, 1.0),
         ("someone jumps", 27, 1.35), ("someone jumps", 27, 1.35)]
     assert files_on_disk(out) == files_described(results)
+    assert results["plausibility_thresholds"]["foot_contact_height_m"] == 0.05
+    assert results["plausibility_thresholds"]["foot_joints"] == ["left_ankle", "left_foot", "right_ankle",
+                                                                 "right_foot"]
 
     skeleton = trained.skeleton
     for s in results["samples"]:
+        # Every figure is defined: these untrained motions touch the floor (contact_foot_speed would be None if not).
+        assert set(s["plausibility"]) == PLAUSIBILITY_FIGURES and all(np.isfinite(list(s["plausibility"].values())))
         files = {f["kind"]: out / f["path"] for f in s["files"]}
         assert set(files) == {"features", "joints", "video", "bvh", "trajectory_plot"}
         features, joints = np.load(files["features"]), np.load(files["joints"])
         assert features.shape == (s["length"], 263) and joints.shape == (s["length"], 22, 3)
         np.testing.assert_allclose(joints, features_to_joints(features, skeleton), rtol=0, atol=1e-6)
+        figures = metrics.plausibility(joints, skeleton)
+        assert s["plausibility"]["mean_jerk"] == pytest.approx(figures.mean_jerk[0], abs=1e-6)
+        assert s["plausibility"]["floor_penetration"] == pytest.approx(figures.floor_penetration[0], abs=1e-6)
         assert files["video"].suffix == ".gif"
         with Image.open(files["video"]) as gif:
             assert gif.n_frames == s["length"]
         with Image.open(files["trajectory_plot"]) as png:
             assert png.format == "PNG"
-        # The network's ric output has drifting bone lengths: the BVH keeps the root path and every bone direction.
+        # The network's ric output has drifting bone lengths: the BVH is the rigid decode, reproduced exactly.
         bvh = read_bvh(files["bvh"], skeleton.joint_names)
         assert bvh.joints.shape == joints.shape and bvh.fps == pytest.approx(trained.fps)
-        np.testing.assert_allclose(bvh.joints[:, 0], joints[:, 0], atol=1e-5)
-        parents = skeleton.parents[1:]
-        np.testing.assert_allclose(unit(bvh.joints[:, 1:] - bvh.joints[:, parents]),
-                                   unit(joints[:, 1:] - joints[:, parents]), atol=1e-4)
+        np.testing.assert_allclose(bvh.joints, rigid_joints(joints, skeleton), atol=1e-5)
+        assert "rigid" in [f for f in s["files"] if f["kind"] == "bvh"][0]["recovered_with"]
+
+
+def test_rigid_decode_writes_joints_with_the_skeletons_bone_lengths(text_run, tmp_path):
+    out = tmp_path / "rigid"
+    results = sample(text_run, out, "--text", "a person walks", "--length", "20", "--decode", "rigid", "--no-video")
+    (record,) = results["samples"]
+    skeleton = load_trained_model(text_run).skeleton
+    joints = np.load(out / file_of(record, "joints"))
+    np.testing.assert_allclose(joints, features_to_joints_rigid(np.load(out / file_of(record, "features")), skeleton),
+                               atol=1e-6)
+    lengths = np.linalg.norm(joints[:, 1:] - joints[:, skeleton.parents[1:]], axis=-1)
+    np.testing.assert_allclose(lengths, np.broadcast_to(skeleton.bone_lengths[1:], lengths.shape), atol=1e-5)
+    assert "rigid" in [f for f in record["files"] if f["kind"] == "joints"][0]["recovered_with"]
+    np.testing.assert_allclose(read_bvh(out / file_of(record, "bvh"), skeleton.joint_names).joints, joints, atol=1e-5)
 
 
 def test_same_seed_same_motions_whatever_the_batching(text_run, tmp_path):

@@ -1,7 +1,8 @@
-"""Results people can look at: BVH files for Blender, stick-figure videos, and plots of the x̂1
-estimates along an ODE trajectory (MFM Figure 4)."""
+"""Results people can look at: BVH files for Blender, stick-figure videos, contact sheets (many motions on one
+PNG) and plots of the x̂1 estimates along an ODE trajectory (MFM Figure 4)."""
 
 from mfm.export.bvh import BVHJoint, BVHMotion, read_bvh, write_bvh
+from mfm.export.contact_sheet import render_contact_sheet
 from mfm.export.plots import estimates_to_joints, plot_x1_trajectory
 from mfm.export.render import ffmpeg_available, render_motion
 from mfm.export.stick import EDITED_COLOR, KEPT_COLOR, Camera
@@ -16,6 +17,7 @@ __all__ = [
     "ffmpeg_available",
     "plot_x1_trajectory",
     "read_bvh",
+    "render_contact_sheet",
     "render_motion",
     "write_bvh",
 ]

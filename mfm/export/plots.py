@@ -18,7 +18,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
-from mfm.export.stick import FLOOR_COLOR, KEPT_COLOR, Camera, bones, equal_scale_limits, floor_grid, metres
+from mfm.export.stick import FLOOR_COLOR, KEPT_COLOR, Camera, bones, draw_pose, equal_scale_limits, floor_grid, metres
 from mfm.features import features_to_joints
 from mfm.skeleton import Skeleton
 
@@ -136,9 +136,7 @@ def plot_x1_trajectory(
         ax.plot(grid[:, 0], grid[:, 1], color=FLOOR_COLOR, lw=0.5, zorder=0)
         for s, frame_points in enumerate(projected[k]):
             amount = SNAPSHOT_ALPHA[0] + (SNAPSHOT_ALPHA[1] - SNAPSHOT_ALPHA[0]) * s / max(len(shown) - 1, 1)
-            for a, b, _ in bone_list:
-                ax.plot(frame_points[[a, b], 0], frame_points[[a, b], 1], color=_shade(color, amount), lw=1.4,
-                        solid_capstyle="round", zorder=1 + s)
+            draw_pose(ax, frame_points, bone_list, _shade(color, amount), linewidth=1.4, zorder=1 + s)
         ax.text(0.5, 0.02, f"t = {t[k]:.2f}", transform=ax.transAxes, ha="center", va="bottom", fontsize=9)
     if title is not None:
         fig.text(0.5, 0.98, title, ha="center", va="top", fontsize=10)

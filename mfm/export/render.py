@@ -29,8 +29,9 @@ from mfm.export.stick import (
     TRAJECTORY_COLOR,
     Camera,
     as_numpy_joints,
-    equal_scale_limits,
+    bone_depths,
     bones,
+    equal_scale_limits,
     floor_grid,
     metres,
 )
@@ -166,10 +167,8 @@ def render_motion(
     spread = np.linalg.norm((arr - root[:, None])[..., [0, 2]], axis=-1).max()
     radius = 1.1 * max(spread, 0.35 * height, 0.3 * metre)  # half-width of the floor square in view
     projected = camera.project(arr)  # (T, J, 2)
-    depth = arr @ camera.look()  # (T, J): larger is farther from the camera
-    bone_depth = np.stack([depth[:, a] + depth[:, b] for a, b, _ in bone_list], axis=1)
     # Painter's order: farther bones get lower z-orders, in 2..3.
-    bone_zorder = 2 + np.argsort(np.argsort(-bone_depth, axis=1), axis=1) / len(bone_list)
+    bone_zorder = 2 + np.argsort(np.argsort(-bone_depths(arr, camera, bone_list), axis=1), axis=1) / len(bone_list)
     centres = camera.project(root)  # (T, 2)
     box = np.array([[x, y, z] for x in (-radius, radius) for y in (0.0, 1.1 * height) for z in (-radius, radius)])
     view_lo, view_hi = equal_scale_limits(camera.project(box), aspect=1.0 / AXES_HEIGHT)

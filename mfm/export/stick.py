@@ -1,6 +1,7 @@
-"""Stick-figure geometry shared by the video renderer and the trajectory plot: an orthographic camera
-(elevation/azimuth, Y up) projecting joints onto the image plane, the bone list, colours and the
-floor grid. Plain numpy; the matplotlib side is in render.py and plots.py."""
+"""Stick-figure geometry shared by the video renderer, the trajectory plot and the contact sheet: an orthographic
+camera (elevation/azimuth, Y up) projecting joints onto the image plane, the bone list, colours, the painter's
+order of the bones and the floor grid. Plain numpy, plus :func:`draw_pose`, the one call that puts a still pose
+on matplotlib axes; the figures themselves are in render.py, plots.py and contact_sheet.py."""
 
 from __future__ import annotations
 
@@ -8,12 +9,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from matplotlib.collections import LineCollection
 
 from mfm.skeleton import Skeleton
 
 KEPT_COLOR = "#2f6db5"  # blue: frames/joints taken from the source motion
 EDITED_COLOR = "#e0462c"  # red: frames/joints the model generated or edited
 CHAIN_COLORS = ("#d1495b", "#2f6db5", "#222222", "#edae49", "#00798c", "#6c4f9e", "#66a182")
+SIDE_COLORS = {"left": "#2f6db5", "right": "#d1495b", "centre": "#333333"}  # bones by the body side they are on
 FLOOR_COLOR = "#b8b8b8"
 TRAJECTORY_COLOR = "#7a7a7a"
 UNIT_SCALE = {"m": 1.0, "mm": 1000.0}  # skeleton units per metre
@@ -57,6 +60,35 @@ def as_numpy_joints(joints, skeleton: Skeleton, what: str = "joints") -> np.ndar
 def bones(skeleton: Skeleton) -> list[tuple[int, int, int]]:
     """(parent, child, chain index) of every bone, in kinematic-chain order."""
     return [(a, b, c) for c, chain in enumerate(skeleton.kinematic_chains) for a, b in zip(chain[:-1], chain[1:])]
+
+
+def bone_sides(skeleton: Skeleton) -> list[str]:
+    """"left", "right" or "centre" for every bone of :func:`bones`, from its child joint's name (both skeletons
+    name their sided joints left_* / right_*)."""
+    names = skeleton.joint_names
+    return [next((side for side in ("left", "right") if names[child].startswith(side)), "centre")
+            for _, child, _ in bones(skeleton)]
+
+
+def bone_depths(joints: np.ndarray, camera: Camera, bone_list: list[tuple[int, int, int]]) -> np.ndarray:
+    """(..., J, 3) joints -> (..., B) depth of every bone's midpoint along the viewing direction (larger is
+    farther): drawing bones in decreasing depth (painter's order) puts near limbs over far ones."""
+    depth = joints @ camera.look()
+    return np.stack([(depth[..., a] + depth[..., b]) / 2 for a, b, _ in bone_list], axis=-1)
+
+
+def draw_pose(ax, points: np.ndarray, bone_list: list[tuple[int, int, int]], colors, *,
+              depths: np.ndarray | None = None, linewidth: float = 2.0, zorder: float = 2.0) -> LineCollection:
+    """Draw one pose from its image points (J, 2) as a single artist: one segment per bone, coloured by
+    ``colors`` (one per bone, or one for all), in painter's order when the bones' ``depths`` (B,) are given
+    (a collection draws its segments in order), else in bone order."""
+    segments = np.stack([points[[a, b]] for a, b, _ in bone_list])  # (B, 2, 2)
+    colors = [colors] * len(bone_list) if isinstance(colors, (str, tuple)) else list(colors)
+    order = np.arange(len(bone_list)) if depths is None else np.argsort(-np.asarray(depths), kind="stable")
+    lines = LineCollection(segments[order], colors=[colors[i] for i in order], linewidths=linewidth,
+                           capstyle="round", zorder=zorder)
+    ax.add_collection(lines)
+    return lines
 
 
 def metres(skeleton: Skeleton) -> float:

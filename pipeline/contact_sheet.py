@@ -1,0 +1,138 @@
+"""Contact sheets of a checkpoint's samples, or of the dataset clips of the same captions: the engine behind
+``launch/contact_sheet.py`` (the drawing is :func:`mfm.export.render_contact_sheet`).
+
+Generated rows come from :func:`pipeline.sampling.run_sampling` itself (into a temporary folder, without video or
+BVH), so a sheet shows what ``launch/sample.py`` writes for the same prompts, lengths, solver, steps, guidance and
+seed: row i is sample i of a request with one sample per prompt, its joints decoded as ``decode`` says.
+
+Prompts are texts, or with ``captions_from_manifest=SPLIT`` the first caption of every motion of that split of the
+dataset manifest (the one the checkpoint was trained on unless ``manifest`` is given). Those rows are generated with
+the length of the part of the clip the caption describes (unless ``seconds`` are given; clamped to the model's
+window like any sample), so the same request with ``ground_truth=True`` draws the clips themselves, decoded the same
+way: the sheet to compare with, row for row.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mfm.export import render_contact_sheet
+from mfm.features import features_to_joints, features_to_joints_rigid
+from mfm.skeleton import get_skeleton
+from pipeline.data import Manifest, iter_motions, open_manifest
+from pipeline.inference import load_trained_model, skeleton_from_spec
+from pipeline.sampling import JOINT_DECODES, SampleRequest, SamplingError, run_sampling
+
+DECODERS = {"ric": features_to_joints, "rigid": features_to_joints_rigid}  # the keys of JOINT_DECODES
+
+
+@dataclasses.dataclass
+class ContactSheetRequest:
+    """One contact sheet: what to draw (see the module docstring) and, for generated rows, how to sample."""
+
+    out: str | Path  # the PNG to write
+    checkpoint: str | Path | None = None  # a step-XXXXXXXX or run folder; ground truth needs it only for the dataset
+    texts: Sequence[str] = ()
+    captions_from_manifest: str | None = None  # a split name: its motions' first captions are the prompts
+    manifest: str | Path | None = None  # the dataset for captions_from_manifest; default: the checkpoint's
+    ground_truth: bool = False  # draw the dataset clips of the captions instead of sampling
+    frames: int = 6  # panels per row
+    seconds: Sequence[float] = ()  # one for every prompt or one per prompt; default: see the module docstring
+    steps: int | None = None
+    solver: str | None = None
+    guidance: float = 2.5
+    seed: int = 0
+    decode: str = "ric"  # a key of pipeline.sampling.JOINT_DECODES
+    device: str = "auto"
+    weights: str = "ema"
+    text_weights: str | None = None
+
+    def __post_init__(self) -> None:
+        if bool(self.texts) == bool(self.captions_from_manifest):
+            raise SamplingError("give texts or a manifest split to take captions from (exactly one of the two)")
+        if self.ground_truth and not self.captions_from_manifest:
+            raise SamplingError("ground truth exists for the dataset's own captions only: take them from a manifest "
+                                "split")
+        if self.checkpoint is None and not (self.ground_truth and self.manifest is not None):
+            raise SamplingError("generating needs a checkpoint (ground truth: a checkpoint or a manifest)")
+        if self.decode not in JOINT_DECODES:
+            raise SamplingError(f"decode must be one of {sorted(JOINT_DECODES)}, got {self.decode!r}")
+        if not isinstance(self.frames, int) or self.frames < 1:
+            raise SamplingError(f"frames must be a positive int, got {self.frames!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class DatasetCaption:
+    motion_id: str
+    text: str
+    features: np.ndarray  # (L, D) un-normalised: the part of the motion the caption describes
+
+
+def first_captions(manifest: Manifest, split: str) -> list[DatasetCaption]:
+    """The first caption of every motion of ``split``, in manifest order, with the span of the motion it describes."""
+    backend = "webdataset" if manifest.split(split).get("shards") else "parquet"  # whichever format was built
+    captions = []
+    for record in iter_motions(manifest, split, backend):
+        start, end = (int(frame) for frame in record.spans[0])
+        captions.append(DatasetCaption(record.id, record.captions[0], record.features[start:end]))
+    return captions
+
+
+def _dataset(request: ContactSheetRequest) -> Manifest:
+    location = request.manifest
+    if location is None:
+        location = load_trained_model(request.checkpoint).data.get("location")
+        if not location:
+            raise SamplingError(f"{request.checkpoint} records no dataset location: give the manifest")
+    try:
+        return open_manifest(location)
+    except (OSError, ValueError) as err:  # ManifestError is a ValueError
+        raise SamplingError(f"cannot read the dataset manifest {location}: {err}") from err
+
+
+def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
+    """Draw the request's sheet into ``request.out``; returns what it shows (mode, rows, and for generated
+    rows the sampling settings as results.json records them)."""
+    split = request.captions_from_manifest
+    captions = []
+    if split:
+        manifest = _dataset(request)
+        try:
+            captions = first_captions(manifest, split)
+        except ValueError as err:
+            raise SamplingError(str(err)) from err
+        if not captions:
+            raise SamplingError(f"{manifest.location}: split {split!r} holds no motions")
+    if request.ground_truth:
+        spec = manifest.data["feature_spec"]
+        skeleton, fps = skeleton_from_spec(spec), float(spec["fps"])
+        motions = [DECODERS[request.decode](c.features, skeleton) for c in captions]
+        titles = [c.text for c in captions]
+        header = f"ground truth: first caption of every {split} motion of {Path(manifest.location).parent.name}"
+        info: dict[str, Any] = {"mode": "ground_truth", "manifest": manifest.location}
+    else:
+        titles = list(request.texts) or [c.text for c in captions]
+        with tempfile.TemporaryDirectory(prefix="contact-sheet-") as folder:
+            results = run_sampling(SampleRequest(
+                checkpoint=request.checkpoint, out_dir=folder, texts=titles, seconds=request.seconds,
+                lengths=[len(c.features) for c in captions] if not request.seconds else [],
+                steps=request.steps, solver=request.solver, guidance=request.guidance, seed=request.seed,
+                device=request.device, weights=request.weights, text_weights=request.text_weights,
+                decode=request.decode, video=False, bvh=False, progress=False))
+            motions = [np.load(Path(folder) / f["path"]) for s in results["samples"] for f in s["files"]
+                       if f["kind"] == "joints"]
+        skeleton, fps = get_skeleton(results["skeleton"]), float(results["fps"])
+        run = Path(results["checkpoint"]).parents[1].name  # checkpoints live in RUN/checkpoints/step-XXXXXXXX
+        header = (f"generated: {run} step {results['step']}, {results['solver']} {results['steps']} steps, "
+                  f"guidance {results['guidance']:g}, seed {results['seed']}")
+        info = {"mode": "generated", **{key: results[key] for key in ("checkpoint", "step", "solver", "steps",
+                                                                        "guidance", "seed")}}
+    path = render_contact_sheet(request.out, motions, titles, skeleton, frames=request.frames, fps=fps, title=header)
+    return {**info, "out": str(path), "decode": request.decode,
+            "rows": [{"text": text, "frames": len(joints)} for text, joints in zip(titles, motions)]}

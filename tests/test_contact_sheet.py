@@ -1,0 +1,129 @@
+"""Contact sheets: the drawing (mfm.export.contact_sheet) from hand-made joints, and launch/contact_sheet.py end to
+end on the tiny text checkpoint test_sample_cli.py trains, generated and ground-truth rows."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+from matplotlib.colors import to_rgb
+from PIL import Image
+
+from conftest import REPO_ROOT
+from mfm.export import render_contact_sheet
+from mfm.export.contact_sheet import HEADER_PX, ROW_TITLE_PX, sheet_frames
+from mfm.export.stick import SIDE_COLORS, bone_sides
+from mfm.skeleton import HUMANML3D, KIT
+from pipeline.contact_sheet import ContactSheetRequest, first_captions, run_contact_sheet
+from pipeline.data import open_manifest
+from pipeline.inference import load_trained_model
+from pipeline.sampling import SamplingError, max_sample_length
+from test_export import synthetic_clip
+from test_sample_cli import text_run  # noqa: F401  (the session's tiny checkpoint, a fixture)
+
+
+def pixels(path) -> np.ndarray:
+    with Image.open(path) as im:
+        assert im.format == "PNG"
+        return np.asarray(im.convert("RGB"), dtype=np.int32)
+
+
+def near(image: np.ndarray, color: str, tolerance: float = 40.0) -> int:
+    return int((np.linalg.norm(image - np.array(to_rgb(color)) * 255, axis=-1) < tolerance).sum())
+
+
+def ink(image: np.ndarray) -> int:
+    """Pixels clearly darker than the white background."""
+    return int((image.sum(-1) < 600).sum())
+
+
+def test_sheet_has_one_row_per_motion_of_the_expected_size(tmp_path):
+    motions = [synthetic_clip(HUMANML3D, frames=n, seed=n) for n in (30, 12, 4)]
+    motions[2] = motions[2][:3]  # shorter than a row: frames repeat
+    out = render_contact_sheet(tmp_path / "sheet.png", motions, ["walks", "jumps", "a very long caption " * 20],
+                               HUMANML3D, frames=4, panel_px=100, title="hand-made joints")
+    image = pixels(out)
+    row_px = ROW_TITLE_PX + 100
+    assert image.shape == (HEADER_PX + 3 * row_px, 4 * 100, 3)
+    for row in range(3):
+        top = HEADER_PX + row * row_px
+        assert ink(image[top:top + ROW_TITLE_PX]) > 20  # the caption
+        for column in range(4):
+            panel = image[top + ROW_TITLE_PX:top + row_px, column * 100:(column + 1) * 100]
+            # Both sides of the body are drawn in their colours in every panel.
+            assert near(panel, SIDE_COLORS["left"]) > 10 and near(panel, SIDE_COLORS["right"]) > 10
+    assert sheet_frames(30, 4).tolist() == [0, 10, 19, 29] and sheet_frames(3, 4).tolist() == [0, 1, 1, 2]
+
+
+def test_sheet_of_a_kit_motion_in_millimetres_and_bad_input(tmp_path):
+    assert set(bone_sides(KIT)) == {"left", "right", "centre"}
+    kit = synthetic_clip(KIT, frames=10, seed=2, metre=1000.0)
+    out = render_contact_sheet(tmp_path / "kit.png", [kit], ["kit"], KIT, frames=3, panel_px=80)
+    assert pixels(out).shape == (HEADER_PX + ROW_TITLE_PX + 80, 240, 3)
+    with pytest.raises(ValueError, match="1 titles for 2 motions"):
+        render_contact_sheet(tmp_path / "x.png", [kit, kit], ["one"], KIT)
+    with pytest.raises(ValueError, match="frames must be"):
+        render_contact_sheet(tmp_path / "x.png", [kit], ["one"], KIT, frames=0)
+    with pytest.raises(ValueError, match="motion 0 must be"):
+        render_contact_sheet(tmp_path / "x.png", [kit[..., :2]], ["one"], KIT)
+
+
+def _load_entry_point():
+    spec = importlib.util.spec_from_file_location("launch_contact_sheet", REPO_ROOT / "launch" / "contact_sheet.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+sheet_entry = _load_entry_point()
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("single_thread")
+def test_cli_samples_one_row_per_prompt(text_run, tmp_path, capsys):  # noqa: F811
+    prompts = tmp_path / "prompts.txt"
+    prompts.write_text("someone jumps\n")
+    out = tmp_path / "sheet.png"
+    code = sheet_entry.main(["--checkpoint", str(text_run), "--text", "a person walks forward", "--prompts-file",
+                             str(prompts), "--frames", "5", "--steps", "4", "--seconds", "1", "--out", str(out)])
+    assert code == 0 and "2 row(s) of 5 frames (generated)" in capsys.readouterr().out
+    assert pixels(out).shape == (HEADER_PX + 2 * (ROW_TITLE_PX + 160), 5 * 160, 3)
+    assert sheet_entry.main(["--checkpoint", str(text_run), "--out", str(out)]) == 2
+    assert "exactly one" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("single_thread")
+def test_generated_and_ground_truth_sheets_of_the_manifest_captions_match_row_for_row(text_run, tmp_path):  # noqa: F811
+    trained = load_trained_model(text_run)
+    captions = first_captions(open_manifest(trained.data["location"]), "test")
+    common = dict(checkpoint=text_run, captions_from_manifest="test", frames=3, steps=2)
+    generated = run_contact_sheet(ContactSheetRequest(out=tmp_path / "generated.png", **common))
+    truth = run_contact_sheet(ContactSheetRequest(out=tmp_path / "truth.png", ground_truth=True, decode="rigid",
+                                                  **common))
+    expected = [{"text": c.text, "frames": len(c.features)} for c in captions]
+    limit = max_sample_length(trained)  # generated clips are clamped to the model's window (32 frames here)
+    assert generated["mode"] == "generated" and truth["mode"] == "ground_truth"
+    assert truth["rows"] == expected  # the clips' captioned spans
+    assert generated["rows"] == [{**row, "frames": min(row["frames"], limit)} for row in expected]
+    assert (generated["steps"], generated["guidance"], truth["decode"]) == (2, 2.5, "rigid")
+    assert pixels(tmp_path / "truth.png").shape == pixels(tmp_path / "generated.png").shape == \
+        (HEADER_PX + len(captions) * (ROW_TITLE_PX + 160), 3 * 160, 3)
+    # The ground-truth rows are the clips: with only a manifest (no checkpoint) the same sheet comes out.
+    alone = run_contact_sheet(ContactSheetRequest(out=tmp_path / "alone.png", manifest=trained.data["location"],
+                                                  captions_from_manifest="test", ground_truth=True, frames=3,
+                                                  decode="rigid"))
+    assert alone["rows"] == expected
+    np.testing.assert_array_equal(pixels(tmp_path / "alone.png"), pixels(tmp_path / "truth.png"))
+
+
+def test_bad_requests_say_what_is_wrong(tmp_path):
+    with pytest.raises(SamplingError, match="exactly one"):
+        ContactSheetRequest(out=tmp_path / "x.png", checkpoint="run", texts=["a"], captions_from_manifest="train")
+    with pytest.raises(SamplingError, match="dataset's own captions"):
+        ContactSheetRequest(out=tmp_path / "x.png", checkpoint="run", texts=["a"], ground_truth=True)
+    with pytest.raises(SamplingError, match="needs a checkpoint"):
+        ContactSheetRequest(out=tmp_path / "x.png", texts=["a"])
+    with pytest.raises(SamplingError, match="decode"):
+        ContactSheetRequest(out=tmp_path / "x.png", checkpoint="run", texts=["a"], decode="fk")
