@@ -16,6 +16,7 @@ compare row for row.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from pathlib import Path
@@ -66,6 +67,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(f"{len(sheet['rows'])} row(s) of {args.frames} frames ({sheet['mode']}) in {sheet['out']}")
+    report = Path(sheet["out"]).with_suffix(".json")
+    report.write_text(json.dumps(sheet, indent=1))
+    if "against_dataset_clips" in sheet:
+        figures = sheet["against_dataset_clips"]
+        print(f"caption match {figures['caption_match']:.2f}; medians, generated | ground truth:")
+        for name, pair in figures["plausibility"].items():
+            print(f"  {name:<22} " + " | ".join("—" if v is None else f"{v:.3f}" for v in pair.values()))
+    print(f"figures in {report}")
     return 0
 
 

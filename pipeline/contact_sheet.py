@@ -9,7 +9,9 @@ Prompts are texts, or with ``captions_from_manifest=SPLIT`` the first caption of
 dataset manifest (the one the checkpoint was trained on unless ``manifest`` is given). Those rows are generated with
 the length of the part of the clip the caption describes (unless ``seconds`` are given; clamped to the model's
 window like any sample), so the same request with ``ground_truth=True`` draws the clips themselves, decoded the same
-way: the sheet to compare with, row for row.
+way: the sheet to compare with, row for row. Such a generated sheet is also measured against those clips
+(:func:`compare_with_clips`): the plausibility figures of the samples beside the clips', and whether each sample is
+nearest to its own caption's clip; the command writes them beside the PNG (``.json``).
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ import numpy as np
 
 from mfm.export import render_contact_sheet
 from mfm.features import features_to_joints, features_to_joints_rigid
+from mfm.metrics import plausibility, plausibility_settings, plausibility_side_by_side
+from mfm.skeleton import Skeleton
 from mfm.skeleton import get_skeleton
 from pipeline.data import Manifest, iter_motions, open_manifest
 from pipeline.inference import load_trained_model, skeleton_from_spec
@@ -84,6 +88,40 @@ def first_captions(manifest: Manifest, split: str) -> list[DatasetCaption]:
     return captions
 
 
+def mean_joint_error(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean joint distance of two (T, J, 3) motions over their common frames. No alignment: recovered motions
+    start with the root above the origin, facing +z."""
+    frames = min(len(a), len(b))
+    return float(np.linalg.norm(a[:frames] - b[:frames], axis=-1).mean())
+
+
+def compare_with_clips(motions: Sequence[np.ndarray], clips: Sequence[np.ndarray], skeleton: Skeleton,
+                       ids: Sequence[str]) -> dict[str, Any]:
+    """Samples of the dataset's captions against the clips the captions describe (row i ↔ clip i): medians of the
+    plausibility figures, generated beside ground truth (jerk ratio: each sample over its own clip), and per row
+    the mean joint error to its own clip and the clip it is nearest to (``caption_match``: the share of rows whose
+    nearest clip is their own)."""
+    generated = plausibility_figures(motions, skeleton)
+    truth = plausibility_figures(clips, skeleton)
+    generated = generated.with_jerk_reference(truth.mean_jerk)
+    errors = np.array([[mean_joint_error(m, c) for c in clips] for m in motions])
+    nearest = errors.argmin(axis=1)
+    rows = [{"id": ids[i], "error_to_own_clip_m": float(errors[i, i]), "nearest_clip": ids[int(nearest[i])],
+             **generated.clip(i)} for i in range(len(motions))]
+    return {"plausibility": plausibility_side_by_side(generated, truth), "thresholds": plausibility_settings(skeleton),
+            "caption_match": float(np.mean(nearest == np.arange(len(motions)))),
+            "median_error_to_own_clip_m": float(np.median(np.diag(errors))), "rows": rows}
+
+
+def plausibility_figures(motions: Sequence[np.ndarray], skeleton: Skeleton):
+    """:func:`mfm.metrics.plausibility` of motions of different lengths (padded, with their lengths)."""
+    lengths = [len(m) for m in motions]
+    padded = np.zeros((len(motions), max(lengths), *motions[0].shape[1:]))
+    for i, m in enumerate(motions):
+        padded[i, : len(m)] = m
+    return plausibility(padded, skeleton, lengths)
+
+
 def _dataset(request: ContactSheetRequest) -> Manifest:
     location = request.manifest
     if location is None:
@@ -133,6 +171,10 @@ def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
                   f"guidance {results['guidance']:g}, seed {results['seed']}")
         info = {"mode": "generated", **{key: results[key] for key in ("checkpoint", "step", "solver", "steps",
                                                                         "guidance", "seed")}}
+        if captions and not request.seconds:
+            clips = [DECODERS[request.decode](c.features[: len(m)], skeleton) for c, m in zip(captions, motions)]
+            info["against_dataset_clips"] = compare_with_clips(motions, clips, skeleton,
+                                                               [c.motion_id for c in captions])
     path = render_contact_sheet(request.out, motions, titles, skeleton, frames=request.frames, fps=fps, title=header)
     return {**info, "out": str(path), "decode": request.decode,
             "rows": [{"text": text, "frames": len(joints)} for text, joints in zip(titles, motions)]}

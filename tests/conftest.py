@@ -35,3 +35,13 @@ def reference_data() -> Path:
     if not REFERENCE_DATA.is_dir():
         pytest.skip(f"reference data not found at {REFERENCE_DATA} (set MFM_SHARED_DIR or place shared/ beside the checkout)")
     return REFERENCE_DATA
+
+
+def embedded_dataset_once(tmp_path_factory) -> Path:
+    """The embedded default dataset (the real DeepMimic clips with MiniLM captions), built once per test session."""
+    from preprocess.shards import BuildConfig, build_dataset
+
+    data = tmp_path_factory.getbasetemp() / "deepmimic-minilm"
+    if not (data / "manifest.json").exists():
+        build_dataset(BuildConfig(out=data, progress=False))  # the defaults: deepmimic + minilm
+    return data

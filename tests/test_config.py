@@ -19,7 +19,7 @@ from pipeline.config import (
     to_yaml,
 )
 
-PRESETS = ["default", "humanml3d", "kit", "synthetic", "tiny"]
+PRESETS = ["default", "humanml3d", "humanml3d_mfm", "kit", "synthetic", "tiny"]
 
 
 def test_all_expected_presets_exist():
@@ -43,6 +43,11 @@ def test_paper_presets_match_mfm():
     assert (hml.model.feature_dim, hml.model.latent_dim, hml.model.ff_dim) == (263, 512, 1024)
     assert (hml.model.num_layers, hml.model.num_heads, hml.model.dropout) == (8, 4, 0.1)
     assert (hml.data.window, hml.data.batch_size, hml.optim.lr, hml.train.max_steps) == (196, 128, 1e-4, 600_000)
+    assert (hml.model.prediction, hml.model.cond_scaling) == ("data", "rms")  # ours: docs/generator-study.md
+    mfm = load_config(TrainConfig, "humanml3d_mfm")  # MFM's recipe exactly: only the parametrisation differs
+    assert (mfm.model.prediction, mfm.model.cond_scaling) == ("velocity", "none")
+    assert dataclasses.replace(mfm.model, prediction="data", cond_scaling="rms") == hml.model
+    assert (mfm.data, mfm.optim) == (hml.data, hml.optim)
     kit = load_config(TrainConfig, "kit")
     assert (kit.model.feature_dim, kit.train.max_steps) == (251, 300_000)
     tiny = load_config(TrainConfig, "tiny")

@@ -14,8 +14,14 @@ from conftest import REPO_ROOT
 from mfm.export import render_contact_sheet
 from mfm.export.contact_sheet import HEADER_PX, ROW_TITLE_PX, sheet_frames
 from mfm.export.stick import SIDE_COLORS, bone_sides
-from mfm.skeleton import HUMANML3D, KIT
-from pipeline.contact_sheet import ContactSheetRequest, first_captions, run_contact_sheet
+from mfm.skeleton import HUMANML3D, KIT, get_skeleton
+from pipeline.contact_sheet import (
+    ContactSheetRequest,
+    compare_with_clips,
+    first_captions,
+    mean_joint_error,
+    run_contact_sheet,
+)
 from pipeline.data import open_manifest
 from pipeline.inference import load_trained_model
 from pipeline.sampling import SamplingError, max_sample_length
@@ -108,6 +114,13 @@ def test_generated_and_ground_truth_sheets_of_the_manifest_captions_match_row_fo
     assert truth["rows"] == expected  # the clips' captioned spans
     assert generated["rows"] == [{**row, "frames": min(row["frames"], limit)} for row in expected]
     assert (generated["steps"], generated["guidance"], truth["decode"]) == (2, 2.5, "rigid")
+    # The generated sheet is measured against the clips of its captions; the ground truth against itself is exact.
+    against = generated["against_dataset_clips"]
+    assert [row["id"] for row in against["rows"]] == [c.motion_id for c in captions]
+    assert 0.0 <= against["caption_match"] <= 1.0 and against["median_error_to_own_clip_m"] > 0
+    assert against["plausibility"]["bone_length_range"]["ground_truth"] < 1e-4
+    assert set(against["plausibility"]["bone_length_range"]) == {"generated", "ground_truth"}
+    assert "against_dataset_clips" not in truth
     assert pixels(tmp_path / "truth.png").shape == pixels(tmp_path / "generated.png").shape == \
         (HEADER_PX + len(captions) * (ROW_TITLE_PX + 160), 3 * 160, 3)
     # The ground-truth rows are the clips: with only a manifest (no checkpoint) the same sheet comes out.
@@ -116,6 +129,18 @@ def test_generated_and_ground_truth_sheets_of_the_manifest_captions_match_row_fo
                                                   decode="rigid"))
     assert alone["rows"] == expected
     np.testing.assert_array_equal(pixels(tmp_path / "alone.png"), pixels(tmp_path / "truth.png"))
+
+
+def test_comparison_with_the_captions_clips_finds_each_samples_own_clip():
+    skeleton = get_skeleton("humanml3d")
+    rng = np.random.default_rng(0)
+    clips = [rng.normal(size=(n, 22, 3)) for n in (12, 9, 15)]
+    swapped = [clips[1][:9], clips[0][:9] + 0.01, clips[2]]  # rows 0 and 1 show each other's clip
+    report = compare_with_clips(swapped, clips, skeleton, ["a", "b", "c"])
+    assert [row["nearest_clip"] for row in report["rows"]] == ["b", "a", "c"]
+    assert report["caption_match"] == pytest.approx(1 / 3)
+    assert report["rows"][2]["error_to_own_clip_m"] == 0.0 and report["rows"][2]["jerk_ratio"] == pytest.approx(1.0)
+    assert report["rows"][0]["error_to_own_clip_m"] == pytest.approx(mean_joint_error(clips[1][:9], clips[0]))
 
 
 def test_bad_requests_say_what_is_wrong(tmp_path):

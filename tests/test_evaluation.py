@@ -19,6 +19,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from conftest import embedded_dataset_once
 from eval_worker import (
     SMALL_PROTOCOL,
     TINY_EVALUATOR,
@@ -382,10 +383,7 @@ def test_embedded_default_end_to_end_with_the_fast_protocol(tmp_path_factory, tm
     """The real DeepMimic clips (the embedded default dataset): build, train a tiny model, train the evaluator,
     evaluate with the fast protocol through the entry point."""
     from launch.train_evaluator import main as train_evaluator
-    from preprocess.shards import BuildConfig, build_dataset
-
-    data = tmp_path_factory.mktemp("embedded") / "deepmimic-minilm"
-    build_dataset(BuildConfig(out=data, progress=False))  # the defaults: deepmimic + minilm
+    data = embedded_dataset_once(tmp_path_factory)
     manifest = data / "manifest.json"
     run = train_tiny_model(manifest, tmp_path / "run", "data.window=96", "data.batch_size=5", steps=3)
     tiny = [f"model.{k}={v}" for k, v in TINY_EVALUATOR.items()]

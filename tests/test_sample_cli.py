@@ -13,7 +13,7 @@ import torch
 from matplotlib import rcParams
 from PIL import Image
 
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, embedded_dataset_once
 from mfm import metrics
 from mfm.export import read_bvh
 from mfm.features import features_to_joints, features_to_joints_rigid, rigid_joints
@@ -255,10 +255,8 @@ def test_bad_requests_fail_with_a_clear_message(text_run, tmp_path, capsys):
 
 def test_embedded_deepmimic_action_demo(tmp_path_factory, tmp_path):
     """The real demo: an action model on the embedded DeepMimic dataset samples its clips' class names."""
-    from preprocess.shards import BuildConfig, build_dataset
-
-    data = tmp_path_factory.getbasetemp() / "deepmimic-minilm"
-    manifest = build_dataset(BuildConfig(out=data, progress=False))
+    data = embedded_dataset_once(tmp_path_factory)
+    manifest = json.loads((data / "manifest.json").read_text())
     assert {"cartwheel", "backflip", "walk"} <= set(manifest["action_classes"])
     run = _train_once(tmp_path_factory, "sampling-deepmimic-run", data / "manifest.json", "model.num_actions=1")
     results = sample(run, tmp_path / "out", "--action", "cartwheel", "--action", "backflip", "--seconds", "1.5",
