@@ -87,9 +87,12 @@ def target_velocity(x0: torch.Tensor, x1: torch.Tensor, sigma_min: float = SIGMA
     return x1 - (1 - sigma_min) * x0
 
 
-def masked_mse(prediction: torch.Tensor, target: torch.Tensor, frame_mask: torch.Tensor) -> torch.Tensor:
+def masked_mse(
+    prediction: torch.Tensor, target: torch.Tensor, frame_mask: torch.Tensor, sample_weight: torch.Tensor | None = None
+) -> torch.Tensor:
     """MDM/MFM's ``masked_l2``: per sample Σ((target − prediction)² · mask) / (Σ mask · D), then the mean over
-    the batch, for (B, T, D) tensors and a (B, T) frame mask.
+    the batch, for (B, T, D) tensors and a (B, T) frame mask; each sample's term times ``sample_weight`` (B,) if
+    given.
 
     Every sample weighs the same whatever its length (as in the reference). This is also what makes data
     parallelism exact: the mean of equal-sized per-rank means is the global mean, with no extra collective.
@@ -97,7 +100,28 @@ def masked_mse(prediction: torch.Tensor, target: torch.Tensor, frame_mask: torch
     mask = frame_mask.unsqueeze(-1).float()
     squared_error = ((target.float() - prediction.float()).square() * mask).sum(dim=(1, 2))
     per_sample = squared_error / (mask.sum(dim=(1, 2)) * prediction.shape[-1]).clamp_min(1.0)
+    if sample_weight is not None:
+        per_sample = per_sample * sample_weight.to(per_sample.dtype)
     return per_sample.mean()
+
+
+LOSS_SPACES = ("velocity", "data")
+
+
+def loss_space_weight(t: torch.Tensor, loss_space: str, sigma_min: float = SIGMA_MIN) -> torch.Tensor | None:
+    """Per-sample weight that turns the velocity error into the error of the motion it implies.
+
+    'velocity': none (MFM). 'data': ``(1 − (1 − σ_min)·t)²``; since ``v − u = (x̂1 − x1) / (1 − (1 − σ_min)·t)`` on
+    the path, the weighted velocity loss is the MSE of x̂1. The velocity loss weighs an x̂1 error by
+    ``1/(1 − t)²``, up to 400× (with :data:`mfm.path.MIN_NOISE_SCALE`) at the end of the path, where a
+    10-step Euler sampler never evaluates the model, and 4× at t = 0.5: the data loss spreads the model's
+    accuracy evenly along the path.
+    """
+    if loss_space == "velocity":
+        return None
+    if loss_space != "data":
+        raise ValueError(f"loss_space must be one of {LOSS_SPACES}, got {loss_space!r}")
+    return (1 - (1 - sigma_min) * t.float()).square()
 
 
 def flow_matching_loss(
@@ -112,8 +136,14 @@ def flow_matching_loss(
     t: torch.Tensor | None = None,
     x0: torch.Tensor | None = None,
     model_kwargs: Mapping[str, Any] | None = None,
+    loss_space: str = "velocity",
+    temporal_weight: float = 0.0,
+    bone_weight: float = 0.0,
+    geometry: MotionGeometry | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """MFM's conditional flow-matching loss on a padded batch.
+    """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
+    weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
+    ``bone_weight`` × :func:`bone_length_loss` (which needs ``geometry``).
 
     x1: (B, T, D) normalised motion features, padded beyond ``lengths`` (B,).
     Random draws, in this order, all from ``generator`` if given (deterministic tests and resume):
@@ -139,8 +169,89 @@ def flow_matching_loss(
     model_generator = generator if cond_mask is None else None
     velocity = model(x_t, t, cond, lengths, cond_mask=cond_mask, generator=model_generator, **(model_kwargs or {}))
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
-    loss = masked_mse(velocity, target_velocity(x0, x1, sigma_min), frame_mask)
+    target = target_velocity(x0, x1, sigma_min)
+    weight = loss_space_weight(t, loss_space, sigma_min)
+    loss = masked_mse(velocity, target, frame_mask, weight)
+    if temporal_weight > 0:
+        loss = loss + temporal_weight * temporal_loss(velocity, target, t, frame_mask, sigma_min)
+    if bone_weight > 0:
+        if geometry is None:
+            raise ValueError("bone_weight > 0 needs the motion geometry (normalisation and skeleton)")
+        x1_hat = x1.float() + implied_motion_error(velocity, target, t, sigma_min)
+        loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry)
     return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
+
+
+def implied_motion_error(
+    velocity: torch.Tensor, target: torch.Tensor, t: torch.Tensor, sigma_min: float = SIGMA_MIN
+) -> torch.Tensor:
+    """``x̂1 − x1``: the error of the motion a velocity leads to, ``(v − u)·(1 − (1 − σ_min)·t)`` on the path."""
+    return (velocity.float() - target.float()) * (1 - (1 - sigma_min) * t.float())[:, None, None]
+
+
+@dataclass(frozen=True)
+class MotionGeometry:
+    """What it takes to read joint positions off normalised Guo features: the dataset's Mean/Std and the skeleton's
+    kinematic tree (``parents``, −1 for the root). ``ric`` is the slice of the root-relative joint positions
+    (joints 1..J−1) and ``root_height`` the index of the root's height (``mfm.layout.FeatureLayout``)."""
+
+    mean: torch.Tensor
+    std: torch.Tensor
+    parents: tuple[int, ...]
+    ric: slice
+    root_height: int
+
+    @classmethod
+    def from_dataset(cls, mean: Any, std: Any, skeleton: Any) -> MotionGeometry:
+        from mfm.layout import FeatureLayout
+
+        layout = FeatureLayout(skeleton)
+        return cls(torch.as_tensor(mean, dtype=torch.float32), torch.as_tensor(std, dtype=torch.float32),
+                   tuple(int(p) for p in skeleton.parents), layout.slices["ric"], layout.slices["root_height"].start)
+
+    def joints(self, features: torch.Tensor) -> torch.Tensor:
+        """(B, T, J, 3) positions in the facing frame, root above the origin, from normalised (B, T, D) features."""
+        raw = features.float() * self.std.to(features.device) + self.mean.to(features.device)
+        others = raw[..., self.ric].reshape(*raw.shape[:-1], -1, 3)
+        root = torch.zeros_like(others[..., :1, :])
+        root[..., 1] = raw[..., self.root_height : self.root_height + 1]
+        return torch.cat([root, others], dim=-2)
+
+    def bone_lengths(self, features: torch.Tensor) -> torch.Tensor:
+        """(B, T, J − 1) length of every bone (non-root joint to its parent)."""
+        joints = self.joints(features)
+        children = [j for j, p in enumerate(self.parents) if p >= 0]
+        parents = [self.parents[j] for j in children]
+        return (joints[..., children, :] - joints[..., parents, :]).norm(dim=-1)
+
+
+def bone_length_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Tensor,
+                     geometry: MotionGeometry) -> torch.Tensor:
+    """MSE (m²) between the bone lengths of the implied motion x̂1 and those of the clip x1, over valid frames (per
+    sample, then the batch mean). The ric block gives every joint its own position, so nothing else holds a
+    generated skeleton together: this term does (MDM's geometric losses in the same spirit; not part of MFM)."""
+    mask = frame_mask.unsqueeze(-1).float()
+    error = (geometry.bone_lengths(x1_hat) - geometry.bone_lengths(x1)).square() * mask
+    per_sample = error.sum(dim=(1, 2)) / (mask.sum(dim=(1, 2)) * error.shape[-1]).clamp_min(1.0)
+    return per_sample.mean()
+
+
+def temporal_loss(
+    velocity: torch.Tensor, target: torch.Tensor, t: torch.Tensor, frame_mask: torch.Tensor,
+    sigma_min: float = SIGMA_MIN,
+) -> torch.Tensor:
+    """MSE of the frame-to-frame change of the implied motion's error, ``Δ(x̂1 − x1)``, over pairs of valid
+    frames (per sample, then the batch mean), with ``x̂1 − x1 = (v − u)·(1 − (1 − σ_min)·t)`` on the path.
+
+    An error that is smooth in time costs little here; frame-to-frame jitter — what makes generated joints
+    shake, bones change length and feet slide — costs twice its energy. The feature-space analogue of MDM's
+    velocity loss (``lambda_vel``, on joint positions); not part of MFM.
+    """
+    error = implied_motion_error(velocity, target, t, sigma_min)
+    pairs = (frame_mask[:, 1:] & frame_mask[:, :-1]).unsqueeze(-1).float()
+    change = (error[:, 1:] - error[:, :-1]).square() * pairs
+    per_sample = change.sum(dim=(1, 2)) / (pairs.sum(dim=(1, 2)) * error.shape[-1]).clamp_min(1.0)
+    return per_sample.mean()
 
 
 @dataclass(frozen=True)
@@ -148,10 +259,21 @@ class FlowMatchingObjective:
     """:func:`flow_matching_loss` as an :class:`Objective`."""
 
     sigma_min: float = SIGMA_MIN
+    loss_space: str = "velocity"
+    temporal_weight: float = 0.0
+    bone_weight: float = 0.0
+    geometry: MotionGeometry | None = None
 
     def __post_init__(self) -> None:
+        if self.bone_weight < 0 or (self.bone_weight > 0 and self.geometry is None):
+            raise ValueError(f"FlowMatchingObjective.bone_weight must be >= 0 and needs a geometry when > 0, got "
+                             f"{self.bone_weight!r}")
+        if self.temporal_weight < 0:
+            raise ValueError(f"FlowMatchingObjective.temporal_weight must be >= 0, got {self.temporal_weight!r}")
         if not 0.0 <= self.sigma_min < 1.0:
             raise ValueError(f"FlowMatchingObjective.sigma_min must be in [0, 1), got {self.sigma_min!r}")
+        if self.loss_space not in LOSS_SPACES:
+            raise ValueError(f"FlowMatchingObjective.loss_space must be one of {LOSS_SPACES}, got {self.loss_space!r}")
 
     def loss(
         self,
@@ -168,5 +290,6 @@ class FlowMatchingObjective:
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         return flow_matching_loss(
             model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask,
-            t=t, x0=x0, model_kwargs=model_kwargs,
+            t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
+            temporal_weight=self.temporal_weight, bone_weight=self.bone_weight, geometry=self.geometry,
         )

@@ -151,6 +151,15 @@ class TrainLoopConfig:
     """torch.compile the model."""
     objective: Literal["flow", "diffusion"] = "flow"
     """flow: MFM's conditional flow matching; diffusion: the DDPM baseline on the same backbone (FLAME/FlowMDM)."""
+    flow_loss: Literal["velocity", "data"] = "velocity"
+    """objective=flow: 'velocity' = MFM's velocity MSE; 'data' = the same error weighted into the motion's space
+    (``mfm.flow.loss_space_weight``: the MSE of the x̂1 the velocity implies; not MFM's choice)."""
+    flow_temporal_weight: float = 0.0
+    """objective=flow: weight of ``mfm.flow.temporal_loss`` (the frame-to-frame change of the implied motion's
+    error; MDM's velocity loss in feature space), added to the flow loss. 0 = MFM."""
+    flow_bone_weight: float = 0.0
+    """objective=flow: weight of ``mfm.flow.bone_length_loss`` (bone lengths of the implied motion against the
+    clip's, m²), added to the flow loss. 0 = MFM."""
     diffusion: Literal["flowmdm", "flame"] = "flowmdm"
     """With objective=diffusion: flowmdm = 1000-step cosine, x0-prediction; flame = cosine, eps-prediction with
     learned variance and the hybrid loss L_simple + lambda * L_vlb (the model then outputs 2 x feature_dim)."""
@@ -158,6 +167,8 @@ class TrainLoopConfig:
     def __post_init__(self) -> None:
         coerce_fields(self)
         _require(self.max_steps >= 1, f"train.max_steps must be >= 1, got {self.max_steps}")
+        _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
+        _require(self.flow_temporal_weight >= 0, f"train.flow_temporal_weight must be >= 0, got {self.flow_temporal_weight}")
         _require(self.log_every >= 1, f"train.log_every must be >= 1, got {self.log_every}")
         _require(self.save_every >= 1, f"train.save_every must be >= 1, got {self.save_every}")
         _require(self.keep_last >= 0, f"train.keep_last must be >= 0 (0 keeps all), got {self.keep_last}")

@@ -103,6 +103,7 @@ def compare_with_clips(motions: Sequence[np.ndarray], clips: Sequence[np.ndarray
     nearest clip is their own)."""
     generated = plausibility_figures(motions, skeleton)
     truth = plausibility_figures(clips, skeleton)
+    truth = truth.with_jerk_reference(truth.mean_jerk)  # 1 (or undefined) by definition: the column's reference
     generated = generated.with_jerk_reference(truth.mean_jerk)
     errors = np.array([[mean_joint_error(m, c) for c in clips] for m in motions])
     nearest = errors.argmin(axis=1)

@@ -37,8 +37,9 @@ import yaml
 from tqdm.auto import tqdm
 
 from mfm.diffusion import diffusion_from_preset
-from mfm.flow import FlowMatchingObjective
+from mfm.flow import FlowMatchingObjective, MotionGeometry
 from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters, draw_cond_drop_mask, draw_positional_mode
+from mfm.skeleton import get_skeleton
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
 from pipeline.data import LoaderOptions, Manifest, MotionLoader, backend_for_format, open_manifest, verify_shards
@@ -213,10 +214,16 @@ def draw_for_batch(batch: Mapping[str, Any], cond_drop_prob: float, generator: t
     return Draws(t, x0, cond_mask)
 
 
-def build_objective(cfg: TrainConfig):
+def build_objective(cfg: TrainConfig, manifest: Manifest):
     """The training objective the config names (both have the same ``loss(...)`` call)."""
     if cfg.train.objective == "flow":
-        return FlowMatchingObjective()
+        geometry = None
+        if cfg.train.flow_bone_weight > 0:
+            normalization = manifest.data["normalization"]
+            geometry = MotionGeometry.from_dataset(normalization["mean"], normalization["std"],
+                                                   get_skeleton(manifest.data["feature_spec"]["skeleton"]))
+        return FlowMatchingObjective(loss_space=cfg.train.flow_loss, temporal_weight=cfg.train.flow_temporal_weight,
+                                     bone_weight=cfg.train.flow_bone_weight, geometry=geometry)
     return diffusion_from_preset(cfg.train.diffusion)
 
 
@@ -244,7 +251,7 @@ class Trainer:
 
         self.manifest = open_manifest(cfg.data.manifest)
         bad_shards = self._verified_bad_shards()
-        self.objective = build_objective(cfg)
+        self.objective = build_objective(cfg, self.manifest)
         self.model_config = model_config_for(
             self.manifest, cfg.model, learned_variance=getattr(self.objective, "learn_sigma", False))
 

@@ -164,3 +164,80 @@ def test_tiny_model_overfits_four_clips(single_thread):
         losses.append(loss.item())
     initial, final = np.mean(losses[:10]), np.mean(losses[-20:])
     assert initial / final > 10, (initial, final)
+
+
+def test_data_space_loss_is_the_mse_of_the_implied_motion():
+    """loss_space='data' weighs each sample's velocity error by (1 − (1 − σ)t)²: for a model predicting x1, the
+    MSE of x̂1 against x1 (away from the noise-scale floor); 'velocity' is MFM's unweighted loss."""
+    from mfm.flow import loss_space_weight
+    from mfm.model import ModelConfig, MotionFlowTransformer
+
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(ModelConfig(feature_dim=6, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=3, prediction="data", max_len=64)).eval()
+    x1, cond, lengths = torch.randn(4, 5, 6), torch.randn(4, 3), torch.tensor([5, 3, 4, 5])
+    t, x0 = torch.tensor([0.0, 0.3, 0.6, 0.9]), torch.randn(4, 5, 6)
+    loss, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, loss_space="data")
+    x_t = interpolate(x0, x1, t)
+    with torch.no_grad():
+        velocity = model(x_t, t, cond, lengths)
+    noise_scale = (1 - (1 - SIGMA_MIN) * t)[:, None, None]
+    x1_hat = (1 - SIGMA_MIN) * x_t + noise_scale * velocity  # the network's own output (mfm.path.velocity_from_data)
+    mask = valid_frame_mask(lengths, 5).unsqueeze(-1).float()
+    expected = (((x1_hat - x1) * mask).square().sum(dim=(1, 2)) / (mask.sum(dim=(1, 2)) * 6)).mean()
+    torch.testing.assert_close(loss, expected, rtol=1e-3, atol=1e-5)
+    unweighted, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0)
+    assert unweighted > loss  # every weight is <= 1
+    assert loss_space_weight(t, "velocity") is None
+    torch.testing.assert_close(loss_space_weight(t, "data"), (1 - (1 - SIGMA_MIN) * t) ** 2)
+    with pytest.raises(ValueError, match="loss_space"):
+        FlowMatchingObjective(loss_space="noise")
+
+
+def test_temporal_loss_charges_jitter_not_smooth_error():
+    """temporal_loss = MSE of Δ(x̂1 − x1) over valid frame pairs: 0 for an error constant in time, four times the
+    error's energy for one that alternates frame to frame (white noise: twice); padding frames do not count."""
+    from mfm.flow import temporal_loss
+
+    t = torch.tensor([0.5, 0.5])
+    scale = 1 - (1 - SIGMA_MIN) * 0.5  # x̂1 − x1 = (v − u)·scale
+    mask = valid_frame_mask(torch.tensor([6, 4]), 6)
+    constant = torch.full((2, 6, 3), 0.2) / scale
+    assert temporal_loss(constant, torch.zeros_like(constant), t, mask).item() == pytest.approx(0.0, abs=1e-12)
+    signs = torch.tensor([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])[None, :, None]
+    alternating = (0.2 * signs).expand(2, 6, 3).clone() / scale
+    alternating[1, 4:] = 100.0  # padding of sample 1: ignored
+    assert temporal_loss(alternating, torch.zeros_like(alternating), t, mask).item() == pytest.approx(4 * 0.04)
+    objective = FlowMatchingObjective(loss_space="data", temporal_weight=2.0)
+    assert objective.temporal_weight == 2.0
+    with pytest.raises(ValueError, match="temporal_weight"):
+        FlowMatchingObjective(temporal_weight=-1.0)
+
+
+def test_motion_geometry_reads_the_bones_of_a_real_clip(reference_data):
+    """MotionGeometry's bone lengths off normalised features = those of recover_from_ric's joints (clip 012314,
+    HumanML3D's Mean/Std); bone_length_loss is 0 against itself and the squared stretch when a bone stretches."""
+    from mfm.features import features_to_joints
+    from mfm.flow import MotionGeometry, bone_length_loss
+    from mfm.skeleton import get_skeleton
+
+    skeleton = get_skeleton("humanml3d")
+    features = np.load(reference_data / "humanml3d" / "new_joint_vecs_012314.npy").astype(np.float32)
+    mean = np.load(reference_data / "humanml3d" / "Mean.npy").astype(np.float32)
+    std = np.load(reference_data / "humanml3d" / "Std.npy").astype(np.float32)
+    geometry = MotionGeometry.from_dataset(mean, std, skeleton)
+    normalised = torch.as_tensor((features - mean) / std)[None]
+    joints = features_to_joints(torch.as_tensor(features), skeleton).numpy()
+    children = [j for j, p in enumerate(skeleton.parents) if p >= 0]
+    expected = np.stack([np.linalg.norm(joints[:, c] - joints[:, skeleton.parents[c]], axis=-1) for c in children], 1)
+    np.testing.assert_allclose(geometry.bone_lengths(normalised)[0].numpy(), expected, atol=1e-5)
+
+    mask = torch.ones(1, normalised.shape[1], dtype=torch.bool)
+    assert bone_length_loss(normalised, normalised, mask, geometry).item() == 0.0
+    stretched = torch.as_tensor(features).clone()
+    ric = slice(4, 4 + 63)
+    positions = stretched[:, ric].reshape(-1, 21, 3)
+    positions[:, 20 - 1] += 0.1 * torch.nn.functional.normalize(positions[:, 20 - 1] - positions[:, 18 - 1], dim=-1)
+    stretched[:, ric] = positions.reshape(-1, 63)  # the left wrist (20, a leaf) 10 cm further from its elbow (18)
+    loss = bone_length_loss(torch.as_tensor((stretched.numpy() - mean) / std)[None], normalised, mask, geometry)
+    assert loss.item() == pytest.approx(0.1 ** 2 / len(children), rel=1e-3)

@@ -271,8 +271,8 @@ class HookedObjective:
 def patch_loss(monkeypatch, loss) -> None:
     real_build = trainer_module.build_objective
 
-    def build(cfg):
-        loss.__wrapped__ = real_build(cfg).loss
+    def build(cfg, manifest):
+        loss.__wrapped__ = real_build(cfg, manifest).loss
         return HookedObjective(loss)
 
     monkeypatch.setattr(trainer_module, "build_objective", build)

@@ -189,8 +189,8 @@ def run_scenario(scenario: Mapping[str, Any], dist: Dist) -> int:
     result_file = out / f"result-rank{dist.rank}.json"
     faults = Faults(scenario, dist.rank)
 
-    def build_faulty_objective(config: TrainConfig) -> HookedObjective:
-        faults.real_loss = REAL_BUILD_OBJECTIVE(config).loss
+    def build_faulty_objective(config: TrainConfig, manifest) -> HookedObjective:
+        faults.real_loss = REAL_BUILD_OBJECTIVE(config, manifest).loss
         return HookedObjective(faults.loss)
 
     trainer_module.build_objective = build_faulty_objective

@@ -1,0 +1,81 @@
+"""How well a trained flow model knows its training clips, along the path: the diagnostic that separated the two
+causes of the embedded default's broken motion (docs/generator-study.md). One JSON line per time t.
+
+    python benchmarks/probe_x1_error.py --checkpoint runs/default [--split train] [--times 0,0.25,0.5,0.75,0.9,0.97]
+
+For every motion of the split, its first caption and the part of the clip it describes: draw x0 ~ N(0, I), put
+x_t on the path, ask the model (conditional, no guidance) for v and form x̂1 = x_t + (1 − t)·v. Per t:
+
+* ``x1_error``: mean squared error of x̂1 against the clip (normalised units; the clips' variance is ~1). A model
+  that has learnt 15 captioned clips should be near 0 at every t: each caption names one clip.
+* ``white_share``: the share of that error that changes from frame to frame, ``Σ(Δe)² / (2·Σe²)`` over time:
+  1 for white noise (what a velocity network leaves when it cannot carry x0 through its width), near 0 for an
+  error that is smooth in time.
+* at t = 0 also ``caption_spread`` (RMS distance of each caption's x̂1 to their mean, same noise for all, over
+  the first frames all clips share) beside ``clip_spread`` (the same for the clips): a model that ignores its
+  caption has a spread near 0.
+Averaged over ``--draws`` noise draws (seeded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import torch
+
+from pipeline.contact_sheet import first_captions
+from pipeline.data import open_manifest
+from pipeline.inference import load_trained_model
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--split", default="train")
+    p.add_argument("--times", default="0,0.25,0.5,0.75,0.9,0.97")
+    p.add_argument("--draws", type=int, default=3)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args()
+
+    trained = load_trained_model(args.checkpoint)
+    if trained.objective != "flow":
+        raise SystemExit(f"{args.checkpoint} is a {trained.objective} model: this probe needs a velocity field")
+    captions = first_captions(open_manifest(trained.data["location"]), args.split)
+    lengths = torch.tensor([min(len(c.features), trained.window) for c in captions])
+    frames = int(lengths.max())
+    x1 = torch.zeros(len(captions), frames, trained.model_config.feature_dim)
+    for i, c in enumerate(captions):
+        x1[i, : lengths[i]] = trained.normalize(torch.as_tensor(c.features[: lengths[i]], dtype=torch.float32))
+    mask = (torch.arange(frames)[None] < lengths[:, None]).float()[..., None]
+    cond = trained.conditions(texts=[c.text for c in captions])
+    shared = int(lengths.min())
+    generator = torch.Generator().manual_seed(args.seed)
+
+    def spread(x: torch.Tensor) -> float:
+        x = x[:, :shared]
+        return float((x - x.mean(dim=0, keepdim=True)).square().mean().sqrt())
+
+    for t in (float(v) for v in args.times.split(",")):
+        errors, white, spreads = [], [], []
+        for _ in range(args.draws):
+            x0 = torch.randn(x1.shape[1:], generator=generator).expand_as(x1) * mask  # same noise for every caption
+            x_t = t * x1 + (1 - (1 - 1e-4) * t) * x0
+            with torch.no_grad():
+                velocity = trained.model(x_t, torch.full((len(captions),), t), cond, lengths)
+            x1_hat = x_t + (1 - t) * velocity
+            error = (x1_hat - x1) * mask
+            errors.append(float(error.square().sum() / (mask.sum() * x1.shape[-1])))
+            step = (error[:, 1:] - error[:, :-1]) * mask[:, 1:]
+            white.append(float(step.square().sum() / (2 * error.square().sum())))
+            spreads.append(spread(x1_hat))
+        line = {"checkpoint": str(trained.checkpoint), "step": trained.step, "t": t,
+                "x1_error": round(float(np.mean(errors)), 5), "white_share": round(float(np.mean(white)), 3)}
+        if t == 0.0:
+            line.update(caption_spread=round(float(np.mean(spreads)), 3), clip_spread=round(spread(x1), 3))
+        print(json.dumps(line))
+
+
+if __name__ == "__main__":
+    main()
