@@ -45,3 +45,13 @@ def embedded_dataset_once(tmp_path_factory) -> Path:
     if not (data / "manifest.json").exists():
         build_dataset(BuildConfig(out=data, progress=False))  # the defaults: deepmimic + minilm
     return data
+
+
+def load_launch_script(name: str):
+    """``launch/<name>.py`` as a module (the launch scripts are run as files, not imported as a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"launch_{name}", REPO_ROOT / "launch" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

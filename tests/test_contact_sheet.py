@@ -3,14 +3,13 @@ end on the tiny text checkpoint test_sample_cli.py trains, generated and ground-
 
 from __future__ import annotations
 
-import importlib.util
 
 import numpy as np
 import pytest
 from matplotlib.colors import to_rgb
 from PIL import Image
 
-from conftest import REPO_ROOT
+from conftest import load_launch_script
 from mfm.export import render_contact_sheet
 from mfm.export.contact_sheet import HEADER_PX, ROW_TITLE_PX, sheet_frames
 from mfm.export.stick import SIDE_COLORS, bone_sides
@@ -75,14 +74,7 @@ def test_sheet_of_a_kit_motion_in_millimetres_and_bad_input(tmp_path):
         render_contact_sheet(tmp_path / "x.png", [kit[..., :2]], ["one"], KIT)
 
 
-def _load_entry_point():
-    spec = importlib.util.spec_from_file_location("launch_contact_sheet", REPO_ROOT / "launch" / "contact_sheet.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-sheet_entry = _load_entry_point()
+sheet_entry = load_launch_script("contact_sheet")
 
 
 @pytest.mark.slow

@@ -3,7 +3,6 @@ synthetic dataset test_trainer.py builds, then sampling, editing and the files r
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -13,7 +12,7 @@ import torch
 from matplotlib import rcParams
 from PIL import Image
 
-from conftest import REPO_ROOT, embedded_dataset_once
+from conftest import embedded_dataset_once, load_launch_script
 from mfm import metrics
 from mfm.export import read_bvh
 from mfm.features import features_to_joints, features_to_joints_rigid, rigid_joints
@@ -27,14 +26,7 @@ from test_trainer import build_dataset_once, train_entry
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_thread")]
 
 
-def _load_entry_point():
-    spec = importlib.util.spec_from_file_location("launch_sample", REPO_ROOT / "launch" / "sample.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-sample_entry = _load_entry_point()
+sample_entry = load_launch_script("sample")
 PLAUSIBILITY_FIGURES = {"bone_length_range", "bone_length_deviation", "floor_penetration", "foot_skating_ratio",
                         "contact_foot_speed", "skating_foot_speed", "mean_jerk"}
 

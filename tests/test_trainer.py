@@ -8,7 +8,6 @@ in every run); the rest run in this process through launch/train.py's ``main``.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import shutil
@@ -24,7 +23,7 @@ import torch
 import yaml
 
 import pipeline.trainer as trainer_module
-from conftest import REPO_ROOT
+from conftest import REPO_ROOT, load_launch_script
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, from_dict, load_config
 from pipeline.data import ShardVerificationError
@@ -32,14 +31,7 @@ from pipeline.distributed import Dist
 from pipeline.trainer import NonFiniteLossError, Trainer
 
 
-def _load_entry_point():
-    spec = importlib.util.spec_from_file_location("launch_train", REPO_ROOT / "launch" / "train.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-train_entry = _load_entry_point()  # launch/train.py, whose main() the in-process tests call
+train_entry = load_launch_script("train")  # launch/train.py, whose main() the in-process tests call
 
 WORKER = REPO_ROOT / "tests" / "trainer_worker.py"
 LAUNCH_VARS = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "LOCAL_WORLD_SIZE", "MASTER_ADDR", "MASTER_PORT", "GROUP_RANK",
