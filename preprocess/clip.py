@@ -37,6 +37,9 @@ class Clip:
     action: str | None = None  # class label for action-to-motion (DeepMimic, synthetic)
     path: str = ""  # the file it was read from, for error messages
     meta: dict = field(default_factory=dict)
+    # Captions the source could not read (a malformed span, no text), by reason: the processing stage adds
+    # them to the record's ``dropped_captions``, so the skip report counts them.
+    dropped_captions: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,7 @@ UNREADABLE = "unreadable"
 BAD_SHAPE = "bad_shape"
 NAN_FRAMES = "nan_frames"
 NO_CAPTIONS = "no_captions"
+MISSING_FILE = "missing_file"  # an item the dataset lists (a split file, an index) whose data file is absent
 
 
 def check_joints(joints: np.ndarray, num_joints: int) -> tuple[str, str] | None:
@@ -62,6 +66,8 @@ def check_joints(joints: np.ndarray, num_joints: int) -> tuple[str, str] | None:
     Sources call it on what they read; the processing stage again on every clip (any source, any caller)."""
     if joints.ndim != 3 or joints.shape[1:] != (num_joints, 3) or joints.shape[0] == 0:
         return BAD_SHAPE, f"expected (T>0, {num_joints}, 3) joint positions, got shape {joints.shape}"
+    if np.issubdtype(joints.dtype, np.complexfloating):
+        return BAD_SHAPE, f"complex-valued array (dtype {joints.dtype}): joint positions must be real numbers"
     if not np.issubdtype(joints.dtype, np.number):
         return BAD_SHAPE, f"expected numbers, got dtype {joints.dtype}"
     finite = np.isfinite(joints).all(axis=(1, 2))

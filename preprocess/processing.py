@@ -58,8 +58,9 @@ class Record:
     captions: list[RecordCaption]
     action: str | None = None
     path: str = ""
-    # Captions this record lost on the way, by reason ("empty", "span_too_short", "bad_span"): counted
-    # in the skip report, never silently.
+    # Captions this record lost on the way, by reason ("empty", "span_too_short", "bad_span", and the
+    # source's own, e.g. "span_not_a_number" for a caption line it could not read): counted in the skip
+    # report, never silently.
     dropped_captions: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -135,6 +136,8 @@ def process_clip(
         return skip("too_long", f"{length} feature frames at {skeleton.fps:g} fps > max_frames {max_frames}")
 
     captions, dropped = captions_to_frames(clip.captions, length=length, fps=skeleton.fps, min_frames=min_frames)
+    for reason, count in clip.dropped_captions.items():  # lines the source could not read at all
+        dropped[reason] = dropped.get(reason, 0) + count
     if not captions:
         why = ", ".join(f"{n} {reason}" for reason, n in sorted(dropped.items())) or "the clip has none"
         return skip("no_captions", f"no usable caption ({why})")

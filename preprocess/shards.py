@@ -64,8 +64,8 @@ FORMAT_VERSION = 1
 MANIFEST_NAME = "manifest.json"
 SPLIT_ORDER = ("train", "val", "test")
 SHARD_FORMATS = ("tar", "parquet")
-SKIP_REASONS = ("unreadable", "bad_shape", "bad_fps", "nan_frames", "too_short", "too_long", "no_captions",
-                "no_body_model", "feature_error")
+SKIP_REASONS = ("unreadable", "missing_file", "bad_shape", "bad_fps", "nan_frames", "too_short", "too_long",
+                "no_captions", "no_body_model", "feature_error", "duplicate_id")
 DEFAULT_SHARD_SIZE = 500
 TAR_PATTERN = "shard-{:05d}.tar"
 PARQUET_PATTERN = "part-{:05d}.parquet"
@@ -678,6 +678,7 @@ class _FirstPass:
     spilled: dict[str, list[SpilledRecord]] = field(default_factory=dict)
     skipped: list[SkippedInput] = field(default_factory=list)
     dropped_captions: Counter = field(default_factory=Counter)
+    ignored_files: list[str] = field(default_factory=list)  # what the source's folder holds but it never reads
     captions: set[str] = field(default_factory=set)
     actions: set[str] = field(default_factory=set)
     train_stats: FeatureStats = field(default_factory=FeatureStats)
@@ -696,18 +697,24 @@ def _first_pass(source, items: list[str], skeleton: Skeleton, config: BuildConfi
                 state.skipped.append(result)
                 continue
             for record in result:
-                _add_record(state, record, spill, seen)
+                _add_record(state, record, spill, seen, strict=config.strict, root=config.root)
     finally:
         results.close()  # stops the worker pool at once on an error
     return state
 
 
-def _add_record(state: _FirstPass, record: Record, spill: FeatureSpill, seen: dict[str, str]) -> None:
+def _add_record(state: _FirstPass, record: Record, spill: FeatureSpill, seen: dict[str, str], *, strict: bool,
+                root: str | None) -> None:
     where = record.path or record.id
     if not is_valid_key(record.id) or not is_valid_key(record.split):
         raise ValueError(f"{where}: id {record.id!r} / split {record.split!r} may only use [A-Za-z0-9_-]")
-    if record.id in seen:
-        raise ValueError(f"{where}: duplicate motion id {record.id!r} (also from {seen[record.id]})")
+    if record.id in seen:  # two inputs claim one id: the first keeps it, the second is bad input
+        first = _report_path(seen[record.id], root)
+        skipped = SkippedInput(record.id, record.path, "duplicate_id", f"motion id {record.id!r} is taken by {first}")
+        if strict:
+            raise BadInputError(skipped)
+        state.skipped.append(skipped)
+        return
     seen[record.id] = where
     state.dropped_captions.update(record.dropped_captions)
     state.captions.update(c.text for c in record.captions)
@@ -726,6 +733,8 @@ def _skip_report(first: _FirstPass, root: str | None) -> dict[str, Any]:
         "items": [{"id": s.id, "path": _report_path(s.path, root), "reason": s.reason, "detail": s.detail}
                   for s in first.skipped],
         "dropped_captions": dict(sorted(first.dropped_captions.items())),
+        "ignored_files": {"count": len(first.ignored_files),
+                          "paths": [_report_path(p, root) for p in first.ignored_files]},
     }
 
 
@@ -762,6 +771,10 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
         # A tiny source (DeepMimic: 15 train motions) needs small shards to feed several ranks x workers.
         config = replace(config, shard_size=getattr(source, "default_shard_size", DEFAULT_SHARD_SIZE))
     items = list(source.list_items())
+    ignored = list(source.ignored_files()) if hasattr(source, "ignored_files") else []
+    if ignored:
+        log.warning("%s: %d files not read (not of the layout's file-name pattern; listed in the skip report), "
+                    "e.g. %s", config.source, len(ignored), ignored[0])
     prepare_output_dir(out, overwrite=config.overwrite)
     work_dir = out / _TMP_DIR_NAME
     work_dir.mkdir()
@@ -769,6 +782,7 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
     try:
         with _timed("features", len(items), "clips"):
             first = _first_pass(source, items, skeleton, config, spill)
+            first.ignored_files = ignored
             spill.finish()
         if first.train_stats.count == 0:
             raise ValueError(f"no motion of source {config.source!r} reached the train split "

@@ -6,6 +6,7 @@ import hashlib
 import io
 import json
 import tarfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -166,6 +167,11 @@ def test_process_clip_skip_reasons(item):
     assert isinstance(skipped, SkippedInput)
     assert (skipped.id, skipped.path, skipped.reason) == (item, clip.path, EXPECTED_REASONS[item])
     assert skipped.detail
+
+
+def test_process_clip_refuses_complex_joints():
+    skipped = process_clip(make_clip("cx", joints=make_joints(81) * (1 + 0.5j)), HUMANML3D)
+    assert isinstance(skipped, SkippedInput) and skipped.reason == "bad_shape" and "complex" in skipped.detail
 
 
 def test_length_limits_are_inclusive_feature_frames():
@@ -408,3 +414,62 @@ def test_token_features_tar_only(tmp_path, encoder):
         assert tokens.shape == (len(texts), 8, 384) and lengths.dtype == np.int32
         np.testing.assert_array_equal(lengths, expected.token_lengths)
         np.testing.assert_allclose(tokens, expected.tokens, atol=1e-5)
+
+
+# --- a HumanML3D folder with bad input, end to end ----------------------------------------------------------
+
+
+def write_humanml3d_folder(root: Path) -> Path:
+    """A tiny HumanML3D layout with every kind of bad input a real folder has been seen to hold."""
+    good = "a person walks forward.#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0\n"
+    files = {
+        "000001": (make_joints(81, 1), good + "bad number#t/X#abc#2.0\nreversed#t/X#5.0#2.0\nnegative#t/X#-1#2\n"),
+        "000002": (make_joints(81, 2), good),
+        "000003": (make_joints(81, 3), "only a reversed span#t/X#5.0#2.0\n"),
+        "000004": (make_joints(81, 4) * (1 + 1j), good),
+    }
+    (root / "new_joints").mkdir(parents=True)
+    (root / "texts").mkdir()
+    for clip_id, (joints, text) in files.items():
+        np.save(root / "new_joints" / f"{clip_id}.npy", joints)
+        (root / "texts" / f"{clip_id}.txt").write_text(text)
+    np.save(root / "new_joints" / "000001.bak.npy", make_joints(81, 9))  # a stray backup: not id 000001
+    (root / "texts" / "000001.bak.txt").write_text(files["000001"][1])
+    (root / "train.txt").write_text("000001\n000003\n000004\n000404\n")  # 000404 has no joint file
+    (root / "val.txt").write_text("000002\n")
+    return root
+
+
+def test_humanml3d_folder_build_counts_every_bad_input(tmp_path, encoder):
+    root = write_humanml3d_folder(tmp_path / "HumanML3D")
+    config = BuildConfig(out=tmp_path / "ds", source="humanml3d", root=str(root), progress=False)
+    manifest = build_dataset(config, text_encoder=encoder)  # no abort on the backup's duplicate id
+    assert {name: split["num_motions"] for name, split in manifest["splits"].items()} == {"train": 1, "val": 1}
+    report = manifest["skip_report"]
+    assert [(i["id"], i["path"], i["reason"]) for i in report["items"]] == [
+        ("000003", "texts/000003.txt", "no_captions"),
+        ("000004", "new_joints/000004.npy", "bad_shape"),
+        ("000404", "new_joints/000404.npy", "missing_file"),
+    ]
+    details = {i["id"]: i["detail"] for i in report["items"]}
+    assert "span_end_not_after_start" in details["000003"] and "complex" in details["000004"]
+    assert "train.txt" in details["000404"]
+    assert report["by_reason"] == {"bad_shape": 1, "missing_file": 1, "no_captions": 1} and report["total"] == 3
+    assert report["dropped_captions"] == {"span_end_not_after_start": 1, "span_negative": 1, "span_not_a_number": 1}
+    assert report["ignored_files"] == {"count": 1, "paths": ["new_joints/000001.bak.npy"]}
+    assert load_manifest(config.out, verify="sha256") == manifest
+
+    with pytest.raises(BadInputError, match=r"000003\.txt: no_captions"):
+        build_dataset(replace(config, out=tmp_path / "strict", strict=True), text_encoder=encoder)
+
+
+def test_duplicate_ids_are_skipped_unless_strict(tmp_path, encoder):
+    second = replace(make_clip("m001", seed=5), path="/data/listsource/copy/m001.npy")  # another clip called m001
+    source = ListSource({**good_items(3), "m999": second})
+    manifest = build_dataset(BuildConfig(out=tmp_path / "ds", progress=False), source=source, text_encoder=encoder)
+    assert sum(s["num_motions"] for s in manifest["splits"].values()) == 3
+    (item,) = manifest["skip_report"]["items"]
+    assert (item["id"], item["path"], item["reason"]) == ("m001", "/data/listsource/copy/m001.npy", "duplicate_id")
+    assert "/data/listsource/m001.npy" in item["detail"]  # names the first holder of the id
+    with pytest.raises(BadInputError, match="duplicate_id"):
+        build_dataset(BuildConfig(out=tmp_path / "strict", strict=True, progress=False), source=source, text_encoder=encoder)

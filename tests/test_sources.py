@@ -176,6 +176,73 @@ def test_kit_layout_and_target_skeleton(tmp_path: Path) -> None:
     np.testing.assert_allclose(target.bone_lengths, KIT.with_bone_lengths_from(reference[0]).bone_lengths)
 
 
+# The HumanML3D reader serves KIT too: each bad-input case runs on both.
+LAYOUTS = [("humanml3d", 22, "000001"), ("kit", 21, "00001")]
+MALFORMED_SPANS = (
+    "not a number#t/X#abc#2.0\n"
+    "end before start#t/X#5.0#2.0\n"
+    "negative start#t/X#-1#2\n"
+)
+
+
+@pytest.mark.parametrize("name, num_joints, clip_id", LAYOUTS)
+def test_malformed_caption_spans_are_counted_by_reason(tmp_path: Path, name: str, num_joints: int, clip_id: str) -> None:
+    root = write_layout(tmp_path / name, {clip_id: walking_joints(60, num_joints)},
+                        {clip_id: GOOD_TEXT + MALFORMED_SPANS + "   #x/X#0.0#0.0\n\n"}, {})
+    clip = build_source(name, str(root)).load(clip_id)
+    assert isinstance(clip, Clip) and len(clip.captions) == 3
+    assert clip.dropped_captions == {"span_end_not_after_start": 1, "span_negative": 1, "span_not_a_number": 1,
+                                     "empty": 1}  # a blank line is no caption; "#tokens" without text is
+
+
+@pytest.mark.parametrize("name, num_joints, clip_id", LAYOUTS)
+def test_clip_whose_only_caption_is_malformed_says_why(tmp_path: Path, name: str, num_joints: int, clip_id: str) -> None:
+    root = write_layout(tmp_path / name, {clip_id: walking_joints(60, num_joints)}, {clip_id: "a man runs#t/X#5.0#2.0\n"}, {})
+    skipped = build_source(name, str(root)).load(clip_id)
+    assert isinstance(skipped, SkippedInput) and skipped.reason == "no_captions"
+    assert skipped.path.endswith(f"texts/{clip_id}.txt")
+    assert "span_end_not_after_start" in skipped.detail and "line 1" in skipped.detail and "empty" not in skipped.detail
+
+
+@pytest.mark.parametrize("name, num_joints, clip_id", LAYOUTS)
+def test_split_ids_without_a_joint_file_are_skipped_with_a_reason(tmp_path: Path, name: str, num_joints: int, clip_id: str) -> None:
+    absent = "0" + clip_id[:-1] + "9"
+    root = write_layout(tmp_path / name, {clip_id: walking_joints(60, num_joints)}, {clip_id: GOOD_TEXT},
+                        {"train": [clip_id], "test": [absent, "../escape"]})
+    source = build_source(name, str(root))
+    assert source.list_items() == sorted([clip_id, absent, "../escape"])
+    assert build_source(name, str(root), splits="train").list_items() == [clip_id]  # only the splits asked for
+    skipped = source.load(absent)
+    assert isinstance(skipped, SkippedInput) and (skipped.id, skipped.reason) == (absent, "missing_file")
+    assert skipped.path == str(root / "new_joints" / f"{absent}.npy") and "test.txt" in skipped.detail
+    escape = source.load("../escape")  # never read outside the joint folder
+    assert isinstance(escape, SkippedInput) and escape.reason == "missing_file" and "not a file name" in escape.detail
+
+
+@pytest.mark.parametrize("name, num_joints, clip_id", LAYOUTS)
+def test_ids_come_only_from_exact_joint_file_names(tmp_path: Path, name: str, num_joints: int, clip_id: str) -> None:
+    joints = walking_joints(60, num_joints)
+    root = write_layout(tmp_path / name, {clip_id: joints, f"M{clip_id}": joints, f"{clip_id}.bak": joints,
+                                          f"{clip_id} copy": joints, f".{clip_id}": joints},
+                        {clip_id: GOOD_TEXT, f"M{clip_id}": GOOD_TEXT}, {"train": [clip_id]})
+    (root / "new_joints" / "notes.txt").write_text("stray")
+    (root / "new_joints" / "old").mkdir()
+    source = build_source(name, str(root))
+    assert source.list_items() == [clip_id, f"M{clip_id}"]
+    folder = root / "new_joints"
+    assert source.ignored_files() == [str(folder / n) for n in
+                                      sorted([f".{clip_id}.npy", f"{clip_id} copy.npy", f"{clip_id}.bak.npy", "notes.txt", "old"])]
+    assert {source.load(i).id for i in source.list_items()} == {clip_id, f"M{clip_id}"}
+
+
+@pytest.mark.parametrize("name, num_joints, clip_id", LAYOUTS)
+def test_complex_joint_arrays_are_refused(tmp_path: Path, name: str, num_joints: int, clip_id: str) -> None:
+    root = write_layout(tmp_path / name, {clip_id: walking_joints(60, num_joints) * (1 + 1j)}, {clip_id: GOOD_TEXT}, {})
+    skipped = build_source(name, str(root)).load(clip_id)
+    assert isinstance(skipped, SkippedInput) and skipped.reason == "bad_shape"
+    assert skipped.path == str(root / "new_joints" / f"{clip_id}.npy") and "complex" in skipped.detail
+
+
 # ----------------------------------------------------------------------------------------------------
 # AMASS with a fake SMPL-H body model
 # ----------------------------------------------------------------------------------------------------
@@ -342,6 +409,43 @@ def test_amass_bad_files(tmp_path: Path) -> None:
         "a/broken_poses.npz": "unreadable", "a/nan_poses.npz": "nan_frames",
         "a/nocaption_poses.npz": "no_captions", "a/shape_poses.npz": "bad_shape",
     }
+
+
+def test_amass_index_mode_bad_captions_missing_ids_and_complex_arrays(tmp_path: Path) -> None:
+    """The HumanML3D faults where AMASS shares the code: caption files, split files, joint files."""
+    model = write_body_model(tmp_path / "model.npz")
+    amass = tmp_path / "amass_data"
+    write_motion(amass / "KIT" / "3" / "walk_poses.npz", np.zeros((30, 156)), np.zeros((30, 3)))
+    write_motion(amass / "KIT" / "3" / "complex_poses.npz", np.zeros((30, 156)) * (1 + 1j), np.zeros((30, 3)))
+    (amass / "humanact12").mkdir()
+    np.save(amass / "humanact12" / "P01.npy", walking_joints(30, 24) * (1 + 1j))
+    humanml = tmp_path / "HumanML3D"
+    (humanml / "texts").mkdir(parents=True)
+    (humanml / "index.csv").write_text(
+        "source_path,start_frame,end_frame,new_name\n"
+        "./pose_data/KIT/3/walk_poses.npy,0,10,000000.npy\n"
+        "./pose_data/KIT/3/walk_poses.npy,0,10,000001.npy\n"
+        "./pose_data/KIT/3/complex_poses.npy,0,10,000002.npy\n"
+        "./pose_data/humanact12/P01.npy,0,10,000003.npy\n"
+    )
+    (humanml / "texts" / "000000.txt").write_text(GOOD_TEXT + MALFORMED_SPANS)
+    (humanml / "texts" / "000001.txt").write_text("a man runs#t/X#-1#2\n")
+    for name in ("000002", "000003"):
+        (humanml / "texts" / f"{name}.txt").write_text(GOOD_TEXT)
+    # M000000 is not built without mirror=True: not missing. 000777 has no index row: missing.
+    (humanml / "train.txt").write_text("000000\nM000000\n000001\n000002\n000003\n000777\n")
+    source = build_source("amass", str(amass), body_model=str(model), captions=str(humanml / "index.csv"))
+    assert source.list_items() == ["000000", "000001", "000002", "000003", "000777"]
+    clip = source.load("000000")
+    assert clip.dropped_captions == {"span_end_not_after_start": 1, "span_negative": 1, "span_not_a_number": 1}
+    only_bad = source.load("000001")
+    assert only_bad.reason == "no_captions" and "span_negative" in only_bad.detail and "empty" not in only_bad.detail
+    missing = source.load("000777")
+    assert (missing.id, missing.reason) == ("000777", "missing_file") and "index.csv" in missing.detail
+    for item, file in (("000002", "complex_poses.npz"), ("000003", "P01.npy")):
+        refused = source.load(item)
+        assert (refused.id, refused.reason) == (item, "bad_shape") and "complex" in refused.detail
+        assert refused.path.endswith(file)
 
 
 # ----------------------------------------------------------------------------------------------------

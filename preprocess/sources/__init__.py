@@ -3,10 +3,15 @@
 A source is a picklable class built from keyword options (``build_source(name, root, **options)``):
 
 * ``name`` and ``skeleton`` (a name in ``mfm.skeleton.SKELETONS``);
-* ``list_items() -> list[str]``: cheap, deterministic, sorted item references (ids or relative paths);
+* ``list_items() -> list[str]``: cheap, deterministic, sorted item references (ids or relative paths),
+  including every item the dataset lists (a split file, an index) whose data is absent;
 * ``load(item) -> Clip | SkippedInput``: runs in a worker process and never raises for bad input; it
-  returns ``SkippedInput`` with reason ``unreadable``, ``bad_shape``, ``nan_frames`` or ``no_captions``.
-  Length filtering, resampling to the skeleton's fps and feature errors belong to the processing stage.
+  returns ``SkippedInput`` with reason ``unreadable``, ``missing_file``, ``bad_shape`` (complex-valued
+  arrays too), ``nan_frames`` or ``no_captions``. Caption lines it cannot read are counted by reason in
+  ``Clip.dropped_captions``. Length filtering, resampling to the skeleton's fps and feature errors belong
+  to the processing stage;
+* optionally ``ignored_files() -> list[str]``: what the source's folder holds but never reads (names that
+  are not of the layout's pattern), listed in the skip report.
 
 ``Clip.joints`` are (T, J, 3) float32 in the skeleton's units at the source's own fps; caption spans are
 in seconds. Sources whose skeleton has no built-in bone lengths (KIT) also offer ``target_skeleton()``.

@@ -27,7 +27,10 @@ Captions (AMASS has none), option ``captions=``:
   then ``[start_frame:end_frame]``. ``root`` is the ``amass_data`` folder with HumanML3D's folder
   names (``./pose_data/KIT/3/x_poses.npy`` is read from ``root/KIT/3/x_poses.npz``); the HumanAct12
   rows read HumanML3D's own ``pose_data/humanact12`` joint files from ``root/humanact12/...``.
-  ``mirror=True`` adds HumanML3D's left/right mirrored copies (``M<id>``).
+  ``mirror=True`` adds HumanML3D's left/right mirrored copies (``M<id>``). Caption lines and split files
+  are read as HumanML3D's (``humanml3d.py``): malformed caption lines are counted by reason, and an id a
+  split file lists without an index row is skipped as ``missing_file`` (an ``M<id>`` only with
+  ``mirror=True``; without it mirrored copies are not built, so not missing).
 * A JSON file ``{"relative/path.npz": [caption, ...]}`` (a caption is a string, optionally in
   HumanML3D's ``text#tokens#from#to`` form, or ``{"text", "start", "end"}`` in seconds) or a CSV with
   columns ``path,text`` (and optionally ``start,end`` in seconds). Items are every ``.npz`` under
@@ -56,9 +59,10 @@ from preprocess.sources.humanml3d import (
     as_name_list,
     check_splits,
     hash_split,
+    load_caption_file,
+    missing_listed_item,
     motion_id,
     parse_caption_line,
-    read_caption_file,
     read_split_files,
 )
 
@@ -224,12 +228,17 @@ def read_index_csv(path: Path) -> dict[str, IndexRow]:
 
 
 def _caption_from_json(value: object, where: str) -> Caption | None:
-    if isinstance(value, str):
-        return parse_caption_line(value)
-    if isinstance(value, dict) and isinstance(value.get("text"), str):
-        text = value["text"].strip()
-        end = value.get("end")
-        return Caption(text=text, start=float(value.get("start", 0.0)), end=None if end is None else float(end)) if text else None
+    """A caption of a JSON caption map; a malformed one is an error naming ``where`` (the user's own file:
+    fixed before the build rather than counted in it)."""
+    try:
+        if isinstance(value, str):
+            return parse_caption_line(value)
+        if isinstance(value, dict) and isinstance(value.get("text"), str):
+            text = value["text"].strip()
+            end = value.get("end")
+            return Caption(text=text, start=float(value.get("start", 0.0)), end=None if end is None else float(end)) if text else None
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{where}: bad caption {value!r}: {err}") from None
     raise ValueError(f"{where}: a caption must be a string or {{'text', 'start', 'end'}}, got {value!r}")
 
 
@@ -250,12 +259,15 @@ def read_caption_map(path: Path) -> dict[str, list[Caption]]:
         reader = csv.DictReader(handle)
         if not reader.fieldnames or not {"path", "text"} <= set(reader.fieldnames):
             raise ValueError(f"{path}: a caption CSV needs columns path,text (optionally start,end); got {reader.fieldnames}")
-        for row in reader:
+        for number, row in enumerate(reader, start=2):
             text = (row["text"] or "").strip()
             captions = table.setdefault(_normal_relpath(row["path"]), [])
             if text:
                 end = (row.get("end") or "").strip()
-                captions.append(Caption(text=text, start=float(row.get("start") or 0.0), end=float(end) if end else None))
+                try:
+                    captions.append(Caption(text=text, start=float(row.get("start") or 0.0), end=float(end) if end else None))
+                except ValueError as err:
+                    raise ValueError(f"{path}:{number}: bad caption span: {err}") from None
     return table
 
 
@@ -351,7 +363,11 @@ class AMASSSource:
             ids = sorted(self.index)
             if self.mirror:
                 ids = sorted(ids + [f"M{i}" for i in ids])
-            return [i for i in ids if self.split_of.get(i, self.default_split) in self.splits]
+            chosen = {i for i in ids if self.split_of.get(i, self.default_split) in self.splits}
+            # Every id the asked split files list is an item (one without an index row is a missing_file skip),
+            # except the mirrored copies that mirror=False deliberately leaves out.
+            listed = {i for i, split in self.split_of.items() if split in self.splits and not self._unmirrored(i)}
+            return sorted(chosen | listed)
         paths = sorted(p.relative_to(self.root).as_posix() for p in self.root.rglob("*.npz"))
         unmatched = sorted(set(self.caption_map) - set(paths))
         if unmatched:
@@ -368,12 +384,19 @@ class AMASSSource:
 
     # -- index.csv mode ------------------------------------------------------------------------------
 
+    def _unmirrored(self, item: str) -> bool:
+        """An ``M<id>`` mirrored copy of an indexed id, not built because mirror=False."""
+        return not self.mirror and item.startswith("M") and item[1:] in self.index
+
     def _load_indexed(self, item: str) -> Clip | SkippedInput:
         mirrored = self.mirror and item.startswith("M") and item[1:] in self.index
+        if not mirrored and item not in self.index:
+            return missing_listed_item(item, self.split_of.get(item), self.captions_path,
+                                       f"{self.captions_path.name} has no row for {item}.npy")
         row = self.index[item[1:] if mirrored else item]
-        captions = _captions_from_file(self.texts_dir / f"{item}.txt")
+        captions = load_caption_file(self.texts_dir / f"{item}.txt", item)
         if isinstance(captions, SkippedInput):
-            return replace(captions, id=item)
+            return captions
         relative = row.source_path.replace("\\", "/").removeprefix("./").removeprefix("pose_data/")
         if "humanact12" in relative:
             # HumanML3D ships these as joints already in its axes at 20 fps: used uncut, as it does.
@@ -386,7 +409,8 @@ class AMASSSource:
             return replace(joints, id=item)
         if mirrored:
             joints = mirror_left_right(joints)
-        return self._clip(item, joints, float(HUMANML3D_FPS), path, captions, self.split_of.get(item, self.default_split))
+        split = self.split_of.get(item, self.default_split)
+        return self._clip(item, joints, float(HUMANML3D_FPS), path, captions.captions, split, captions.dropped)
 
     def _indexed_amass_joints(self, path: Path, row: IndexRow) -> np.ndarray | SkippedInput:
         motion = _read_motion(path)
@@ -421,7 +445,8 @@ class AMASSSource:
     # -- shared --------------------------------------------------------------------------------------
 
     def _clip(
-        self, clip_id: str, joints: np.ndarray, fps: float, path: Path, captions: list[Caption], split: str
+        self, clip_id: str, joints: np.ndarray, fps: float, path: Path, captions: list[Caption], split: str,
+        dropped_captions: dict[str, int] | None = None,
     ) -> Clip | SkippedInput:
         problem = check_joints(joints, NUM_BODY_JOINTS)
         if problem is not None:
@@ -435,6 +460,7 @@ class AMASSSource:
             split=split,
             source=self.name,
             path=str(path),
+            dropped_captions=dict(dropped_captions or {}),
         )
 
 
@@ -442,9 +468,16 @@ def _read_motion(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, float,
     """``(poses, trans, betas, fps, gender)`` of an AMASS ``.npz``, or why it cannot be used."""
     try:
         with np.load(path, allow_pickle=False) as data:
-            poses = np.asarray(data["poses"], dtype=np.float64)
-            trans = np.asarray(data["trans"], dtype=np.float64)
-            betas = np.asarray(data["betas"], dtype=np.float64) if "betas" in data.files else np.zeros(NUM_BETAS)
+            arrays = {key: np.asarray(data[key]) for key in ("poses", "trans")}
+            if "betas" in data.files:
+                arrays["betas"] = np.asarray(data["betas"])
+            complex_keys = [f"{key} ({value.dtype})" for key, value in arrays.items() if np.iscomplexobj(value)]
+            if complex_keys:  # a cast to float64 would silently drop the imaginary part
+                return SkippedInput("", str(path), BAD_SHAPE,
+                                    f"complex-valued {', '.join(complex_keys)}: AMASS motion must be real numbers")
+            poses = arrays["poses"].astype(np.float64)
+            trans = arrays["trans"].astype(np.float64)
+            betas = arrays["betas"].astype(np.float64) if "betas" in arrays else np.zeros(NUM_BETAS)
             rate_key = "mocap_framerate" if "mocap_framerate" in data.files else "mocap_frame_rate"
             fps = float(data[rate_key])
             gender = _decode_gender(data["gender"]) if "gender" in data.files else "neutral"
@@ -471,14 +504,3 @@ def _read_joint_file(path: Path) -> np.ndarray | SkippedInput:
     if joints.ndim == 3 and joints.shape[1] >= NUM_BODY_JOINTS:
         joints = joints[:, :NUM_BODY_JOINTS]
     return joints
-
-
-def _captions_from_file(path: Path) -> list[Caption] | SkippedInput:
-    if not path.is_file():
-        return SkippedInput("", str(path), NO_CAPTIONS, "caption file missing")
-    try:
-        captions = read_caption_file(path)
-    except (OSError, UnicodeDecodeError) as err:
-        return SkippedInput("", str(path), UNREADABLE, f"{type(err).__name__}: {err}")
-    return captions or SkippedInput("", str(path), NO_CAPTIONS, "every caption line is empty")
-

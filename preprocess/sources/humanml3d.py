@@ -13,11 +13,18 @@ Layout (EricGuo5513/HumanML3D)::
 
 ``from``/``to`` are seconds into the clip. As in HumanML3D's own loader, ``0.0#0.0`` (or NaN) means the
 whole clip and anything else a sub-clip ``[from, to)``; ``to = 0`` with ``from > 0`` (which HumanML3D's
-loader turns into an empty clip) is read here as "from ``from`` to the end".
+loader turns into an empty clip) is read here as "from ``from`` to the end". A line whose span is not a
+number, negative, or ends before it starts, and a line with tags but no text, is dropped and counted by
+reason (``Clip.dropped_captions``, then the skip report's ``dropped_captions``).
+
+Ids: a joint file is ``<id>.npy`` with the id in ``[A-Za-z0-9_-]`` (``000001.npy``, ``M000001.npy``), so the
+file name alone is the id and two files can never share one. Anything else in the joint folder (a
+``000001.bak.npy``, ``notes.txt``) is not read; ``ignored_files()`` lists it for the skip report.
 
 Splits: an id listed in ``<split>.txt`` belongs to that split; an id in no split file (or every id, when
 the folder has no split files) gets the ``default_split`` option ('train' unless told otherwise).
-Only ids whose split is in the ``splits`` option are listed.
+Only ids whose split is in the ``splits`` option are listed, and every id a split file lists is an item:
+one without its joint file is skipped as ``missing_file``, never ignored.
 """
 
 from __future__ import annotations
@@ -26,13 +33,16 @@ import hashlib
 import logging
 import math
 import re
+import os
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from mfm.skeleton import Skeleton, get_skeleton
 from preprocess.clip import (
+    MISSING_FILE,
     NO_CAPTIONS,
     UNREADABLE,
     Caption,
@@ -40,6 +50,7 @@ from preprocess.clip import (
     SkippedInput,
     check_joints,
 )
+from preprocess.processing import is_valid_key
 
 log = logging.getLogger(__name__)
 
@@ -106,15 +117,36 @@ def hash_split(key: str, val_fraction: float = 0.1, test_fraction: float = 0.1) 
 # ----------------------------------------------------------------------------------------------------
 
 
+# Why a caption line is dropped (its key in the skip report's ``dropped_captions``).
+EMPTY_CAPTION = "empty"  # tags without text (the processing stage counts empty texts under the same key)
+SPAN_NOT_A_NUMBER = "span_not_a_number"  # ``#abc#2.0``, or infinite
+SPAN_NEGATIVE = "span_negative"  # ``#-1#2``
+SPAN_END_NOT_AFTER_START = "span_end_not_after_start"  # ``#5.0#2.0``
+
+
+class CaptionSpanError(ValueError):
+    """A caption line whose ``#from#to`` span cannot be used; ``reason`` is one of the ``SPAN_*`` keys."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
 def _seconds(field: str) -> float:
     """A ``#from#to`` tag; NaN (HumanML3D writes ``nan`` for some) counts as 0 like its loader does."""
-    value = float(field)
+    try:
+        value = float(field)
+    except ValueError:
+        raise CaptionSpanError(SPAN_NOT_A_NUMBER, f"span tag {field.strip()!r} is not a number") from None
+    if math.isinf(value):
+        raise CaptionSpanError(SPAN_NOT_A_NUMBER, f"span tag {field.strip()!r} is not a finite number")
     return 0.0 if math.isnan(value) else value
 
 
 def parse_caption_line(line: str) -> Caption | None:
     """One ``caption#tokens#from#to`` line; None for an empty caption. A line without the tags (plain
-    text) is a whole-clip caption without tokens. Raises ValueError on a malformed span."""
+    text) is a whole-clip caption without tokens. Raises :class:`CaptionSpanError` (a ValueError) on a
+    malformed span."""
     fields = line.rstrip("\r\n").split("#")
     text = fields[0].strip()
     if not text:
@@ -123,27 +155,71 @@ def parse_caption_line(line: str) -> Caption | None:
     start = _seconds(fields[2]) if len(fields) > 2 and fields[2].strip() else 0.0
     end_tag = _seconds(fields[3]) if len(fields) > 3 and fields[3].strip() else 0.0
     if start < 0 or end_tag < 0:
-        raise ValueError(f"negative span {start}..{end_tag} s")
+        raise CaptionSpanError(SPAN_NEGATIVE, f"negative span {start}..{end_tag} s")
     if end_tag == 0.0:
         return Caption(text=text, tokens=tokens, start=start, end=None)
     if end_tag <= start:
-        raise ValueError(f"empty span {start}..{end_tag} s")
+        raise CaptionSpanError(SPAN_END_NOT_AFTER_START, f"span end {end_tag} s is not after its start {start} s")
     return Caption(text=text, tokens=tokens, start=start, end=end_tag)
 
 
-def read_caption_file(path: Path) -> list[Caption]:
-    """All non-empty captions of a HumanML3D ``texts/<id>.txt`` file (lines with a malformed span are
-    dropped with a warning naming the file). Raises OSError/UnicodeDecodeError if it cannot be read."""
-    captions = []
+@dataclass(frozen=True)
+class CaptionFile:
+    """A caption file's usable captions, the lines dropped from it counted by reason, and the first
+    dropped line (``"line N: why"``) for skip details. Blank lines are no captions and are not counted."""
+
+    captions: list[Caption]
+    dropped: dict[str, int]
+    first_dropped: str = ""
+
+
+def read_caption_file(path: Path) -> CaptionFile:
+    """The captions of a HumanML3D ``texts/<id>.txt`` file; lines with a malformed span are dropped, counted
+    and logged (file:line). Raises OSError/UnicodeDecodeError if the file cannot be read."""
+    captions: list[Caption] = []
+    dropped: dict[str, int] = {}
+    first = ""
     for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        if not line.strip():
+            continue
         try:
             caption = parse_caption_line(line)
-        except ValueError as err:
-            log.warning("%s:%d: caption dropped: %s", path, number, err)
-            continue
-        if caption is not None:
-            captions.append(caption)
-    return captions
+        except CaptionSpanError as err:
+            reason, why = err.reason, str(err)
+            log.warning("%s:%d: caption dropped (%s): %s", path, number, reason, why)
+        else:
+            if caption is not None:
+                captions.append(caption)
+                continue
+            reason, why = EMPTY_CAPTION, "no caption text"
+        dropped[reason] = dropped.get(reason, 0) + 1
+        first = first or f"line {number}: {why}"
+    return CaptionFile(captions, dropped, first)
+
+
+def load_caption_file(path: Path, clip_id: str) -> CaptionFile | SkippedInput:
+    """A clip's caption file, or why the clip has no caption: ``no_captions`` when the file is missing or no
+    line is usable (the detail counts the dropped lines by reason and quotes the first), ``unreadable`` when
+    it cannot be read. Every reader of HumanML3D's ``texts/`` goes through here."""
+    if not path.is_file():
+        return SkippedInput(clip_id, str(path), NO_CAPTIONS, "caption file missing")
+    try:
+        read = read_caption_file(path)
+    except (OSError, UnicodeDecodeError) as err:
+        return SkippedInput(clip_id, str(path), UNREADABLE, f"{type(err).__name__}: {err}")
+    if read.captions:
+        return read
+    if not read.dropped:
+        return SkippedInput(clip_id, str(path), NO_CAPTIONS, "the caption file has no caption line")
+    counts = ", ".join(f"{n} {reason}" for reason, n in sorted(read.dropped.items()))
+    return SkippedInput(clip_id, str(path), NO_CAPTIONS, f"no usable caption line ({counts}; {read.first_dropped})")
+
+
+def missing_listed_item(item: str, split: str | None, path: Path, what: str) -> SkippedInput:
+    """The skip for an id a split file lists whose data the dataset lacks (``what``: which file, or which
+    index row, is absent). Such ids are items like any other, so the skip report counts them."""
+    listed = f"listed in {split}.txt" if split else "asked for"
+    return SkippedInput(item, str(path), MISSING_FILE, f"{listed}, but {what}")
 
 
 def read_split_files(folder: Path) -> dict[str, str]:
@@ -222,12 +298,26 @@ class HumanML3DLayoutSource:
     # -- protocol ------------------------------------------------------------------------------------
 
     def list_items(self) -> list[str]:
-        ids = sorted(path.stem for path in self.joints_dir.glob("*.npy"))
-        return [i for i in ids if self.split_of.get(i, self.default_split) in self.splits]
+        """The ids of the joint files in the asked splits, and every id those split files list (an absent
+        joint file is the item's skip, ``missing_file``)."""
+        ids = {i for i in self._scan_joint_folder()[0] if self.split_of.get(i, self.default_split) in self.splits}
+        listed = {i for i, split in self.split_of.items() if split in self.splits}
+        return sorted(ids | listed)
+
+    def ignored_files(self) -> list[str]:
+        """Entries of the joint folder that are not ``<id>.npy`` files, so never read (for the skip report)."""
+        return [str(path) for path in self._scan_joint_folder()[1]]
 
     def load(self, item: str) -> Clip | SkippedInput:
         path = self.joints_dir / f"{item}.npy"
         clip_id = motion_id(item)
+        if not is_valid_key(item):
+            split = self.split_of.get(item)
+            return missing_listed_item(item, split, self.root / f"{split}.txt" if split else path,
+                                       f"{item!r} is not a file name of the layout (<id>.npy, id in [A-Za-z0-9_-])")
+        if not path.is_file():
+            return missing_listed_item(item, self.split_of.get(item), path,
+                                       f"there is no joint file {self.joints_dir.name}/{item}.npy")
         try:
             raw = np.load(path, allow_pickle=False)
         except Exception as err:  # any failure to read is a skip, never a crash of the worker
@@ -237,25 +327,20 @@ class HumanML3DLayoutSource:
         if problem is not None:
             return SkippedInput(clip_id, str(path), *problem)
 
-        text_path = self.texts_dir / f"{item}.txt"
-        if not text_path.is_file():
-            return SkippedInput(clip_id, str(text_path), NO_CAPTIONS, "caption file missing")
-        try:
-            captions = read_caption_file(text_path)
-        except (OSError, UnicodeDecodeError) as err:
-            return SkippedInput(clip_id, str(text_path), UNREADABLE, f"{type(err).__name__}: {err}")
-        if not captions:
-            return SkippedInput(clip_id, str(text_path), NO_CAPTIONS, "every caption line is empty")
+        captions = load_caption_file(self.texts_dir / f"{item}.txt", clip_id)
+        if isinstance(captions, SkippedInput):
+            return captions
 
         return Clip(
             id=clip_id,
             joints=joints.astype(np.float32, copy=False),
             fps=self.fps,
             skeleton=self.skeleton,
-            captions=captions,
+            captions=captions.captions,
             split=self.split_of.get(item, self.default_split),
             source=self.name,
             path=str(path),
+            dropped_captions=dict(captions.dropped),
         )
 
     def target_skeleton(self) -> Skeleton:
@@ -267,7 +352,8 @@ class HumanML3DLayoutSource:
         if skeleton.bone_lengths is not None:
             return skeleton
         present = [i for i in self.reference_clip_ids if (self.joints_dir / f"{i}.npy").is_file()]
-        for item in present + self.list_items()[:1]:
+        on_disk = [i for i in self.list_items() if is_valid_key(i) and (self.joints_dir / f"{i}.npy").is_file()]
+        for item in present + on_disk[:1]:
             loaded = self.load(item)
             if isinstance(loaded, Clip):
                 log.info("%s: target skeleton measured on %s", self.name, loaded.path)
@@ -278,6 +364,20 @@ class HumanML3DLayoutSource:
         )
 
     # -- helpers ---------------------------------------------------------------------------------------
+
+    def _scan_joint_folder(self) -> tuple[list[str], list[Path]]:
+        """``(ids, ignored)``: the sorted ids of the ``<id>.npy`` files in the joint folder, and every other
+        entry there (``000001.bak.npy``, ``.000001.npy``, ``notes.txt``, a subfolder)."""
+        ids: list[str] = []
+        ignored: list[Path] = []
+        with os.scandir(self.joints_dir) as entries:
+            for entry in entries:
+                stem = entry.name.removesuffix(".npy")
+                if stem != entry.name and is_valid_key(stem) and entry.is_file():
+                    ids.append(stem)
+                else:
+                    ignored.append(self.joints_dir / entry.name)
+        return sorted(ids), sorted(ignored)
 
     def _body_joints(self, raw: np.ndarray) -> np.ndarray:
         """(T, J, 3) from what was stored: flat (T, 3J) rows are reshaped (the reference code reshapes its
