@@ -19,9 +19,15 @@ Settings: configs/eval_{full,fast}.yaml (--protocol) or --config YAML, then ``ke
 (flow: ODE solvers, diffusion: ddpm/ddim). ``--steps SOLVER=a,b`` gives one solver its own step counts; adaptive
 solvers (dopri5) run once whatever the steps. The evaluator defaults to the one launch/train_evaluator.py trained on the
 checkpoint's dataset. Results go to <run>/eval (output.dir=): one JSON per checkpoint and setting, results.jsonl /
-results.parquet, plots/. Concurrent jobs (cron, Slurm, CronJob) never evaluate a unit twice (claim files).
-Exit code: 0 done, 2 bad settings, a missing evaluator or checkpoint, 143 on SIGTERM (claims released), 1 other
-errors.
+results.parquet, plots/. Concurrent jobs (cron, Slurm, CronJob) never evaluate a unit twice (claim files). A claim
+left by a killed job on this host (its pid is gone) is taken over at once; one from another host after
+output.claim_timeout_s without a heartbeat. The last lines summarise the job: units skipped because another live job
+holds them, and (--watch) checkpoints deleted by training (train.keep_last) before any evaluation, as
+``pruned_before_evaluation: [steps]``. Keep checkpoints for the evaluator with train.keep_last=0 (or a value that
+covers the time between evaluator runs), or run ``--watch`` alongside training.
+Exit code: 0 all done (every unit evaluated, now or before), 3 some units skipped because other live jobs hold them
+and have not finished them (run again later), 2 bad settings, a missing evaluator or checkpoint, 143 on SIGTERM
+(claims released), 1 other errors. Pruned checkpoints are reported, not an error (they cannot be evaluated again).
 
 Composition (``tasks.composition=true``, pipeline/eval_composition.py): FlowMDM's protocol on a bpe + pccat model,
 one result per switch point (``composition.switch``: flow times, 'absolute' = 1.0 the absolute-only baseline,
@@ -45,7 +51,7 @@ from pipeline.config import ConfigError
 from pipeline.distributed import Dist
 from pipeline.eval_config import load_eval_config, sweep_overrides
 from pipeline.eval_spaces import EvaluationError, EvaluatorUnavailable
-from pipeline.evaluation import EvaluationJob, result_label, summary_line
+from pipeline.evaluation import EvaluationJob, JobSummary, result_label, summary_line
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -80,14 +86,18 @@ def main(argv: list[str] | None = None) -> int:
                 for result in results:
                     dist.print0(f"{result_label(result)}: {summary_line(result)}")
                 dist.print0(f"{len(results)} result(s) written")
+                summary: JobSummary = job.summary(len(results))
             else:
                 count = job.watch(args.watch, once=args.once)
                 dist.print0(f"{count} unit(s) evaluated by this job")
+                summary = job.summary(count)
         except (EvaluatorUnavailable, EvaluationError, FileNotFoundError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         dist.print0("wall time per phase: " + ", ".join(f"{k} {v:.2f} s" for k, v in job.timings.items()))
-    return 0
+        for line in summary.lines():
+            dist.print0(line)
+    return summary.exit_code
 
 
 if __name__ == "__main__":

@@ -5,25 +5,29 @@
     python launch/train.py --config tiny train.max_steps=20 model.num_layers=2
 
 Settings: a preset from configs/ (``--config NAME`` or a YAML path; default ``default``) then ``key.sub=value``
-overrides, type-checked against pipeline/config.py. The run folder (train.out_dir) gets config.yaml,
-metrics.jsonl and checkpoints/step-XXXXXXXX/ (resume=auto continues from the newest complete one).
-Exit code: 0 when train.max_steps is reached, 128 + N after a clean stop on signal N (143 SIGTERM, 130 SIGINT).
+overrides, type-checked against pipeline/config.py. The run folder (train.out_dir: new, empty, or a run's) gets
+config.yaml, metrics.jsonl and checkpoints/step-XXXXXXXX/ (resume=auto continues from the newest one that
+verifies). Exit code: 0 when train.max_steps is reached, 128 + N after a clean stop on signal N (143 SIGTERM,
+130 SIGINT), 2 for settings refused before training (one line on stderr), 1 when a checkpoint could not be saved
+(e.g. a full disk: the run stops there) or for other errors.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import shlex
 import sys
 from pathlib import Path
 
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.config import TrainConfig, available_presets, load_config
+from pipeline.checkpoint import CheckpointError, ResumeConflictError
+from pipeline.config import ConfigError, TrainConfig, available_presets, load_config
 from pipeline.distributed import Dist
-from pipeline.trainer import Trainer
-from preprocess.shards import BuildConfig, build_dataset, default_out_dir
+from pipeline.trainer import CheckpointSaveError, Trainer
+from preprocess.shards import BuildConfig, ManifestError, build_dataset, default_out_dir
 
 EMBEDDED_MANIFEST = default_out_dir("deepmimic", "minilm") / "manifest.json"
 
@@ -45,10 +49,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("overrides", nargs="*", metavar="key.sub=value", help="config overrides")
     args = parser.parse_intermixed_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    cfg = load_config(TrainConfig, args.config, args.overrides)
-    with Dist(mixed_precision=cfg.train.mixed_precision) as dist:
-        ensure_embedded_dataset(cfg.data.manifest, dist)
-        return Trainer(cfg, dist).fit()
+    try:
+        cfg = load_config(TrainConfig, args.config, args.overrides)
+        with Dist(mixed_precision=cfg.train.mixed_precision) as dist:
+            ensure_embedded_dataset(cfg.data.manifest, dist)
+            return Trainer(cfg, dist).fit()
+    except ResumeConflictError as exc:
+        given = sys.argv[1:] if argv is None else argv
+        again = shlex.join(["python", "launch/train.py", *given, exc.continue_override])
+        return fail(f"{exc}. The command that continues: {again}", 2)
+    except (ConfigError, ManifestError, CheckpointError, FileNotFoundError) as exc:  # refused before training
+        return fail(str(exc), 2)
+    except CheckpointSaveError as exc:
+        return fail(str(exc), 1)
+
+
+def fail(message: str, code: int) -> int:
+    """One line on stderr instead of a traceback, for errors the user fixes by changing the command."""
+    print(f"error: {message}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

@@ -528,6 +528,45 @@ def mean_jerk(joints: Any, lengths: Any = None) -> np.ndarray:
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class MotionAmount:
+    """Per-clip figures of how much a clip moves (:func:`motion_amount`), each (N,), in m/s."""
+
+    pose_speed: np.ndarray
+    """Mean speed of the joints relative to the root: the body's own movement, translation left out."""
+    root_speed: np.ndarray
+    """Mean horizontal (xz) speed of the root: how fast the body travels."""
+    pose_spread: np.ndarray
+    """Mean over joints of the RMS distance of the root-relative joint from its mean position over the clip [m]:
+    how far the body moves, which fast jitter around a still pose does not raise (``pose_speed`` does)."""
+
+
+def motion_amount(joints: Any, fps: float, lengths: Any = None, root: int = 0) -> MotionAmount:
+    """How much each clip moves, over its frame pairs (t, t + 1) inside ``lengths[i]``: ``pose_speed``, the mean
+    over joints of ``‖Δ(p_j − p_root)‖ · fps``, and ``root_speed``, the mean of ``‖Δ root_xz‖ · fps``; and over its
+    frames ``pose_spread``, the mean over joints of ``sqrt(mean_t ‖(p_j − p_root) − mean_t(p_j − p_root)‖²)``.
+
+    Not a plausibility figure by itself (a clip standing still is plausible) but the one that shows a generator
+    whose samples freeze into an average pose: frozen samples keep their bones, feet and jerk perfect, so only
+    their speeds beside the ground truth's give them away. NaN for a clip of one frame.
+    """
+    if fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    pos = _clips(joints)
+    n, t = pos.shape[:2]
+    in_clip = _frame_mask(_lengths_or_full(lengths, n, t) - 1, t - 1)  # (N, T-1) frame pairs inside each clip
+    local = pos - pos[:, :, root : root + 1]
+    local_speed = np.linalg.norm(np.diff(local, axis=1), axis=-1).mean(axis=-1) * fps  # (N, T-1)
+    root_speed = np.linalg.norm(np.diff(pos[:, :, root, [0, 2]], axis=1), axis=-1) * fps
+    frames = _frame_mask(_lengths_or_full(lengths, n, t), t)[..., None, None]  # (N, T, 1, 1)
+    count = frames.sum(axis=1)  # (N, 1, 1)
+    centre = np.where(frames, local, 0.0).sum(axis=1, keepdims=True) / count[:, None]  # (N, 1, J, 3)
+    square = np.where(frames, local - centre, 0.0) ** 2
+    spread = np.sqrt(square.sum(axis=(1, 3)) / count[..., 0]).mean(axis=-1)  # (N,)
+    return MotionAmount(_masked_mean(local_speed, in_clip, np.nan), _masked_mean(root_speed, in_clip, np.nan),
+                        spread)
+
+
 def _jerk_ratio(jerk: np.ndarray, reference: Any) -> np.ndarray:
     """``jerk / reference`` (reference (N,) or a scalar); NaN where the reference is not positive or undefined."""
     ref = np.asarray(reference, dtype=np.float64)
@@ -566,6 +605,12 @@ class PlausibilityFigures:
     """Mean horizontal speed of the skating foot joints [m/s], 0 without skating (:func:`foot_skating`)."""
     mean_jerk: np.ndarray
     """Mean per-frame jerk [m per frame³] (:func:`mean_jerk`)."""
+    pose_speed: np.ndarray
+    """Mean speed of the joints relative to the root [m/s] (:func:`motion_amount`): near 0 for frozen samples."""
+    root_speed: np.ndarray
+    """Mean horizontal speed of the root [m/s] (:func:`motion_amount`)."""
+    pose_spread: np.ndarray
+    """Mean RMS distance of the root-relative joints from their mean positions [m] (:func:`motion_amount`)."""
     jerk_ratio: np.ndarray | None = None
     """``mean_jerk`` over a reference jerk (the paired ground-truth clip's, or a dataset average); None: no
     reference given."""
@@ -638,7 +683,7 @@ def plausibility(joints: Any, skeleton: Skeleton, lengths: Any = None, *, gt_joi
         bone_length_range=bone_range, bone_length_deviation=bone_deviation,
         floor_penetration=floor_penetration(pos, feet, lengths), foot_skating_ratio=skating.ratio,
         contact_foot_speed=skating.contact_speed, skating_foot_speed=skating.skating_speed,
-        mean_jerk=mean_jerk(pos, lengths))
+        mean_jerk=mean_jerk(pos, lengths), **dataclasses.asdict(motion_amount(pos, skeleton.fps, lengths)))
     if gt_joints is None:
         return figures
     return figures.with_jerk_reference(mean_jerk(_clips(gt_joints, "gt_joints") * scale, gt_lengths))

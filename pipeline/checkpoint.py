@@ -9,12 +9,21 @@ Layout (one folder per optimizer step; zero-padded so names sort by step)::
         state.pt            {"version": 1, "step", "world_size", "optimizer", "scheduler",
                              "rng": [per rank], "data": [per rank], "config", "manifest", "extra"}
         COMPLETE            written last: JSON {"format", "version", "step", "files": {name: {bytes, sha256}}}
-      step-00002000.tmp-4242   a save in progress (or one that crashed): never read, pruned later
+      step-00002000.tmp-node7-4242   a save in progress by pid 4242 on host node7 (or one that was killed):
+                                     never read; removed at the next start-up once that pid is gone, or pruned
+      step-00001000.corrupt-20250101T120000    set aside by resume=auto (a file fails its sha256): never read,
+      step-00001000.discarded-20250101T120000  never pruned, never deleted (by train.resume_discard_newer=true)
 
-A save writes everything into ``step-N.tmp-<pid>`` (each file fsynced), writes COMPLETE, fsyncs the folder, then
-renames it to ``step-N`` and fsyncs the parent. A folder without a valid COMPLETE (missing, empty, unparsable,
-or listing a file that is missing or of the wrong size) does not exist as far as :func:`find_latest_complete` and
-``resume="auto"`` are concerned; :func:`load_checkpoint` also checks every file's sha256.
+A save writes everything into ``step-N.tmp-<host>-<pid>`` (each file fsynced), writes COMPLETE, fsyncs the folder,
+then renames it to ``step-N`` and fsyncs the parent. A save that fails (a full disk) removes its temporary folder,
+logs one line with the space it needed and the space free, and raises CheckpointWriteError: a half-written
+checkpoint never holds space a restart needs. A folder without a valid COMPLETE (missing, empty, unparsable, or
+listing a file that is missing or of the wrong size) does not exist as far as :func:`find_latest_complete` is
+concerned; :func:`load_checkpoint` also checks every file's sha256, and ``resume="auto"`` does too before it picks
+a checkpoint, falling back to the newest one that verifies (see :func:`resolve_resume`).
+
+A training process starting up calls :func:`remove_stale_tmp` first: temporary folders whose writer is gone are
+removed before anything else is written, so a crash or a full disk never leaves a run that cannot restart.
 
 Only global rank 0 saves. Per-rank state (RNG, data-loader position) is gathered by the caller first, e.g.
 ``rng_states = dist.all_gather_object(capture_rng_state())``, and passed as lists indexed by rank.
@@ -35,6 +44,8 @@ import pickle
 import random
 import re
 import shutil
+import socket
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -57,7 +68,10 @@ STATE_FILE = "state.pt"
 CHECKPOINTS_SUBDIR = "checkpoints"
 
 _STEP_DIR = re.compile(r"^step-(\d{8})$")
-_TMP_DIR = re.compile(r"^step-(\d{8})\.tmp-.+$")
+_TMP_DIR = re.compile(r"^step-(\d{8})\.tmp-(.+)$")
+# The owner part of a temporary folder's name: [incomplete-|delete-][<host>-]<pid> (names from before the host was
+# recorded have none: they were written on this host).
+_TMP_OWNER = re.compile(r"^(?:(?:incomplete|delete)-)?(?:(?P<host>.+)-)?(?P<pid>\d+)$")
 
 
 class CheckpointError(RuntimeError):
@@ -70,6 +84,27 @@ class IncompleteCheckpointError(CheckpointError):
 
 class CorruptCheckpointError(CheckpointError):
     """The marker is valid but a file is missing, has the wrong size or hash, or cannot be decoded."""
+
+
+class CheckpointWriteError(OSError):
+    """A save failed (a full disk, a quota, an I/O error) and removed its partial folder. ``errno`` is the original
+    error's; ``strerror`` is one line saying which checkpoint, why and, for a full disk, the space it needed
+    against the space free."""
+
+    def __str__(self) -> str:
+        return self.strerror or super().__str__()
+
+
+class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
+    """``train.resume`` names a folder that does not exist (a FileNotFoundError too, for callers that catch that)."""
+
+
+class ResumeConflictError(CheckpointError):
+    """An explicit resume point is older than checkpoints already in the run: training on would reach their steps
+    and have to refuse (or overwrite) them after the compute is spent, so the run is refused before step 1.
+    ``continue_override`` is the override that continues from the resume point anyway (the newer ones set aside)."""
+
+    continue_override = "train.resume_discard_newer=true"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -86,6 +121,22 @@ def step_dir_name(step: int) -> str:
     if not isinstance(step, int) or isinstance(step, bool) or not 0 <= step < 10**8:
         raise ValueError(f"checkpoint step must be an int in [0, 1e8), got {step!r}")
     return f"step-{step:08d}"
+
+
+def tmp_dir_name(step: int, pid: int | None = None) -> str:
+    """``step-N.tmp-<host>-<pid>``: the folder a save writes into. Host and pid name its writer, so that a later
+    start-up can tell a save in progress (a live process on this host) from one that was killed."""
+    return f"{step_dir_name(step)}.tmp-{_owner_tag(pid)}"
+
+
+def _owner_tag(pid: int | None = None) -> str:
+    return f"{_this_host()}-{os.getpid() if pid is None else pid}"
+
+
+def _this_host() -> str:
+    # '-' separates the host from the pid in the folder name, so the host's own '-' (and anything unsafe in a
+    # folder name) becomes '_'.
+    return re.sub(r"[^A-Za-z0-9.]", "_", socket.gethostname()) or "unknown_host"
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -162,7 +213,8 @@ def save_checkpoint(
     ``rng_states`` / ``data_states``: one entry per rank, indexed by rank (already gathered). ``config``: the
     resolved config dict (``pipeline.config.to_dict``); ``manifest``: the dataset identity (dataset_id, feature
     spec, ...); ``extra``: counters such as samples seen. Raises FileExistsError if a complete checkpoint for
-    ``step`` already exists.
+    ``step`` already exists, and CheckpointWriteError (an OSError) if writing fails: the partial folder is then
+    already removed and the reason logged (for a full disk: the space needed and the space free).
     """
     if len(rng_states) != len(data_states) or not rng_states:
         raise ValueError(
@@ -174,11 +226,7 @@ def save_checkpoint(
         if is_complete(final):
             raise FileExistsError(f"checkpoint {final} already exists and is complete; refusing to overwrite it")
         _set_aside(final)
-    ckpt_root.mkdir(parents=True, exist_ok=True)
-    tmp = ckpt_root / f"{final.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
+    tmp = ckpt_root / tmp_dir_name(step)
 
     state = {
         "version": CHECKPOINT_VERSION,
@@ -199,19 +247,43 @@ def save_checkpoint(
     files[STATE_FILE] = _torch_bytes(state)
 
     try:
+        ckpt_root.mkdir(parents=True, exist_ok=True)
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir()
         written = {name: _write_file(tmp / name, payload) for name, payload in files.items()}
         marker = {"format": MARKER_FORMAT, "version": CHECKPOINT_VERSION, "step": step, "files": written}
         _write_file(tmp / COMPLETE_MARKER, (json.dumps(marker, indent=1, sort_keys=True) + "\n").encode())
         _fsync_dir(tmp)
-    except OSError:
-        # Left in place on purpose, exactly as a killed process would leave it: it has no marker, so nothing
-        # reads it, and prune_checkpoints removes it once a newer checkpoint is complete.
-        logger.error("writing checkpoint %s failed; the partial folder %s is ignored", final, tmp)
-        raise
+    except OSError as err:
+        # Removed, not left for later: on a full disk the partial folder holds the very space the next save (or a
+        # restart's first write) needs. It has no marker, so nothing has read it.
+        shutil.rmtree(tmp, ignore_errors=True)
+        description = describe_save_failure(final, err, sum(len(p) for p in files.values()))
+        logger.error("%s", description)
+        raise CheckpointWriteError(err.errno, description) from err
     os.rename(tmp, final)
     _fsync_dir(ckpt_root)
     logger.info("saved checkpoint %s", final)
     return final
+
+
+def describe_save_failure(final: Path, err: OSError, needed_bytes: int) -> str:
+    """One line saying which checkpoint was not saved and why; for a full disk (or quota) also the space the
+    checkpoint needs against the space free there, which is what the user has to fix."""
+    line = f"checkpoint {final} was not saved ({err}); its partial folder was removed"
+    if err.errno in (errno.ENOSPC, errno.EDQUOT):
+        try:
+            free = shutil.disk_usage(final.parent if final.parent.exists() else final.parent.parent).free
+        except OSError:
+            free = -1
+        free_text = "unknown" if free < 0 else _megabytes(free)
+        line += f": it needs {_megabytes(needed_bytes)}, {free_text} free on {final.parent}"
+    return line
+
+
+def _megabytes(count: int) -> str:
+    return f"{count / 1e6:.1f} MB"
 
 
 def _safetensors_ready(state: Mapping[str, torch.Tensor], what: str) -> dict[str, torch.Tensor]:
@@ -259,7 +331,7 @@ def _fsync_dir(path: Path) -> None:
 
 def _set_aside(folder: Path) -> None:
     """Rename an incomplete ``step-N`` folder (not written by this module) out of the way, as a stale tmp."""
-    aside = folder.with_name(f"{folder.name}.tmp-incomplete-{os.getpid()}")
+    aside = folder.with_name(f"{folder.name}.tmp-incomplete-{_owner_tag()}")
     logger.warning("moving incomplete checkpoint folder %s aside to %s", folder, aside)
     os.rename(folder, aside)
 
@@ -340,16 +412,21 @@ def find_latest_complete(ckpt_root: str | Path) -> Path | None:
     return complete[-1][1] if complete else None
 
 
-def resolve_resume(resume: str | Path, ckpt_root: str | Path) -> Path | None:
+def resolve_resume(resume: str | Path, ckpt_root: str | Path, *, discard_newer: bool = False) -> Path | None:
     """What ``train.resume`` means for this run (call on rank 0, broadcast the answer).
 
-    ``"auto"``: the newest complete checkpoint in ``ckpt_root``, or None for a fresh run. ``"never"``: None, but
-    FileExistsError if ``ckpt_root`` already holds complete checkpoints (a fresh run would interleave with them).
-    Anything else is a checkpoint folder that must exist (FileNotFoundError) and be complete
-    (IncompleteCheckpointError / CorruptCheckpointError).
+    ``"auto"``: the newest checkpoint in ``ckpt_root`` whose files all verify (sha256), or None for a fresh run.
+    A newer one that fails is renamed ``step-N.corrupt-<time>`` (never deleted: it may be all that is left of those
+    steps) and the one before it is tried; CorruptCheckpointError if checkpoints existed and none verifies.
+    ``"never"``: None, but FileExistsError if ``ckpt_root`` already holds complete checkpoints (a fresh run would
+    interleave with them). Anything else is a checkpoint folder that must exist (CheckpointNotFoundError, a
+    FileNotFoundError) and be complete (IncompleteCheckpointError / CorruptCheckpointError); if ``ckpt_root``
+    holds checkpoints newer than it, the run would meet them later and could neither overwrite nor keep them, so
+    this refuses at once (ResumeConflictError) unless ``discard_newer``, which renames them
+    ``step-N.discarded-<time>``.
     """
     if resume == "auto":
-        return find_latest_complete(ckpt_root)
+        return _newest_verified(Path(ckpt_root))
     if resume == "never":
         existing = list_complete(ckpt_root)
         if existing:
@@ -360,15 +437,143 @@ def resolve_resume(resume: str | Path, ckpt_root: str | Path) -> Path | None:
         return None
     path = Path(resume)
     if not path.exists():
-        raise FileNotFoundError(f"train.resume={str(resume)!r}: no such checkpoint folder")
+        raise CheckpointNotFoundError(f"train.resume={str(resume)!r}: no such checkpoint folder")
     looks_like_run = any(path.glob("step-*")) or (path / CHECKPOINTS_SUBDIR).is_dir()
     if looks_like_run and not (path / COMPLETE_MARKER).exists():
         raise IncompleteCheckpointError(
             f"train.resume={str(resume)!r} is a run or checkpoints folder, not a checkpoint: pass one of its "
             "step-XXXXXXXX folders, or set train.out_dir to that run and resume=auto"
         )
-    verify_files(path, read_marker(path), hashes=False)
+    marker = read_marker(path)
+    verify_files(path, marker, hashes=False)
+    _check_nothing_newer(path, int(marker["step"]), Path(ckpt_root), discard_newer)
     return path
+
+
+def _newest_verified(ckpt_root: Path) -> Path | None:
+    """resume=auto: the newest finished checkpoint whose files match their sha256; newer corrupt ones set aside."""
+    moved: list[Path] = []
+    for _, path in reversed(_finished(ckpt_root)):
+        try:
+            verify_files(path, read_marker(path), hashes=True)
+        except CorruptCheckpointError as err:
+            aside = move_aside(path, "corrupt")
+            logger.warning("checkpoint %s is corrupt (%s): moved aside to %s (kept, not deleted); trying the one "
+                           "before it", path.name, err, aside.name)
+            moved.append(aside)
+            continue
+        if moved:
+            logger.warning("resume=auto: resuming from %s, the newest checkpoint that verifies", path)
+        return path
+    if moved:
+        raise CorruptCheckpointError(
+            f"no checkpoint in {ckpt_root} verifies; the corrupt one(s) were moved aside "
+            f"({', '.join(p.name for p in moved)}): to start this run over from step 0, rerun with train.resume=never"
+        )
+    return None
+
+
+def _finished(ckpt_root: Path) -> list[tuple[int, Path]]:
+    """``(step, path)`` of every ``step-N`` folder with a valid marker (its save finished), oldest first; their
+    files may since have changed. Folders without one are logged and skipped, as :func:`list_complete` does."""
+    if not ckpt_root.is_dir():
+        return []
+    found = []
+    for child in ckpt_root.iterdir():
+        match = _STEP_DIR.match(child.name)
+        if not (match and child.is_dir()):
+            continue
+        try:
+            read_marker(child)
+        except IncompleteCheckpointError:
+            logger.warning("ignoring incomplete checkpoint folder %s", child)
+            continue
+        found.append((int(match.group(1)), child))
+    return sorted(found)
+
+
+def _check_nothing_newer(path: Path, step: int, ckpt_root: Path, discard: bool) -> None:
+    """An explicit resume point at ``step``: refuse (or, with ``discard``, set aside) finished checkpoints of
+    ``ckpt_root`` at later steps, before any compute is spent reaching them."""
+    newer = [folder for folder_step, folder in _finished(ckpt_root) if folder_step > step]
+    if not newer:
+        return
+    names = ", ".join(folder.name for folder in newer)
+    if not discard:
+        raise ResumeConflictError(
+            f"train.resume={str(path)!r} is step {step}, but {ckpt_root} already holds newer checkpoint(s) {names}: "
+            f"the run would stop when it reaches them. To continue from {path.name} and move the newer one(s) aside "
+            f"(renamed step-N.discarded-<time>, not deleted), rerun with {ResumeConflictError.continue_override}; "
+            "to continue from the newest instead, use train.resume=auto"
+        )
+    for folder in newer:
+        aside = move_aside(folder, "discarded")
+        logger.warning("train.resume_discard_newer: moved %s aside to %s (kept, not deleted)", folder.name, aside.name)
+
+
+def move_aside(folder: Path, label: str) -> Path:
+    """Rename checkpoint ``folder`` to ``<name>.<label>-<local time>``: out of every reader's and the pruner's way,
+    but kept for the user to inspect or delete."""
+    stamp = time.strftime("%Y%m%dT%H%M%S")
+    aside = folder.with_name(f"{folder.name}.{label}-{stamp}")
+    suffix = 1
+    while aside.exists():
+        aside = folder.with_name(f"{folder.name}.{label}-{stamp}-{suffix}")
+        suffix += 1
+    os.rename(folder, aside)
+    return aside
+
+
+def remove_stale_tmp(ckpt_root: str | Path) -> list[Path]:
+    """Remove the temporary folders (``step-N.tmp-...``) whose writer is gone; call at start-up, on rank 0, before
+    the run writes anything.
+
+    A save that was killed (or, before it cleaned up after itself, failed on a full disk) leaves its temporary
+    folder; on a full disk that folder is what makes every restart fail at its first write. Kept: folders of a
+    live process on this host other than this one (a save in progress) and folders written on another host (whose
+    process cannot be checked from here; :func:`prune_checkpoints` removes them once a newer checkpoint is
+    complete). A folder of this very pid is from an earlier process (containers reuse pids): this one has not
+    saved yet. Returns the folders removed; one that cannot be removed is logged and skipped.
+    """
+    ckpt_root = Path(ckpt_root)
+    if not ckpt_root.is_dir():
+        return []
+    removed = []
+    for child in sorted(ckpt_root.iterdir()):
+        match = _TMP_DIR.match(child.name)
+        if not (match and child.is_dir()):
+            continue
+        owner = _TMP_OWNER.match(match.group(2))
+        host = owner["host"] if owner else None
+        if owner and host is not None and host != _this_host():
+            logger.info("keeping %s: written on host %s, whose processes cannot be checked from here", child, host)
+            continue
+        if owner and _pid_alive(int(owner["pid"])):
+            logger.info("keeping %s: its writer, pid %s on this host, is still running", child, owner["pid"])
+            continue
+        try:
+            shutil.rmtree(child)
+        except OSError as err:
+            logger.warning("could not remove the unfinished checkpoint folder %s: %s", child, err)
+            continue
+        logger.warning("removed the unfinished checkpoint folder %s (its writer is gone)", child)
+        removed.append(child)
+    return removed
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether ``pid`` is a running process on this host other than this one."""
+    if pid == os.getpid() or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, owned by another user
+        return True
+    except (OverflowError, OSError):
+        return False
+    return True
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -451,7 +656,7 @@ def _remove_folder(folder: Path) -> None:
     # Rename first: a crash during rmtree then leaves a `.tmp` folder (pruned next time), never a `step-N` folder
     # that is missing files.
     if _STEP_DIR.match(folder.name):
-        doomed = folder.with_name(f"{folder.name}.tmp-delete-{os.getpid()}")
+        doomed = folder.with_name(f"{folder.name}.tmp-delete-{_owner_tag()}")
         os.rename(folder, doomed)
         folder = doomed
     shutil.rmtree(folder)

@@ -65,8 +65,13 @@ class DataConfig:
     seed: int = 0
     """Seed of the shard order, shuffle buffer, crops and caption choice (independent of train.seed)."""
     verify: Literal["strict", "tolerant", "off"] = "strict"
-    """strict: check every shard's size and sha256 against the manifest before training and fail naming the shard;
-    tolerant: skip unreadable samples, counted and logged; off: no checks."""
+    """strict: before training, check the manifest's split totals against its shard counts and lengths, and every
+    shard's size, sha256, real record count and record ids (unique) against the manifest; fail naming the file and
+    the reason; a resume whose excluded shards changed mid-epoch is refused. tolerant: the same checks, but bad
+    shards are left out and counted in shard_report.json; during training a record that fails to decode (e.g.
+    non-finite features) is left out of its batch, counted and logged, deterministically (exact resume holds); a
+    resume after a shard went bad finishes the checkpoint's epoch with its plan without that shard's records and
+    plans later epochs without it (logged as a warning). off: no checks before training."""
     caption_policy: Literal["random", "first"] = "random"
     """Which of a motion's captions a visit uses: a random one (training) or always the first (debugging)."""
 
@@ -131,11 +136,16 @@ class TrainLoopConfig:
     keep_last: int = 3
     """Complete checkpoints kept on disk (the newest is never deleted); 0 keeps all of them."""
     resume: str = "auto"
-    """auto: newest complete checkpoint in out_dir if any, else start fresh; never: always start fresh (fails if
-    out_dir already holds checkpoints, rather than mixing runs); otherwise the path of a checkpoint folder,
-    which must exist and be complete."""
+    """auto: newest complete checkpoint in out_dir whose files verify, else start fresh (a corrupt newer one is
+    renamed step-N.corrupt-<time>, kept); never: always start fresh (fails if out_dir already holds checkpoints,
+    rather than mixing runs); otherwise the path of a checkpoint folder, which must exist and be complete, and
+    out_dir must hold no newer checkpoint (see resume_discard_newer)."""
+    resume_discard_newer: bool = False
+    """With resume=PATH: move out_dir's checkpoints newer than PATH aside (renamed step-N.discarded-<time>, not
+    deleted) instead of refusing to start; without it the run refuses before step 1, not when it reaches them."""
     out_dir: str = "runs/default"
-    """Run folder: resolved config, checkpoints/, logs."""
+    """Run folder: resolved config, checkpoints/, logs. A new or empty folder, or an existing run folder; never
+    the filesystem root, a file, or a non-empty folder that is not a run (checked before anything is written)."""
     mixed_precision: Literal["no", "bf16", "auto"] = "auto"
     """auto: bf16 autocast on a GPU that supports it, full fp32 otherwise."""
     seed: int = 0
@@ -173,6 +183,11 @@ class TrainLoopConfig:
         _require(self.save_every >= 1, f"train.save_every must be >= 1, got {self.save_every}")
         _require(self.keep_last >= 0, f"train.keep_last must be >= 0 (0 keeps all), got {self.keep_last}")
         _require(bool(self.resume.strip()), "train.resume must be 'auto', 'never' or a checkpoint path")
+        _require(
+            not self.resume_discard_newer or self.resume not in ("auto", "never"),
+            f"train.resume_discard_newer=true goes with train.resume=PATH (a checkpoint folder), not "
+            f"train.resume={self.resume}",
+        )
         _require(bool(self.out_dir.strip()), "train.out_dir must not be empty")
         _require(self.seed >= 0, f"train.seed must be >= 0, got {self.seed}")
         _require(self.nonfinite_budget >= 0, f"train.nonfinite_budget must be >= 0, got {self.nonfinite_budget}")

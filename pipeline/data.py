@@ -35,10 +35,29 @@ what has been consumed, so a resumed loader recomputes the slot orders, drops th
 ``batches_in_epoch`` batches' worth of sample positions before reading, and produces bit-identical next
 batches. Cost of the fast-forward: shards whose samples were all consumed are not opened; the (at most a
 shuffle buffer's worth of) remaining shards are read from their start, but skipped records are not decoded;
-Parquet reads only the row groups that hold needed rows. A changed world size, worker count, batch size,
-seed or excluded-shard list is refused. With workers, the DataLoader takes batches from workers round-robin;
-the workers are rotated on resume so that worker ``k`` of the new iterator plays the reader that owns the
-next batch, and each batch carries its (epoch, index) stamp, which the loader checks.
+Parquet reads only the row groups that hold needed rows. A changed world size, worker count, batch size or
+seed is refused. With workers, the DataLoader takes batches from workers round-robin; the workers are rotated
+on resume so that worker ``k`` of the new iterator plays the reader that owns the next batch, and each batch
+carries its (epoch, index) stamp, which the loader checks.
+
+Verification. Every reader of shards (training, the evaluator's ground truth, evaluator training, tools)
+checks them first with :func:`verify_shards`: the split's totals against its shard counts and lengths, and
+every shard's size, sha256, real record count and record ids (unique in the split), in one read per shard.
+``strict`` refuses a bad shard or an inconsistent manifest naming the file and the reason; ``tolerant``
+leaves bad shards out (``exclude_shards``) and counts everything it found in the report.
+
+Tolerant mode at run time (``LoaderOptions.tolerate_bad_data``). A record that fails to decode or validate
+(e.g. non-finite features) is left out of its batch, counted and logged; it keeps its place in the stream
+until the batch is collated, so batch boundaries, the resume position and every later batch are the same as
+if it had been read (the skip is a function of the record's bytes, so a resumed run skips it again at the
+same place; exact resume holds). A batch whose every record was skipped is passed over. Shards excluded
+since the checkpoint (a shard that went bad after it; or readmitted, repaired ones): the checkpoint's epoch
+is finished with the plan it started with, so the batches still due are the ones that were due, except that
+the records of newly excluded shards are left out of their batches (counted as skipped records, their files
+never opened) and readmitted shards wait for the next epoch; every later epoch is planned with the shards
+excluded now. The state records that rule (``carried_epoch``) until the epoch ends, so a second resume in
+the same epoch continues the same way. Strict mode refuses a changed exclusion list in the middle of an epoch
+(at an epoch boundary there is nothing to finish: the next epoch is planned with the current list).
 
 Accelerate. Never pass this loader (or a DataLoader built from it) through ``accelerator.prepare()``: it is
 already sharded by rank, and prepare() would shard it again and silently drop data (accelerate issue 3547).
@@ -55,7 +74,8 @@ import json
 import logging
 import os
 import tarfile
-from dataclasses import dataclass, field
+from collections import Counter
+from dataclasses import dataclass, field, replace
 from typing import Any, BinaryIO, Callable, Iterable, Iterator, Mapping, Sequence
 from urllib.parse import urlparse
 
@@ -76,6 +96,9 @@ from pipeline.stages import (
     CAPTION_POLICIES,
     PickCaption,
     RecordSpec,
+    SKIPPED_RECORDS_KEY,
+    SkipBadRecords,
+    SkippedRecord,
     shuffle_buffer_order,
 )
 from preprocess.shards import FORMAT_VERSION, MANIFEST_NAME, ManifestError, load_manifest
@@ -182,6 +205,43 @@ class Manifest:
     def action_classes(self) -> tuple[str, ...]:
         return tuple(self.data.get("action_classes") or ())
 
+    def consistency_problems(self, split: str, backends: Sequence[str] = BACKENDS) -> list[str]:
+        """Where the split's own numbers disagree: ``num_motions`` against the number of ``lengths`` and against
+        the sum of the shard counts of each listed backend, ``num_frames`` against the sum of ``lengths``, a
+        shard listed twice. The loader plans epochs from the shard counts alone, so a disagreement means that
+        either the counts or the totals are wrong; :func:`verify_shards` then finds which shard (by reading
+        it) and refuses (strict) or reports it (tolerant)."""
+        entry = self.split(split)
+        where = f"split {split!r}"
+        if not isinstance(entry, Mapping):
+            return [f"{where}: not a JSON object"]
+        problems = []
+        total = entry.get("num_motions")
+        lengths = entry.get("lengths")
+        if not isinstance(total, int) or total < 0:
+            return [f"{where}: num_motions is {total!r}, not a count"]
+        if lengths is not None and len(lengths) != total:
+            problems.append(f"{where}: num_motions is {total} but {len(lengths)} lengths are listed")
+        if lengths is not None and "num_frames" in entry and entry["num_frames"] != sum(lengths):
+            problems.append(f"{where}: num_frames is {entry['num_frames']} but the lengths add up to {sum(lengths)}")
+        for backend in backends:
+            files = entry.get(_MANIFEST_LIST_KEY[backend]) or []
+            if not files:
+                continue
+            counts = [f.get("num_motions") if isinstance(f, Mapping) else None for f in files]
+            if not all(isinstance(n, int) for n in counts):
+                problems.append(f"{where}: {_MANIFEST_LIST_KEY[backend]} entries without an integer num_motions")
+                continue
+            counted = sum(counts)
+            if counted != total:
+                problems.append(f"{where}: num_motions is {total} but the counts of its {len(files)} "
+                                f"{_MANIFEST_LIST_KEY[backend]} entries add up to {counted}")
+            paths = Counter(f.get("path") for f in files if isinstance(f, Mapping))
+            twice = sorted(str(path) for path, n in paths.items() if n > 1)
+            if twice:
+                problems.append(f"{where}: {_MANIFEST_LIST_KEY[backend]} entries listed more than once: {twice}")
+        return problems
+
 
 def _check_remote_manifest(data: Any, location: str) -> None:
     """The fields the loader relies on, for a manifest read from a URL (``load_manifest`` checks local ones)."""
@@ -203,14 +263,28 @@ def open_manifest(location: str | os.PathLike | Manifest) -> Manifest:
     location = os.fspath(location)
     if not is_url(location):
         path = os.path.join(location, MANIFEST_NAME) if os.path.isdir(location) else location
-        return Manifest(data=load_manifest(path, verify="none"), location=os.path.abspath(path))
-    try:
-        with open_binary(location) as stream:
-            data = json.loads(stream.read())
-    except (OSError, ValueError) as exc:
-        raise ManifestError(f"{location}: cannot read manifest: {exc}") from exc
-    _check_remote_manifest(data, location)
-    return Manifest(data=data, location=location)
+        manifest = Manifest(data=load_manifest(path, verify="none"), location=os.path.abspath(path))
+    else:
+        try:
+            with open_binary(location) as stream:
+                data = json.loads(stream.read())
+        except (OSError, ValueError) as exc:
+            raise ManifestError(f"{location}: cannot read manifest: {exc}") from exc
+        _check_remote_manifest(data, location)
+        manifest = Manifest(data=data, location=location)
+    _warn_inconsistent(manifest)
+    return manifest
+
+
+def _warn_inconsistent(manifest: Manifest) -> None:
+    """Say at once when a manifest contradicts itself; whether that stops a reader is the verification
+    mode's decision (:func:`verify_shards`), taken when the split is read."""
+    splits = manifest.data.get("splits")
+    if not isinstance(splits, Mapping):
+        raise ManifestError(f"{manifest.location}: 'splits' must be a JSON object")
+    for split in splits:
+        for problem in manifest.consistency_problems(split):
+            logger.warning("%s: inconsistent manifest: %s", manifest.location, problem)
 
 
 @dataclass(frozen=True)
@@ -231,9 +305,18 @@ def split_shards(manifest: Manifest, split: str, backend: str = "webdataset") ->
     entries = manifest.split(split).get(_MANIFEST_LIST_KEY[backend]) or []
     if not entries:
         raise ManifestError(f"{manifest.location}: split {split!r} lists no {backend} files")
-    return [ShardInfo(path=e["path"], url=resolve_location(manifest.location, e["path"]),
-                      num_motions=int(e["num_motions"]), bytes=int(e["bytes"]), sha256=str(e["sha256"]))
-            for e in entries]
+    shards = []
+    for index, e in enumerate(entries):
+        try:
+            shard = ShardInfo(path=str(e["path"]), url=resolve_location(manifest.location, str(e["path"])),
+                              num_motions=int(e["num_motions"]), bytes=int(e["bytes"]), sha256=str(e["sha256"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ManifestError(f"{manifest.location}: split {split!r}, {_MANIFEST_LIST_KEY[backend]} entry {index}: "
+                                f"malformed ({type(exc).__name__}: {exc})") from exc
+        if shard.num_motions < 0 or shard.bytes < 0:
+            raise ManifestError(f"{manifest.location}: {shard.path}: negative num_motions or bytes in the manifest")
+        shards.append(shard)
+    return shards
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -320,21 +403,23 @@ def slot_sample_order(num_samples: int, *, seed: int, epoch: int, slot: int, shu
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Shard verification (before training)
+# Shard verification (before any record is used)
 # ----------------------------------------------------------------------------------------------------------
 
 VERIFY_MODES = ("strict", "tolerant", "off")
+VERIFICATION_CHECKS = ("manifest_totals", "size", "sha256", "record_count", "unique_ids")
 
 
 class ShardVerificationError(RuntimeError):
-    """A shard is missing, truncated or corrupted (strict verification)."""
+    """A shard is missing, truncated, corrupted or does not hold the records the manifest says, or the
+    manifest contradicts itself (strict verification). The message names the file and the reason."""
 
 
 @dataclass(frozen=True)
 class BadShard:
     path: str
     reason: str
-    num_motions: int
+    num_motions: int  # as the manifest counts it: what the epoch plan would have used
 
 
 @dataclass(frozen=True)
@@ -344,6 +429,9 @@ class VerificationReport:
     mode: str
     num_checked: int
     bad: tuple[BadShard, ...] = ()
+    manifest_problems: tuple[str, ...] = ()
+    """Disagreements of the split's totals with its shard counts and lengths (tolerant mode goes on with the
+    shard counts, which verification has checked against the shards themselves)."""
 
     @property
     def bad_paths(self) -> tuple[str, ...]:
@@ -354,50 +442,159 @@ class VerificationReport:
     def samples_lost(self) -> int:
         return sum(b.num_motions for b in self.bad)
 
+    @property
+    def verified(self) -> bool:
+        """Every shard was checked and matched the manifest, and the manifest agrees with itself."""
+        return self.mode != "off" and not self.bad and not self.manifest_problems
+
     def as_dict(self) -> dict[str, Any]:
-        return {"split": self.split, "backend": self.backend, "mode": self.mode, "num_checked": self.num_checked,
-                "samples_lost": self.samples_lost,
-                "bad": [{"path": b.path, "reason": b.reason, "num_motions": b.num_motions} for b in self.bad]}
+        """For run folders and results files: what was checked, and what was found."""
+        return {"split": self.split, "backend": self.backend, "mode": self.mode, "verified": self.verified,
+                "checks": list(VERIFICATION_CHECKS) if self.mode != "off" else [],
+                "num_checked": self.num_checked, "samples_lost": self.samples_lost,
+                "bad": [{"path": b.path, "reason": b.reason, "num_motions": b.num_motions} for b in self.bad],
+                "manifest_problems": list(self.manifest_problems)}
+
+
+class _HashingReader:
+    """A read-only stream that hashes every byte read through it, so that one read of a shard gives its
+    sha256 and its records: the tar is parsed from exactly the bytes that are hashed."""
+
+    def __init__(self, stream: BinaryIO):
+        self._stream = stream
+        self._digest = hashlib.sha256()
+        self.size = 0
+
+    def read(self, size: int = -1) -> bytes:
+        block = self._stream.read(size)
+        self._digest.update(block)
+        self.size += len(block)
+        return block
+
+    def drain(self, chunk: int = 1 << 20) -> None:
+        """Read (and hash) the rest: the tar parser stops at the end-of-archive marker, before the padding."""
+        while self.read(chunk):
+            pass
+
+    @property
+    def sha256(self) -> str:
+        return self._digest.hexdigest()
 
 
 def _hash_stream(stream: BinaryIO, chunk: int = 1 << 20) -> tuple[int, str]:
-    digest, size = hashlib.sha256(), 0
-    while block := stream.read(chunk):
-        digest.update(block)
-        size += len(block)
-    return size, digest.hexdigest()
+    reader = _HashingReader(stream)
+    reader.drain(chunk)
+    return reader.size, reader.sha256
 
 
-def check_shard(shard: ShardInfo) -> str | None:
-    """Why this shard cannot be trusted (missing / truncated / size / sha256), or None if it matches."""
+@dataclass(frozen=True)
+class ShardContent:
+    """What one read of a shard found: its size and sha256, and the ids of its records in file order
+    (``record_ids`` is None when they could not be listed, ``listing_error`` says why)."""
+
+    bytes: int
+    sha256: str
+    record_ids: tuple[str, ...] | None
+    listing_error: str | None = None
+
+
+# The errors a damaged tar raises from the parser (the same list the training reader turns into ShardReadError).
+_TAR_ERRORS = (OSError, ValueError, EOFError, KeyError, tarfile.TarError)
+
+
+def _tar_records(stream: BinaryIO, url: str) -> Iterator[dict]:
+    """The raw webdataset samples of a tar stream, grouped by key: how training reads a shard, and how
+    verification counts its records, so that both see the same records."""
+    return group_by_keys(tar_file_expander([{"url": url, "stream": stream}]))
+
+
+def _read_tar_content(shard: ShardInfo) -> ShardContent:
+    """Hash the tar and list its records' keys in the same pass."""
+    with open_binary(shard.url) as stream:
+        reader = _HashingReader(stream)
+        keys: list[str] = []
+        error = None
+        try:
+            keys = [str(raw["__key__"]) for raw in _tar_records(reader, shard.url)]
+        except _TAR_ERRORS as exc:
+            error = f"{type(exc).__name__}: {exc}"
+        reader.drain()
+    return ShardContent(bytes=reader.size, sha256=reader.sha256, record_ids=None if error else tuple(keys),
+                        listing_error=error)
+
+
+def _read_parquet_content(shard: ShardInfo) -> ShardContent:
+    """Hash the Parquet part, then (only when it matches the manifest) read its ``id`` column."""
+    import pyarrow.parquet as pq
+
+    with open_binary(shard.url) as stream:
+        size, sha = _hash_stream(stream)
+    if size != shard.bytes or sha != shard.sha256:
+        return ShardContent(bytes=size, sha256=sha, record_ids=None, listing_error="not read (bytes differ)")
+    try:
+        with pq.ParquetFile(_open_seekable(shard.url)) as part:
+            ids = part.read(columns=["id"]).column("id").to_pylist()
+    except (OSError, ValueError, KeyError) as exc:
+        return ShardContent(bytes=size, sha256=sha, record_ids=None, listing_error=f"{type(exc).__name__}: {exc}")
+    return ShardContent(bytes=size, sha256=sha, record_ids=tuple(str(i) for i in ids))
+
+
+_CONTENT_READERS: dict[str, Callable[[ShardInfo], ShardContent]] = {
+    "webdataset": _read_tar_content,
+    "parquet": _read_parquet_content,
+}
+
+
+@dataclass(frozen=True)
+class ShardCheck:
+    """The verdict on one shard: why it cannot be trusted (None: it matches the manifest), and its record ids."""
+
+    reason: str | None
+    record_ids: tuple[str, ...] = ()
+
+
+def check_shard(shard: ShardInfo, backend: str = "webdataset") -> ShardCheck:
+    """Check one shard against its manifest entry: missing / truncated / size / sha256 / records that cannot
+    be listed / record count / an id twice. The count is checked even when the sha256 matches: a count
+    lowered or raised in the manifest leaves the shard's bytes (and so its hash) unchanged."""
     if not is_url(shard.url):
         if not os.path.exists(shard.url):
-            return "missing"
+            return ShardCheck("missing")
         size = os.path.getsize(shard.url)
         if size < shard.bytes:
-            return f"truncated: {size} bytes, manifest says {shard.bytes}"
+            return ShardCheck(f"truncated: {size} bytes, manifest says {shard.bytes}")
         if size != shard.bytes:
-            return f"size mismatch: {size} bytes, manifest says {shard.bytes}"
+            return ShardCheck(f"size mismatch: {size} bytes, manifest says {shard.bytes}")
     try:
-        with open_binary(shard.url) as stream:
-            size, sha = _hash_stream(stream)
-    except (OSError, ValueError) as exc:
-        return f"unreadable: {exc}"
-    if size != shard.bytes:
-        return f"{'truncated' if size < shard.bytes else 'size mismatch'}: {size} bytes, manifest says {shard.bytes}"
-    if sha != shard.sha256:
-        return f"corrupted: sha256 {sha[:16]}…, manifest says {shard.sha256[:16]}…"
-    return None
+        content = _CONTENT_READERS[backend](shard)
+    except (OSError, ValueError) as exc:  # cannot be opened (gopen/fsspec raise ValueError for bad locations)
+        return ShardCheck(f"unreadable: {exc}")
+    if content.bytes != shard.bytes:
+        kind = "truncated" if content.bytes < shard.bytes else "size mismatch"
+        return ShardCheck(f"{kind}: {content.bytes} bytes, manifest says {shard.bytes}")
+    if content.sha256 != shard.sha256:
+        return ShardCheck(f"corrupted: sha256 {content.sha256[:16]}…, manifest says {shard.sha256[:16]}…")
+    if content.record_ids is None:
+        return ShardCheck(f"unreadable records: {content.listing_error}")
+    found = len(content.record_ids)
+    if found != shard.num_motions:
+        return ShardCheck(f"record count: holds {found} records, manifest says {shard.num_motions}")
+    twice = sorted(i for i, n in Counter(content.record_ids).items() if n > 1)
+    if twice:
+        return ShardCheck(f"duplicate record ids: {twice[:3]} ({len(twice)} in all)")
+    return ShardCheck(None, content.record_ids)
 
 
 def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str = "strict",
                   backend: str = "webdataset") -> VerificationReport:
-    """Check every shard of a split against the manifest's size and sha256, before training.
+    """Check a split against its manifest before any of it is used: every shard (:func:`check_shard`), record
+    ids unique across the split, and the split's totals against its shard counts and lengths.
 
-    ``strict`` raises :class:`ShardVerificationError` naming the first bad shard; ``tolerant`` checks them
-    all and reports the bad ones (pass ``report.bad_paths`` as ``exclude_shards``; every rank must exclude
-    the same list, so verify on every rank (deterministic) or broadcast rank 0's list); ``off`` checks
-    nothing. Runtime read errors always raise: skipping data on one rank mid-epoch would unbalance ranks.
+    ``strict`` raises :class:`ShardVerificationError` naming the first bad shard (or the manifest and what
+    disagrees); ``tolerant`` checks them all and reports the bad ones (pass ``report.bad_paths`` as
+    ``exclude_shards``; every rank must exclude the same list, so verify on every rank (deterministic) or
+    broadcast rank 0's list) and the manifest's inconsistencies; ``off`` checks nothing. A shard whose ids
+    repeat ids of an earlier good shard is bad: sample ids seed every random draw and name evaluation items.
     """
     if mode not in VERIFY_MODES:
         raise ValueError(f"verify mode must be one of {VERIFY_MODES}, got {mode!r}")
@@ -405,20 +602,39 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
     if mode == "off":
         return VerificationReport(split=split, backend=backend, mode=mode, num_checked=0)
     bad = []
+    holder: dict[str, str] = {}  # record id -> the good shard that holds it
     shards = split_shards(manifest, split, backend)
     for shard in shards:
-        reason = check_shard(shard)
+        check = check_shard(shard, backend)
+        reason = check.reason
         if reason is None:
+            again = [i for i in check.record_ids if i in holder]
+            if again:
+                reason = (f"duplicate record ids: {again[0]!r} is also in {holder[again[0]]} "
+                          f"({len(again)} such ids)")
+        if reason is None:
+            holder.update(dict.fromkeys(check.record_ids, shard.path))
             continue
         if mode == "strict":
-            raise ShardVerificationError(f"{shard.url}: bad shard ({reason}); split {split!r} of "
-                                         f"{manifest.location}. Rebuild it, or verify in tolerant mode to skip it.")
+            raise ShardVerificationError(
+                f"{shard.url}: bad shard ({reason}); split {split!r} of {manifest.location}. Rebuild the dataset, "
+                "or leave the shard out with tolerant verification (training: data.verify=tolerant).")
         logger.warning("bad shard %s: %s (%d motions skipped)", shard.path, reason, shard.num_motions)
         bad.append(BadShard(path=shard.path, reason=reason, num_motions=shard.num_motions))
-    report = VerificationReport(split=split, backend=backend, mode=mode, num_checked=len(shards), bad=tuple(bad))
+    problems = manifest.consistency_problems(split, (backend,))
+    if problems and mode == "strict":
+        raise ShardVerificationError(
+            f"{manifest.location}: inconsistent manifest: {'; '.join(problems)}. Its shards verify, so the "
+            "totals are what is wrong: rebuild the dataset (or verify in tolerant mode, which trusts the "
+            "verified shard counts).")
+    report = VerificationReport(split=split, backend=backend, mode=mode, num_checked=len(shards), bad=tuple(bad),
+                                manifest_problems=tuple(problems))
     if bad:
         logger.warning("%d of %d %s shards of split %r are bad; %d motions will be skipped every epoch",
                        len(bad), len(shards), backend, split, report.samples_lost)
+    for problem in problems:
+        logger.warning("%s: inconsistent manifest (tolerant: going on with the verified shard counts): %s",
+                       manifest.location, problem)
     return report
 
 
@@ -433,28 +649,23 @@ class ShardReadError(RuntimeError):
 
 def read_tar_shard(shard: ShardInfo, wanted: np.ndarray) -> Iterator[tuple[int, dict]]:
     """Yield ``(position, raw webdataset sample)`` for the wanted positions of one tar shard, in order.
-    Stops after the last wanted record; a shard that ends early or holds extra records is an error."""
+    After the last wanted record the rest is counted without being kept: a shard that holds fewer or more
+    records than the manifest says is an error (in whichever verification mode, even ``off``)."""
     positions = np.flatnonzero(wanted)
     if positions.size == 0:
         return
-    last = int(positions[-1])
     count = 0
     try:
         with open_binary(shard.url) as stream:
-            files = tar_file_expander([{"url": shard.url, "stream": stream}])
-            for position, raw in enumerate(group_by_keys(files)):
+            for position, raw in enumerate(_tar_records(stream, shard.url)):
                 count = position + 1
-                if position >= shard.num_motions:
-                    break
-                if wanted[position]:
+                if position < shard.num_motions and wanted[position]:
                     yield position, raw
-                if position == last:
-                    return
-    except (OSError, ValueError, EOFError, KeyError, tarfile.TarError) as exc:
+    except _TAR_ERRORS as exc:
         raise ShardReadError(f"{shard.url}: cannot read shard: {exc}") from exc
-    found = f"more than {shard.num_motions}" if count > shard.num_motions else str(count)
-    raise ShardReadError(f"{shard.url}: holds {found} records where the manifest says {shard.num_motions} "
-                         "(truncated or replaced shard?)")
+    if count != shard.num_motions:
+        raise ShardReadError(f"{shard.url}: holds {count} records where the manifest says {shard.num_motions} "
+                             "(truncated or replaced shard, or a wrong count in the manifest?)")
 
 
 def read_parquet_part(shard: ShardInfo, wanted: np.ndarray) -> Iterator[tuple[int, ParquetRow]]:
@@ -490,13 +701,24 @@ _READERS: dict[str, Callable[[ShardInfo, np.ndarray], Iterator[tuple[int, Any]]]
 _DECODERS = {"webdataset": DecodeTarRecord, "parquet": DecodeParquetRow}
 
 
+def left_out_records(shard: ShardInfo, wanted: np.ndarray, reason: str) -> Iterator[tuple[int, SkippedRecord]]:
+    """A shard excluded since the epoch was planned: a :class:`SkippedRecord` in place of each wanted record,
+    without opening the file, so the epoch's batch boundaries stay where the plan put them."""
+    skipped = SkippedRecord(f"{shard.url}: {reason}")  # one reason per shard: logged once, counted per record
+    for position in np.flatnonzero(wanted):
+        yield int(position), skipped
+
+
 def ordered_records(shards: Sequence[ShardInfo], emission: np.ndarray,
-                    read: Callable[[ShardInfo, np.ndarray], Iterator[tuple[int, Any]]]) -> Iterator[Any]:
+                    read: Callable[[ShardInfo, np.ndarray], Iterator[tuple[int, Any]]],
+                    left_out: Mapping[str, str] | None = None) -> Iterator[Any]:
     """Stage 5: raw records of a slot in ``emission`` order (positions in the concatenated shards).
 
     Shards are read sequentially; a record is held until its turn, so at most about a shuffle buffer's
     worth of raw records is in memory. Positions not in ``emission`` (consumed before a resume, or past
-    the epoch's batch count) are never decoded, and shards with none of them are never opened."""
+    the epoch's batch count) are never decoded, and shards with none of them are never opened. Shards in
+    ``left_out`` (path -> why) are not opened either: their records come out as skipped records."""
+    left_out = left_out or {}
     total = sum(s.num_motions for s in shards)
     wanted = np.zeros(total, dtype=bool)
     wanted[emission] = True
@@ -506,7 +728,9 @@ def ordered_records(shards: Sequence[ShardInfo], emission: np.ndarray,
     for shard in shards:
         shard_wanted = wanted[base:base + shard.num_motions]
         if shard_wanted.any():
-            for position, raw in read(shard, shard_wanted):
+            records = (left_out_records(shard, shard_wanted, left_out[shard.path]) if shard.path in left_out
+                       else read(shard, shard_wanted))
+            for position, raw in records:
                 pending[base + position] = raw
                 while next_out < len(emission) and int(emission[next_out]) in pending:
                     yield pending.pop(int(emission[next_out]))
@@ -517,14 +741,55 @@ def ordered_records(shards: Sequence[ShardInfo], emission: np.ndarray,
                              f"{[s.path for s in shards]} hold fewer records than the manifest says")
 
 
-def iter_motions(manifest: Manifest | str | os.PathLike, split: str,
-                 backend: str = "webdataset") -> Iterator[MotionRecord]:
-    """Every record of a split once, in manifest order, decoded and not cropped (for evaluators/tools)."""
+@dataclass
+class VerifiedSplit:
+    """A split checked by :func:`verify_shards`, and the report. Readers of whole splits (the evaluator's
+    ground truth, tools) read through it, so they read only shards that verification passed, and can say
+    in their outputs what was verified (``report.as_dict()``)."""
+
+    manifest: Manifest
+    split: str
+    backend: str
+    report: VerificationReport
+    records_skipped: int = 0
+    """Records the last :meth:`iter_motions` left out (tolerant mode only)."""
+
+    @property
+    def shards(self) -> list[ShardInfo]:
+        bad = set(self.report.bad_paths)
+        return [s for s in split_shards(self.manifest, self.split, self.backend) if s.path not in bad]
+
+    def iter_motions(self) -> Iterator[MotionRecord]:
+        """Every record of the good shards once, in manifest order, decoded and not cropped. In tolerant mode
+        a record that fails to decode or validate is skipped, counted and logged."""
+        decode = _DECODERS[self.backend](self.manifest.record_spec)
+        if self.report.mode == "tolerant":
+            decode = SkipBadRecords(decode)
+        read = _READERS[self.backend]
+        self.records_skipped = 0
+        for shard in self.shards:
+            for _, raw in read(shard, np.ones(shard.num_motions, dtype=bool)):
+                record = decode(raw)
+                if isinstance(record, SkippedRecord):
+                    self.records_skipped += 1
+                    logger.warning("tolerant mode: skipped a record: %s", record.reason)
+                    continue
+                yield record
+
+
+def verified_split(manifest: Manifest | str | os.PathLike, split: str, backend: str = "webdataset",
+                   mode: str = "strict") -> VerifiedSplit:
+    """Verify a split (:func:`verify_shards`, ``mode``) and return it for reading."""
     manifest = open_manifest(manifest)
-    decode = _DECODERS[backend](manifest.record_spec)
-    for shard in split_shards(manifest, split, backend):
-        for _, raw in _READERS[backend](shard, np.ones(shard.num_motions, dtype=bool)):
-            yield decode(raw)
+    return VerifiedSplit(manifest, split, backend, verify_shards(manifest, split, mode=mode, backend=backend))
+
+
+def iter_motions(manifest: Manifest | str | os.PathLike, split: str, backend: str = "webdataset", *,
+                 verify: str = "strict") -> Iterator[MotionRecord]:
+    """Every record of a split once, in manifest order, decoded and not cropped (for evaluators/tools); the
+    split is verified first (``verify``: strict by default, so a tampered shard is refused before any record
+    of the split is read)."""
+    return verified_split(manifest, split, backend, mode=verify).iter_motions()
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -534,8 +799,9 @@ def iter_motions(manifest: Manifest | str | os.PathLike, split: str,
 
 @dataclass(frozen=True, kw_only=True)
 class LoaderOptions:
-    """How the stream is cut, shuffled and batched. Everything here except ``backend``, ``prefetch_factor``,
-    ``pin_memory`` and ``multiprocessing_context`` is part of the resume state and must not change on resume."""
+    """How the stream is cut, shuffled and batched. Everything here except ``backend``, ``tolerate_bad_data``,
+    ``prefetch_factor``, ``pin_memory`` and ``multiprocessing_context`` is part of the resume state and must
+    not change on resume."""
 
     batch_size: int
     """Samples per batch on each rank."""
@@ -557,6 +823,10 @@ class LoaderOptions:
     """Which caption a visit uses: 'random' (training) or 'first' (debugging); see stages.PickCaption."""
     backend: str = "webdataset"
     """'webdataset' (tar shards, local or any URL) or 'parquet' (the same records, Parquet parts)."""
+    tolerate_bad_data: bool = False
+    """Tolerant mode (training's ``data.verify=tolerant``): a record that fails to decode or validate is left out
+    of its batch (counted, logged) instead of stopping the stream, and a resume whose excluded shards changed
+    finishes the checkpoint's epoch with its plan (see the module docstring). False: both raise."""
     prefetch_factor: int = 2
     pin_memory: bool = False
     multiprocessing_context: str | None = None
@@ -581,11 +851,25 @@ class LoaderOptions:
         return max(1, self.num_workers)
 
 
+@dataclass(frozen=True)
+class CarriedEpoch:
+    """The epoch a tolerant resume landed in when the excluded shards had changed since the checkpoint. It
+    keeps the plan it was started with (``shards``: usable under the exclusions of then), so that the batches
+    still due are the ones that were due; the shards of that plan excluded now are ``left_out`` (path ->
+    why): their records are skipped, their files never opened. Shards readmitted since wait for the next
+    epoch, because the plan of then does not hold them."""
+
+    epoch: int
+    excluded_shards: tuple[str, ...]
+    shards: tuple[ShardInfo, ...]
+    left_out: Mapping[str, str]
+
+
 @dataclass(frozen=True, eq=False)
 class _StreamSpec:
     """Everything a reader process needs (picklable, so spawn contexts work too)."""
 
-    shards: tuple[ShardInfo, ...]
+    shards: tuple[ShardInfo, ...]  # usable under the current exclusions: every epoch's plan but a carried one
     record_spec: RecordSpec
     mean: np.ndarray
     std: np.ndarray
@@ -593,13 +877,21 @@ class _StreamSpec:
     options: LoaderOptions
     rank: int
     world_size: int
+    carried: CarriedEpoch | None = None
     _plans: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def shards_for(self, epoch: int) -> tuple[ShardInfo, ...]:
+        """The shard list the epoch's plan indexes into."""
+        return self.carried.shards if self.carried is not None and self.carried.epoch == epoch else self.shards
+
+    def left_out(self, epoch: int) -> Mapping[str, str]:
+        return self.carried.left_out if self.carried is not None and self.carried.epoch == epoch else {}
 
     def plan(self, epoch: int) -> EpochPlan:
         if epoch not in self._plans:
             if len(self._plans) > 8:
                 self._plans.clear()
-            self._plans[epoch] = plan_epoch([s.num_motions for s in self.shards], epoch=epoch,
+            self._plans[epoch] = plan_epoch([s.num_motions for s in self.shards_for(epoch)], epoch=epoch,
                                             seed=self.options.seed, world_size=self.world_size,
                                             readers_per_rank=self.options.readers_per_rank,
                                             batch_size=self.options.batch_size, shuffle=self.options.shuffle)
@@ -611,7 +903,8 @@ class _StreamSpec:
             raise ValueError(
                 f"epoch {epoch}: the smallest reader slot has {min(plan.slot_samples)} samples, fewer than "
                 f"batch_size {plan.batch_size}, so every rank would get no batch. Use a smaller batch size, "
-                f"fewer workers or ranks, or more data ({len(self.shards)} shards, {plan.num_slots} readers).")
+                f"fewer workers or ranks, or more data ({len(self.shards_for(epoch))} shards, {plan.num_slots} "
+                "readers).")
         return plan
 
 
@@ -643,17 +936,23 @@ class _RankStream(IterableDataset):
         spec, opts = self.spec, self.spec.options
         plan = spec.checked_plan(epoch)
         slot = plan.slot(spec.rank, reader)
-        shards = [spec.shards[i] for i in plan.slot_shards[slot]]
+        epoch_shards = spec.shards_for(epoch)
+        shards = [epoch_shards[i] for i in plan.slot_shards[slot]]
         order = slot_sample_order(plan.slot_samples[slot], seed=opts.seed, epoch=epoch, slot=slot,
                                   shuffle=opts.shuffle, buffer_size=opts.shuffle_buffer)
         batch_size = opts.batch_size
         emission = order[skip_batches * batch_size: plan.batches_per_reader * batch_size]
+        sample_stages: list[Callable[[Any], Any]] = [
+            _DECODERS[opts.backend](spec.record_spec),
+            PickCaption(opts.seed, epoch, opts.caption_policy),
+            CropToWindow(opts.window, opts.unit_length, opts.shorten_prob, opts.seed, epoch),
+            Normalize(spec.mean, spec.std),
+        ]
+        if opts.tolerate_bad_data:
+            sample_stages = [SkipBadRecords(stage) for stage in sample_stages]
         pipeline = wds.DataPipeline(
-            functools.partial(ordered_records, shards, emission, _READERS[opts.backend]),
-            wds.map(_DECODERS[opts.backend](spec.record_spec)),
-            wds.map(PickCaption(opts.seed, epoch, opts.caption_policy)),
-            wds.map(CropToWindow(opts.window, opts.unit_length, opts.shorten_prob, opts.seed, epoch)),
-            wds.map(Normalize(spec.mean, spec.std)),
+            functools.partial(ordered_records, shards, emission, _READERS[opts.backend], spec.left_out(epoch)),
+            *[wds.map(stage) for stage in sample_stages],
             wds.batched(batch_size, collation_fn=Collate(opts.window, spec.action_classes), partial=False),
         )
         for local, batch in enumerate(pipeline, start=skip_batches):
@@ -666,7 +965,7 @@ class _RankStream(IterableDataset):
 # ----------------------------------------------------------------------------------------------------------
 
 _PLAN_STATE_KEYS = ("split", "dataset_id", "world_size", "num_workers", "batch_size", "seed", "shuffle",
-                    "shuffle_buffer", "window", "unit_length", "shorten_prob", "caption_policy", "excluded_shards")
+                    "shuffle_buffer", "window", "unit_length", "shorten_prob", "caption_policy")
 
 
 class MotionLoader:
@@ -683,7 +982,8 @@ class MotionLoader:
         options: :class:`LoaderOptions`.
         rank, world_size: this process among the data-parallel ranks.
         exclude_shards: manifest paths of shards to leave out (``VerificationReport.bad_paths``); must be
-            the same list on every rank.
+            the same list on every rank. The loader does not verify shards itself: its callers run
+            :func:`verify_shards` first (the trainer on rank 0, evaluator training on every rank).
     """
 
     def __init__(self, manifest: Manifest | str | os.PathLike, split: str, options: LoaderOptions, *,
@@ -692,32 +992,40 @@ class MotionLoader:
             raise ValueError(f"rank {rank} is not in a world of size {world_size}")
         self.manifest = open_manifest(manifest)
         self.split, self.options, self.rank, self.world_size = split, options, rank, world_size
-        shards = split_shards(self.manifest, split, options.backend)
+        self._split_shards = tuple(split_shards(self.manifest, split, options.backend))
         self.excluded_shards = tuple(sorted(set(exclude_shards)))
-        unknown = set(self.excluded_shards) - {s.path for s in shards}
-        if unknown:
-            raise ValueError(f"exclude_shards names shards that split {split!r} of {self.manifest.location} "
-                             f"does not list for backend {options.backend!r}: {sorted(unknown)}")
-        usable = tuple(s for s in shards if s.path not in self.excluded_shards and s.num_motions > 0)
-        readers = world_size * options.readers_per_rank
-        if len(usable) < readers:
-            raise ValueError(
-                f"split {split!r} has {len(usable)} usable shards but world_size {world_size} × "
-                f"{options.readers_per_rank} reader(s) per rank (num_workers={options.num_workers}) = {readers} "
-                f"readers each need at least one; write smaller shards or use fewer workers")
-        self._spec = _StreamSpec(shards=usable, record_spec=self.manifest.record_spec, mean=self.manifest.mean,
+        self._spec = _StreamSpec(shards=self._usable_shards(self.excluded_shards, "exclude_shards"),
+                                 record_spec=self.manifest.record_spec, mean=self.manifest.mean,
                                  std=self.manifest.std, action_classes=self.manifest.action_classes,
                                  options=options, rank=rank, world_size=world_size)
         self.epoch = 0
         self.batches_in_epoch = 0
+        self.records_skipped = 0  # records left out of their batches (tolerant mode); saved with the position
+        self._skip_reasons_logged: set[str] = set()
         self._generation = 0
         self._plan_logged = False
         self._log_plan(self._spec.checked_plan(0))
+
+    def _usable_shards(self, excluded: Sequence[str], what: str) -> tuple[ShardInfo, ...]:
+        """The shards an epoch plan deals out when ``excluded`` are left out (empty shards never are dealt)."""
+        unknown = set(excluded) - {s.path for s in self._split_shards}
+        if unknown:
+            raise ValueError(f"{what} names shards that split {self.split!r} of {self.manifest.location} "
+                             f"does not list for backend {self.options.backend!r}: {sorted(unknown)}")
+        usable = tuple(s for s in self._split_shards if s.path not in set(excluded) and s.num_motions > 0)
+        readers = self.world_size * self.options.readers_per_rank
+        if len(usable) < readers:
+            raise ValueError(
+                f"split {self.split!r} has {len(usable)} usable shards but world_size {self.world_size} × "
+                f"{self.options.readers_per_rank} reader(s) per rank (num_workers={self.options.num_workers}) = "
+                f"{readers} readers each need at least one; write smaller shards or use fewer workers")
+        return usable
 
     # -- plan ------------------------------------------------------------------------------------------
 
     @property
     def shards(self) -> tuple[ShardInfo, ...]:
+        """The shards new epochs are planned with (a carried epoch keeps its own list: see ``CarriedEpoch``)."""
         return self._spec.shards
 
     def plan(self, epoch: int | None = None) -> EpochPlan:
@@ -737,41 +1045,84 @@ class MotionLoader:
         self._plan_logged = True
         logger.log(level, "data %s epoch %d: %d batches per rank, %d of %d samples used, %d dropped (rotates "
                     "across epochs), %d shards over %d readers", self.split, plan.epoch, plan.batches_per_rank,
-                    plan.samples_used, plan.samples_in_epoch, plan.samples_dropped, len(self.shards),
-                    plan.num_slots)
+                    plan.samples_used, plan.samples_in_epoch, plan.samples_dropped,
+                    len(self._spec.shards_for(plan.epoch)), plan.num_slots)
 
     # -- state -----------------------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """Position and everything that fixes the epoch plan. Identical on every rank."""
+        """Position and everything that fixes the epoch plan. Identical on every rank, except
+        ``records_skipped`` (and the position after a batch whose every record was skipped: tolerant mode)."""
         opts = self.options
+        carried = self._spec.carried
         return {"version": STATE_VERSION, "epoch": self.epoch, "batches_in_epoch": self.batches_in_epoch,
                 "split": self.split, "dataset_id": self.manifest.dataset_id, "world_size": self.world_size,
                 "num_workers": opts.num_workers, "batch_size": opts.batch_size, "seed": opts.seed,
                 "shuffle": opts.shuffle, "shuffle_buffer": opts.shuffle_buffer, "window": opts.window,
                 "unit_length": opts.unit_length, "shorten_prob": opts.shorten_prob,
-                "caption_policy": opts.caption_policy, "excluded_shards": list(self.excluded_shards)}
+                "caption_policy": opts.caption_policy, "excluded_shards": list(self.excluded_shards),
+                # The exclusions the current epoch was planned with, while it differs from excluded_shards.
+                "carried_epoch": ({"epoch": carried.epoch, "excluded_shards": list(carried.excluded_shards)}
+                                  if carried is not None and carried.epoch == self.epoch else None),
+                "records_skipped": self.records_skipped}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Continue from a saved position. Refuses anything that would change the epoch plan (world size,
-        worker count, batch size, seed, ...): the remaining batches would not be the ones that were due."""
+        worker count, batch size, seed, ...): the remaining batches would not be the ones that were due.
+
+        Excluded shards that changed since the state was saved (a shard went bad after the checkpoint, or a
+        bad one was repaired): with ``tolerate_bad_data`` the saved epoch is finished with the plan it started
+        with, leaving out the records of shards excluded now, and later epochs are planned with the current
+        exclusions (:class:`CarriedEpoch`; logged as a warning); without it, refused."""
         if state.get("version") != STATE_VERSION:
             raise ValueError(f"data loader state version {state.get('version')!r}, this loader reads {STATE_VERSION}")
         current = self.state_dict()
         for key in _PLAN_STATE_KEYS:
             saved, now = state.get(key), current[key]
-            if key == "excluded_shards":
-                saved = list(saved or [])
             if saved != now:
                 raise ValueError(f"cannot resume the data stream: {key} was {saved!r} when the state was saved "
-                                 f"and is {now!r} now; the epoch plan would differ. Resume with the same "
-                                 f"{key}, or start a new epoch from scratch without loading the data state.")
+                                 f"and is {now!r} now; the epoch plan would differ. Resume with the same {key}.")
         epoch, position = int(state["epoch"]), int(state["batches_in_epoch"])
-        if epoch < 0 or not 0 <= position < self.batches_per_epoch(epoch):
+        carried_state = state.get("carried_epoch")
+        planned_with = sorted(carried_state["excluded_shards"] if carried_state and carried_state["epoch"] == epoch
+                              else state.get("excluded_shards") or [])
+        spec = replace(self._spec, carried=None, _plans={})
+        if planned_with != list(self.excluded_shards) and position > 0:
+            spec = replace(spec, carried=self._carried_epoch(epoch, position, planned_with))
+        if epoch < 0 or not 0 <= position < spec.checked_plan(max(epoch, 0)).batches_per_rank:
             raise ValueError(f"data loader state position (epoch {epoch}, batch {position}) is outside the epoch "
-                             f"({self.batches_per_epoch(max(epoch, 0))} batches)")
+                             f"({spec.checked_plan(max(epoch, 0)).batches_per_rank} batches)")
+        self._spec = spec
         self.epoch, self.batches_in_epoch = epoch, position
+        self.records_skipped = int(state.get("records_skipped", 0))
         self._generation += 1  # iterators created before this point are stale
+
+    def _carried_epoch(self, epoch: int, position: int, planned_with: Sequence[str]) -> CarriedEpoch:
+        """The rule for a resume into the middle of an epoch planned with other exclusions than now's."""
+        now = list(self.excluded_shards)
+        if not self.options.tolerate_bad_data:
+            raise ValueError(
+                f"cannot resume the data stream: epoch {epoch} (resumed at batch {position}) was planned with "
+                f"excluded shards {planned_with}, and verification now excludes {now} (a shard went bad, or a bad "
+                "one was repaired, since the checkpoint). Only tolerant mode changes an epoch's data. Restore "
+                "the shard(s) so that they verify as they did, or resume with data.verify=tolerant, which "
+                f"finishes epoch {epoch} with its plan without the newly excluded shard(s) and plans later epochs "
+                "without them.")
+        newly = sorted(set(now) - set(planned_with))
+        readmitted = sorted(set(planned_with) - set(now))
+        reason = (f"shard excluded since the checkpoint (tolerant mode: epoch {epoch} finishes without it)")
+        carried = CarriedEpoch(epoch=epoch, excluded_shards=tuple(planned_with),
+                               shards=self._usable_shards(planned_with, "the saved state's excluded_shards"),
+                               left_out={path: reason for path in newly})
+        level = logging.WARNING if self.rank == 0 else logging.DEBUG
+        logger.log(level,
+                   "RESUMING WITH CHANGED SHARDS (tolerant mode): epoch %d was planned with excluded shards %s, "
+                   "verification now excludes %s. Rule: epoch %d is finished from batch %d with the plan it "
+                   "started with; the records still due from the newly excluded shard(s) %s are left out of their "
+                   "batches and counted as skipped records; readmitted shard(s) %s wait for epoch %d; every "
+                   "later epoch is planned with the shards excluded now.",
+                   epoch, planned_with, now, epoch, position, newly, readmitted, epoch + 1)
+        return carried
 
     # -- iteration -------------------------------------------------------------------------------------
 
@@ -779,6 +1130,14 @@ class MotionLoader:
         """Batches forever, from the current position; ``epoch``/``batches_in_epoch`` advance as they are
         yielded (so ``state_dict()`` taken after consuming a batch resumes at the next one). Creating a new
         iterator or loading a state makes older iterators raise."""
+        return _with_samples(self._positioned_batches())
+
+    def iter_epoch(self) -> Iterator[dict[str, Any]]:
+        """The remaining batches of the current epoch, then stop (workers are shut down)."""
+        return _with_samples(_take(self._positioned_batches(), self.batches_per_epoch() - self.batches_in_epoch))
+
+    def _positioned_batches(self) -> Iterator[dict[str, Any]]:
+        """Every batch position from the current one, including batches whose every record was skipped."""
         self._generation += 1
         stream = _RankStream(self._spec, self.epoch, self.batches_in_epoch)
         if self.options.num_workers == 0:
@@ -789,10 +1148,6 @@ class MotionLoader:
                                 multiprocessing_context=self.options.multiprocessing_context)
         return self._checked(iter(source), self._generation)
 
-    def iter_epoch(self) -> Iterator[dict[str, Any]]:
-        """The remaining batches of the current epoch, then stop (workers are shut down)."""
-        return _take(self.iter_batches(), self.batches_per_epoch() - self.batches_in_epoch)
-
     def _checked(self, source: Iterator[dict], generation: int) -> Iterator[dict[str, Any]]:
         for batch in source:
             if generation != self._generation:
@@ -802,8 +1157,23 @@ class MotionLoader:
             if position != (self.epoch, self.batches_in_epoch):
                 raise RuntimeError(f"data stream out of order: got batch {position}, expected "
                                    f"{(self.epoch, self.batches_in_epoch)}")
+            skipped = batch.pop(SKIPPED_RECORDS_KEY, None)
             self._advance()
+            if skipped:
+                self._count_skipped(position, skipped, len(batch["ids"]))
             yield batch
+
+    def _count_skipped(self, position: tuple[int, ...], reasons: Sequence[str], kept: int) -> None:
+        """Count the records tolerant mode left out of a batch; each distinct reason is logged once as a
+        warning (a shard left out for the rest of an epoch would otherwise log one line per batch)."""
+        self.records_skipped += len(reasons)
+        for reason, count in Counter(reasons).items():
+            level = logging.DEBUG if reason in self._skip_reasons_logged else logging.WARNING
+            self._skip_reasons_logged.add(reason)
+            logger.log(level, "tolerant mode: %d record(s) left out of batch %s (%d skipped in this run so "
+                       "far): %s", count, position, self.records_skipped, reason)
+        if kept == 0:
+            logger.warning("tolerant mode: every record of batch %s was skipped; it is passed over", position)
 
     def _advance(self) -> None:
         self.batches_in_epoch += 1
@@ -816,6 +1186,17 @@ class MotionLoader:
 def _as_is(batch: dict) -> dict:
     """DataLoader collate for already-collated batches (its default would turn tuples into lists)."""
     return batch
+
+
+def _with_samples(batches: Iterator[dict]) -> Iterator[dict]:
+    """The batches that hold at least one sample: one whose every record was skipped (tolerant mode) has
+    taken its position in the stream, but there is nothing in it to train on."""
+    try:
+        for batch in batches:
+            if batch["ids"]:
+                yield batch
+    finally:
+        batches.close()
 
 
 def _take(batches: Iterator[dict], count: int) -> Iterator[dict]:

@@ -240,7 +240,8 @@ class OutputConfig:
     dir: str = ""
     """Evaluation folder; empty: <run_dir>/eval."""
     claim_timeout_s: float = 3600.0
-    """A claim without a heartbeat for this long belongs to a dead job and may be taken over."""
+    """A claim without a heartbeat for this long belongs to a dead job and may be taken over. A claim from this host
+    whose pid is gone is taken over at once, whatever its age: this timeout is for jobs on other hosts."""
     poll_s: float = 300.0
     """--watch without --once: seconds between scans of the run folder."""
     order: Literal["newest", "oldest"] = "newest"

@@ -30,7 +30,7 @@ from mfm.evaluators import (
 )
 from mfm.integrity import sha256_file
 from mfm.model import valid_frame_mask
-from pipeline.data import Manifest, iter_motions, open_manifest
+from pipeline.data import Manifest, ShardVerificationError, open_manifest, verified_split
 from pipeline.eval_config import EvaluatorConfig
 from pipeline.stages import stable_id_hash
 
@@ -42,6 +42,11 @@ _TAG_GT_PICK = 10
 
 class EvaluationError(RuntimeError):
     """A checkpoint, dataset and evaluator that cannot be evaluated together; the message says why."""
+
+
+class UnverifiedGroundTruth(EvaluationError):
+    """The split to score against does not verify against its manifest (size, sha256, record count, ids): a
+    score against it would carry the manifest's dataset id without being about that data."""
 
 
 class EvaluatorUnavailable(FileNotFoundError):
@@ -80,6 +85,9 @@ class GroundTruthSet:
     """(N, L, E) token features of each caption (cross-attention models), when asked for."""
     text_token_len: np.ndarray | None = None
     """(N,) valid tokens per caption."""
+    verification: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    """What strict verification checked before the split was read (``VerificationReport.as_dict()``); results
+    files carry it next to the dataset id."""
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -97,14 +105,21 @@ def build_ground_truth(manifest: Manifest | str | Path, split: str = "test", *, 
                        unit_length: int = 4, seed: int = 0, backend: str = "webdataset",
                        require_action: bool = False, token_features: bool = False) -> GroundTruthSet:
     """The evaluation items of ``split`` (see the module docstring); deterministic in (manifest, settings).
-    ``token_features``: also keep each caption's token features (the manifest must store them)."""
+    ``token_features``: also keep each caption's token features (the manifest must store them). The split is
+    verified strictly first (the training reader's checks): a shard that does not match the manifest raises
+    :class:`UnverifiedGroundTruth` naming the file and the reason, before any item is built."""
     manifest = open_manifest(manifest)
     if token_features and not manifest.record_spec.token_features:
         raise EvaluationError(f"{manifest.location}: the model needs caption token features, which this dataset "
                               "does not store (build it with --token-features)")
+    try:
+        source = verified_split(manifest, split, backend, mode="strict")
+    except ShardVerificationError as exc:
+        raise UnverifiedGroundTruth(f"refusing to score against split {split!r} of {manifest.location}, which does "
+                                    f"not match its manifest: {exc}") from exc
     fields: dict[str, list] = defaultdict(list)
     dropped: dict[str, int] = defaultdict(int)
-    for record in iter_motions(manifest, split, backend):
+    for record in source.iter_motions():
         if require_action and not record.action:
             dropped["no_action_label"] += 1
             continue
@@ -142,7 +157,8 @@ def build_ground_truth(manifest: Manifest | str | Path, split: str = "test", *, 
         caption_tokens=tuple(fields["caption_tokens"]), text_cond=np.stack(fields["text_cond"]).astype(np.float32),
         actions=tuple(fields["actions"]), dropped=dict(dropped), key=digest(settings),
         text_tokens=np.stack(fields["text_tokens"]).astype(np.float32) if token_features else None,
-        text_token_len=np.asarray(fields["text_token_len"], np.int64) if token_features else None)
+        text_token_len=np.asarray(fields["text_token_len"], np.int64) if token_features else None,
+        verification=source.report.as_dict())
 
 
 # ---------------------------------------------------------------------------------------------------------------

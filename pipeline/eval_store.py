@@ -7,16 +7,22 @@ Layout of an evaluation folder (default ``<run_dir>/eval``)::
     results.jsonl                                                     the table: one row per result and one
     results.parquet                                                   ground-truth row, rewritten from the JSONL
     claims/<key>.claim                                                "someone is evaluating this unit now"
+    checkpoints_seen.jsonl                                            every checkpoint a watcher has listed: one
+                                                                      deleted before any result is reported
     cache/gt-<evaluator>-<dataset>-<split>-<gt key>.npz               ground-truth embeddings per evaluator
     plots/*.png
 
 Concurrency. Any number of jobs (cron, Slurm array, Kubernetes CronJob, two shells) may watch the same run. A unit
 is claimed by creating its claim file with ``O_CREAT | O_EXCL`` while holding an exclusive ``flock`` on
-``claims/.lock``; the holder refreshes the file's mtime (heartbeat) as it progresses. A claim older than the
-timeout is stale (its job died) and is broken under the same lock, so exactly one job takes a unit over. The result
-JSON is written atomically (temp file + ``os.replace``) before the claim is removed, and the table append skips
-rows whose key is already present, so a job killed between the two steps never duplicates a row. ``flock`` works
-on local disks and on NFSv4/Lustre mounts that support POSIX locks; ``O_EXCL`` alone still prevents two claims.
+``claims/.lock``; the holder refreshes the file's mtime (heartbeat) as it progresses. A claim records its holder's
+host, pid and pid namespace: a claim from this host (and namespace) whose pid is no longer alive is stale at once, so
+a restarted job picks up the units of the job it replaces (a killed job must not block its checkpoint for
+``output.claim_timeout_s``). Claims from other hosts, or whose pid is alive (or reused), are stale only without a
+heartbeat for ``claim_timeout_s``. Stale claims are broken under the same lock, so exactly one job takes a unit
+over. The result JSON is written atomically (temp file + ``os.replace``) before the claim is removed, and the table
+append skips rows whose key is already present, so a job killed between the two steps never duplicates a row.
+``flock`` works on local disks and on NFSv4/Lustre mounts that support POSIX locks; ``O_EXCL`` alone still prevents
+two claims.
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ CACHE_SUBDIR = "cache"
 PLOTS_SUBDIR = "plots"
 TABLE_JSONL = "results.jsonl"
 TABLE_PARQUET = "results.parquet"
+SEEN_JSONL = "checkpoints_seen.jsonl"
 
 
 @dataclass(frozen=True)
@@ -53,6 +60,71 @@ class Unit:
     """``euler-10steps-g2.5``: readable part of the result file name."""
     key: str
     """sha256 of everything that decides the numbers (checkpoint id, evaluator id, data, protocol, point)."""
+
+
+@dataclass(frozen=True)
+class ClaimHolder:
+    """Who holds a unit, as its claim file says: what a job that had to skip the unit reports."""
+
+    host: str | None
+    pid: int | None
+    since: float | None
+    """When the claim was made (epoch seconds)."""
+    heartbeat_age_s: float
+    """Seconds since the holder last refreshed the claim."""
+
+    def describe(self) -> str:
+        who = f"pid {self.pid} on {self.host}" if self.host is not None else "an unknown job (unreadable claim)"
+        return f"{who}, heartbeat {self.heartbeat_age_s:.0f} s ago"
+
+
+@dataclass(frozen=True)
+class SeenCheckpoint:
+    """A complete checkpoint an evaluator job has listed (one line of ``checkpoints_seen.jsonl``)."""
+
+    run: str
+    """The run folder, resolved: one evaluation folder may serve several runs (``output.dir=``)."""
+    name: str
+    step: int
+    checkpoint_id: str
+
+
+def this_pid_namespace() -> str | None:
+    """The pid namespace of this process (Linux), recorded in claims: two containers may share a host name while
+    their pids mean different processes, so a pid is only checked within the namespace that wrote it."""
+    try:
+        return os.readlink("/proc/self/ns/pid")
+    except OSError:
+        return None
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether a process with this pid exists on this host (signal 0 checks without signalling).
+
+    ``PermissionError`` means it exists under another user: alive. A reused pid reads as alive, which only delays
+    the takeover to the heartbeat timeout, never steals a live job's unit."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def dead_holder(claim: Mapping[str, Any] | None) -> str | None:
+    """Why the claim's holder is certainly dead (its pid is gone on this very host and pid namespace), or None
+    when that cannot be told from here (another host or namespace, an unreadable claim, a live pid)."""
+    if not claim or claim.get("host") != socket.gethostname():
+        return None
+    pid, namespace = claim.get("pid"), claim.get("pid_ns")
+    if not isinstance(pid, int) or isinstance(pid, bool) or pid <= 0:  # os.kill(0 or -n) would signal a group
+        return None
+    if namespace is not None and namespace != this_pid_namespace():
+        return None
+    if pid_alive(pid):
+        return None
+    return f"its job, pid {pid} on this host ({claim['host']}), is no longer running"
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -125,21 +197,48 @@ class ResultsStore:
         with exclusive_lock(self.root / CLAIMS_SUBDIR / ".lock"):
             if self.is_done(unit):  # finished by another job while we waited for the lock
                 return False
-            if path.exists():
-                age = time.time() - path.stat().st_mtime
-                if age < self.claim_timeout_s:
-                    return False
-                logger.warning("breaking stale claim %s (no heartbeat for %.0f s > %.0f s): %s", path.name, age,
-                               self.claim_timeout_s, _read_claim(path))
-                path.unlink()
+            if path.exists() and not self._break_if_stale(path):
+                return False
             try:
                 fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
                 return False
             with os.fdopen(fd, "w", encoding="utf-8") as handle:
-                json.dump({"host": socket.gethostname(), "pid": os.getpid(), "since": time.time(),
-                           "unit": unit.key}, handle)
+                json.dump({"host": socket.gethostname(), "pid": os.getpid(), "pid_ns": this_pid_namespace(),
+                           "since": time.time(), "unit": unit.key}, handle)
         return True
+
+    def _break_if_stale(self, path: Path) -> bool:
+        """Remove the claim at ``path`` if its job is dead (at once when its pid is gone on this host, else after
+        ``claim_timeout_s`` without a heartbeat); True when the unit is free now. Called under the claims lock."""
+        try:
+            age = time.time() - path.stat().st_mtime
+        except FileNotFoundError:  # released meanwhile (release() does not take the lock)
+            return True
+        text = _read_claim(path)
+        reason = dead_holder(_parse_claim(text))
+        if reason is not None:
+            logger.warning("taking over claim %s at once: %s (claim: %s)", path.name, reason, text)
+        elif age < self.claim_timeout_s:
+            return False
+        else:
+            logger.warning("breaking stale claim %s (no heartbeat for %.0f s > %.0f s): %s", path.name, age,
+                           self.claim_timeout_s, text)
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+        return True
+
+    def holder(self, unit: Unit) -> ClaimHolder | None:
+        """The job holding ``unit`` per its claim file, or None when the unit is not claimed."""
+        path = self.claim_path(unit)
+        try:
+            age = time.time() - path.stat().st_mtime
+        except FileNotFoundError:
+            return None
+        claim = _parse_claim(_read_claim(path)) or {}
+        host, pid, since = claim.get("host"), claim.get("pid"), claim.get("since")
+        return ClaimHolder(host if isinstance(host, str) else None, pid if isinstance(pid, int) else None,
+                           float(since) if isinstance(since, (int, float)) else None, max(age, 0.0))
 
     def heartbeat(self, unit: Unit) -> None:
         """Refresh the claim so that long evaluations are not taken for dead ones."""
@@ -149,6 +248,50 @@ class ResultsStore:
     def release(self, unit: Unit) -> None:
         with contextlib.suppress(FileNotFoundError):
             self.claim_path(unit).unlink()
+
+    # -- checkpoints seen ------------------------------------------------------------------------------------
+
+    @property
+    def seen_jsonl(self) -> Path:
+        return self.root / SEEN_JSONL
+
+    def record_seen(self, checkpoints: Sequence[SeenCheckpoint]) -> None:
+        """Remember checkpoints a watcher listed, so that one deleted (pruned by training's ``keep_last``) before
+        any job evaluated it is reported by later jobs too, not only by the job that saw it."""
+        with exclusive_lock(self.root / ".seen.lock"):
+            known = set(self.seen())
+            new = [c for c in checkpoints if c not in known]
+            if new:
+                with open(self.seen_jsonl, "a", encoding="utf-8") as handle:
+                    handle.writelines(json.dumps({"run": c.run, "name": c.name, "step": c.step,
+                                                  "checkpoint_id": c.checkpoint_id, "seen": time.time()}) + "\n"
+                                      for c in new)
+                    handle.flush()
+                    os.fsync(handle.fileno())
+
+    def seen(self) -> list[SeenCheckpoint]:
+        """Every checkpoint recorded by :meth:`record_seen`, oldest record first (a torn last line is skipped)."""
+        if not self.seen_jsonl.is_file():
+            return []
+        out = []
+        for line in self.seen_jsonl.read_text(encoding="utf-8").splitlines():
+            try:
+                record = json.loads(line)
+                out.append(SeenCheckpoint(str(record["run"]), str(record["name"]), int(record["step"]),
+                                          str(record["checkpoint_id"])))
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+                continue
+        return out
+
+    def has_result_for(self, checkpoint_name: str, checkpoint_id: str) -> bool:
+        """Whether any result (any setting) was written for this checkpoint: then it was evaluated, not lost."""
+        for path in (self.root / RESULTS_SUBDIR / checkpoint_name).glob("*.json"):
+            try:
+                if json.loads(path.read_text(encoding="utf-8"))["checkpoint"]["id"] == checkpoint_id:
+                    return True
+            except (OSError, json.JSONDecodeError, KeyError, TypeError):
+                continue
+        return False
 
     # -- results -----------------------------------------------------------------------------------------------
 
@@ -210,6 +353,15 @@ def _read_claim(path: Path) -> str:
         return path.read_text(encoding="utf-8")
     except OSError as exc:
         return f"<unreadable: {exc}>"
+
+
+def _parse_claim(text: str) -> dict[str, Any] | None:
+    """The claim's fields, or None for a claim cut short (its job killed between creating and writing it)."""
+    try:
+        claim = json.loads(text)
+    except json.JSONDecodeError:
+        return None
+    return claim if isinstance(claim, dict) else None
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from pipeline import checkpoint as ckpt
-from pipeline.config import parse_yaml, to_dict
+from pipeline.config import ConfigError, parse_yaml, to_dict
 from pipeline.data import Manifest, backend_for_format, open_manifest
 from pipeline.distributed import Dist
 from pipeline.eval_composition import (
@@ -77,12 +77,18 @@ from pipeline.eval_spaces import (
     digest,
     resolve_evaluator_file,
 )
-from pipeline.eval_store import ResultsStore, Unit, log_to_wandb
+from pipeline.eval_store import ClaimHolder, ResultsStore, SeenCheckpoint, Unit, log_to_wandb
 from pipeline.inference import TrainedModel, load_trained_model, resolve_checkpoint
 
 logger = logging.getLogger(__name__)
 
 RESULT_FORMAT = 1
+
+EXIT_ALL_DONE = 0
+"""Every unit this job was given is evaluated (by this job or earlier by another)."""
+EXIT_HELD_BY_OTHERS = 3
+"""Some units were skipped because other live jobs hold their claims and had not finished them when this job
+ended: run again later (distinct from 'all done', so a scheduler can tell nothing was lost)."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -312,6 +318,45 @@ def _flatten(summary: Mapping[str, Mapping[str, Any]], prefix: str = "") -> dict
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class HeldUnit:
+    """A unit this job skipped because another job's claim holds it."""
+
+    unit: Unit
+    holder: ClaimHolder | None
+
+    def describe(self) -> str:
+        who = self.holder.describe() if self.holder is not None else "a job that released it unfinished"
+        return f"{self.unit.checkpoint_name} {self.unit.point_name} (held by {who})"
+
+
+@dataclasses.dataclass(frozen=True)
+class JobSummary:
+    """What a job did and what it could not do, for its last lines and its exit status: a job that did nothing
+    because other jobs hold the work, or whose checkpoints were deleted before evaluation, must say so."""
+
+    evaluated: int
+    held_by_other_jobs: tuple[str, ...] = ()
+    """Units skipped because another live job holds them and had not finished them at the end of this job."""
+    pruned_before_evaluation: tuple[int, ...] = ()
+    """Steps of checkpoints that were listed once but deleted (training's ``train.keep_last``) with no result."""
+
+    @property
+    def exit_code(self) -> int:
+        return EXIT_HELD_BY_OTHERS if self.held_by_other_jobs else EXIT_ALL_DONE
+
+    def lines(self) -> list[str]:
+        out = [f"held by another job, not evaluated here (run again later): {held}"
+               for held in self.held_by_other_jobs]
+        if self.pruned_before_evaluation:
+            out.append(f"pruned_before_evaluation: {list(self.pruned_before_evaluation)} (deleted by training before "
+                       "any result; keep them with train.keep_last=0, or run the evaluator with --watch while "
+                       "training)")
+        status = "held_by_other_jobs" if self.held_by_other_jobs else "all_done"
+        out.append(f"status: {status} (exit {self.exit_code})")
+        return out
+
+
 class EvaluationJob:
     """Claims units, evaluates them and writes results; the same object serves --checkpoint and --watch."""
 
@@ -322,9 +367,16 @@ class EvaluationJob:
         """Wall seconds per phase over everything this job evaluated (rank 0's view)."""
         self._finished: set[str] = set()
         """Checkpoint ids whose every unit is done: a long-running watcher does not reload them (rank 0)."""
+        self._held: dict[str, tuple[ResultsStore, HeldUnit]] = {}
+        """Units skipped because another job held them, by unit key, with their store (rank 0)."""
+        self._pruned: dict[SeenCheckpoint, None] = {}
+        """Checkpoints listed once and deleted before any result, in the order found (rank 0)."""
 
     def store_for(self, folder: Path) -> ResultsStore:
-        root = Path(self.cfg.output.dir) if self.cfg.output.dir else run_dir_of(folder) / "eval"
+        return self.store_for_run(run_dir_of(folder))
+
+    def store_for_run(self, run_dir: Path) -> ResultsStore:
+        root = Path(self.cfg.output.dir) if self.cfg.output.dir else run_dir / "eval"
         return ResultsStore(root, self.cfg.output.claim_timeout_s)
 
     def evaluate_checkpoint(self, folder: str | Path) -> list[dict[str, Any]]:
@@ -377,20 +429,59 @@ class EvaluationJob:
                             store.result_path(unit))
             elif store.try_claim(unit):
                 claimed.append(unit.key)
+                self._held.pop(unit.key, None)
+            elif store.is_done(unit):
+                logger.info("%s %s: evaluated by another job meanwhile", unit.checkpoint_name, unit.point_name)
             else:
-                logger.info("%s %s: claimed by another job", unit.checkpoint_name, unit.point_name)
+                held = HeldUnit(unit, store.holder(unit))
+                self._held[unit.key] = (store, held)
+                logger.info("%s %s: skipped, held by another job (%s)", unit.checkpoint_name, unit.point_name,
+                            held.describe())
         return claimed
+
+    def summary(self, evaluated: int) -> JobSummary:
+        """This job's summary (on every rank: call it on all of them). Units another job held are listed only if
+        still not done now: one finished meanwhile is not a gap."""
+        summary = None
+        if self.dist.is_main:
+            held = tuple(h.describe() for store, h in self._held.values() if not store.is_done(h.unit))
+            summary = JobSummary(evaluated, held, tuple(sorted({c.step for c in self._pruned})))
+        return self.dist.broadcast_object(summary)
 
     def pending(self, run_dir: Path) -> list[Path]:
         """Complete checkpoints of a run in the configured order (incomplete folders are ignored), less those this
-        job already found fully evaluated."""
-        complete = [path for _, path in ckpt.list_complete(ckpt.checkpoints_dir(run_dir))
-                    if _known_id(path) not in self._finished]
+        job already found fully evaluated. Each is recorded as seen, so that its loss can be reported later."""
+        listed = [(step, path, _known_id(path)) for step, path in ckpt.list_complete(ckpt.checkpoints_dir(run_dir))]
+        self.store_for_run(run_dir).record_seen([SeenCheckpoint(str(run_dir.resolve()), path.name, step, known)
+                                                 for step, path, known in listed if known is not None])
+        complete = [path for _, path, known in listed if known is not None and known not in self._finished]
         return complete[::-1] if self.cfg.output.order == "newest" else complete
+
+    def check_pruned(self, run_dir: Path) -> list[SeenCheckpoint]:
+        """Checkpoints of ``run_dir`` that some watcher listed but that are gone with no result written: training
+        deleted them (``train.keep_last``) before any evaluator got to them. Logged once per job, then in the
+        summary; returns those found by this call for the first time."""
+        store, run = self.store_for_run(run_dir), str(run_dir.resolve())
+        root = ckpt.checkpoints_dir(run_dir)
+        new = []
+        for seen in store.seen():
+            if seen.run != run or seen in self._pruned or (root / seen.name).exists():
+                continue
+            if store.has_result_for(seen.name, seen.checkpoint_id):
+                continue
+            self._pruned[seen] = None
+            new.append(seen)
+            logger.warning("%s (step %d) is gone and was never evaluated: deleted before any evaluator got to it "
+                           "(training prunes old checkpoints: train.keep_last=%s in %s); keep checkpoints for the "
+                           "evaluator with train.keep_last=0 or a larger value, or run the evaluator with --watch "
+                           "while training",
+                           seen.name, seen.step, _training_keep_last(run_dir), run_dir / "config.yaml")
+        return new
 
     def watch(self, run_dir: str | Path, once: bool = False, sleep: Callable[[float], None] = time.sleep) -> int:
         """Evaluate every complete checkpoint of ``run_dir`` once; with ``once`` exit after one scan, else
-        rescan every ``output.poll_s`` seconds. Returns the number of units this job evaluated."""
+        rescan every ``output.poll_s`` seconds. Returns the number of units this job evaluated. Checkpoints
+        deleted before any evaluation are reported after each scan (:meth:`check_pruned`, :meth:`summary`)."""
         run_dir = Path(run_dir)
         if not run_dir.is_dir():
             raise FileNotFoundError(f"--watch: no run folder at {run_dir}")
@@ -404,6 +495,8 @@ class EvaluationJob:
                     if isinstance(exc, EvaluatorUnavailable):
                         raise
                     logger.warning("skipping %s: %s (deleted or damaged while waiting?)", folder, exc)
+            if self.dist.is_main:
+                self.check_pruned(run_dir)
             if once:
                 return done
             sleep(self.cfg.output.poll_s)
@@ -425,7 +518,9 @@ class EvaluationJob:
             "evaluator": ctx.space.describe(),
             "data": {"manifest": ctx.manifest.location, "dataset_id": ctx.manifest.dataset_id, "split": gt.split,
                      "num_items": len(gt), "dropped": dict(gt.dropped), "gt_key": gt.key,
-                     "gt_embeddings_from_cache": ctx.gt_from_cache},
+                     "gt_embeddings_from_cache": ctx.gt_from_cache,
+                     # The ground truth was read only after its shards verified (pipeline.data.verify_shards).
+                     "data_verified": bool(gt.verification.get("verified")), "verification": dict(gt.verification)},
             "protocol": {**ctx.plan.as_dict(), "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(point), "use_ema": self.cfg.sampling.use_ema,
                          "batch_size": self.cfg.sampling.batch_size},
@@ -467,6 +562,18 @@ def _known_id(folder: Path) -> str | None:
         return checkpoint_id(folder)
     except (ckpt.CheckpointError, OSError):
         return None
+
+
+def _training_keep_last(run_dir: Path) -> str:
+    """The run's ``train.keep_last`` from its config.yaml, for the message about pruned checkpoints ('?' if
+    unknown)."""
+    config = run_dir / "config.yaml"
+    try:
+        data = parse_yaml(config.read_text(encoding="utf-8"), str(config))
+    except (OSError, ConfigError):  # only a hint in a message: never fail the job over it
+        return "?"
+    train = data.get("train") if isinstance(data, dict) else None
+    return str(train.get("keep_last", "?")) if isinstance(train, dict) else "?"
 
 
 def _training_wandb(run_dir: Path) -> tuple[str, str]:

@@ -35,7 +35,7 @@ from mfm.evaluators import ActionClassifier, ContrastiveEvaluator, ContrastiveEv
 from mfm.evaluators.contrastive import retrieval_accuracy
 from mfm.metrics import R_PRECISION_BATCH_SIZE, action_accuracy
 from pipeline.config import ConfigError, coerce_fields, to_dict
-from pipeline.data import LoaderOptions, Manifest, MotionLoader, backend_for_format, open_manifest
+from pipeline.data import LoaderOptions, Manifest, MotionLoader, backend_for_format, open_manifest, verify_shards
 from pipeline.distributed import Dist
 from pipeline.eval_store import atomic_write_text
 from pipeline.eval_spaces import (
@@ -43,6 +43,7 @@ from pipeline.eval_spaces import (
     EVALUATOR_FILE,
     EvaluationError,
     GroundTruthSet,
+    UnverifiedGroundTruth,
     build_ground_truth,
     default_evaluator_dir,
 )
@@ -203,10 +204,12 @@ def held_out_report(model: ContrastiveEvaluator, classifier: ActionClassifier | 
             continue
         try:
             gt = build_ground_truth(manifest, split)
+        except UnverifiedGroundTruth:
+            raise  # tampered or damaged held-out data is an error, not a split to leave out of the report
         except EvaluationError as exc:
             logger.warning("no held-out report for %s: %s", split, exc)
             continue
-        entry: dict[str, Any] = {"num_items": len(gt)}
+        entry: dict[str, Any] = {"num_items": len(gt), "data_verified": bool(gt.verification.get("verified"))}
         batch = min(R_PRECISION_BATCH_SIZE, len(gt))
         if batch >= 2:
             motion, text = _held_out_embeddings(model, gt, manifest, device)
@@ -240,6 +243,9 @@ def train_evaluator(cfg: EvaluatorTrainConfig, dist: Dist) -> dict[str, Any]:
     manifest = open_manifest(cfg.data.manifest)
     model_config = model_config_for(cfg, manifest)
     out_dir = Path(cfg.out_dir) if cfg.out_dir else default_evaluator_dir(manifest.dataset_id)
+    # The training reader's strict checks, on every rank (deterministic, so every rank reaches the same verdict);
+    # a bad shard raises ShardVerificationError naming the file before any step.
+    verification = verify_shards(manifest, cfg.data.split, mode="strict", backend=backend_for_format(cfg.data.format))
     batch_size = _fitting_batch_size(cfg.data, manifest, dist.world_size)
     options = LoaderOptions(batch_size=batch_size, num_workers=cfg.data.num_workers, seed=cfg.data.seed,
                             window=cfg.data.window, unit_length=cfg.data.unit_length,
@@ -264,6 +270,7 @@ def train_evaluator(cfg: EvaluatorTrainConfig, dist: Dist) -> dict[str, Any]:
     model.to(dist.device).eval()
     report: dict[str, Any] = {
         "dataset_id": manifest.dataset_id, "manifest": manifest.location, "config": to_dict(cfg),
+        "data_verified": verification.verified, "verification": verification.as_dict(),
         "model_config": model_config.to_dict(), "world_size": dist.world_size, "batch_size": batch_size,
         "losses": {"contrastive": losses, "action_classifier": classifier_losses},
         "held_out": held_out_report(model, classifier, manifest, cfg.data.eval_splits, dist.device),

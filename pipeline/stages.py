@@ -6,6 +6,10 @@ Order in the stream (see ``pipeline.data`` for the shard-level stages that come 
                   (MotionRecord: all captions)          (one caption,   (MFM crop)     (manifest    (padded batch
                                                          its span)                      Mean/Std)     + masks)
 
+Tolerant mode wraps each per-sample stage in :class:`SkipBadRecords`: a record that fails to decode or validate
+becomes a :class:`SkippedRecord` that flows on in its place until ``Collate`` drops it, so a batch is cut from
+the same stream positions whether or not some of its records were bad.
+
 Randomness. A stage that draws (caption pick, crop length and offset) seeds a fresh generator from
 ``(seed, epoch, sample id, stage)`` through :func:`sample_rng`. No generator state is carried from one
 sample to the next, so replaying a stream from any point, on any number of ranks or workers, draws exactly
@@ -18,10 +22,13 @@ import hashlib
 import io
 import json
 from dataclasses import dataclass, replace
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import torch
+
+SKIPPED_RECORDS_KEY = "skipped_records"
+"""The batch key that lists why records were left out of the batch (tolerant mode); the loader pops it."""
 
 # Stage tags keep the random streams of different stages independent of each other.
 _TAG_CAPTION = 1
@@ -87,6 +94,32 @@ class TrainingSample:
     start_frame: int  # where ``features`` starts in the full motion
     text_tokens: np.ndarray | None = None  # (L, E)
     text_token_len: int | None = None
+
+
+@dataclass(frozen=True)
+class SkippedRecord:
+    """A record tolerant mode leaves out, in its place in the stream; ``reason`` names the file, the record and
+    what is wrong with it. Keeping the place (rather than dropping the item) is what keeps batch boundaries, and
+    with them the resume position and every later batch, where they would be without the bad record."""
+
+    reason: str
+
+
+class SkipBadRecords:
+    """Tolerant mode around one per-sample stage: a :class:`RecordError` from the stage becomes a
+    :class:`SkippedRecord`; a record skipped by an earlier stage passes through untouched. The outcome depends
+    only on the record's bytes, so a resumed stream skips the same records at the same places."""
+
+    def __init__(self, stage: Callable[[Any], Any]):
+        self.stage = stage
+
+    def __call__(self, item: Any) -> Any:
+        if isinstance(item, SkippedRecord):
+            return item
+        try:
+            return self.stage(item)
+        except RecordError as exc:
+            return SkippedRecord(str(exc))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -309,7 +342,9 @@ class Collate:
     ``text_emb`` (B, E) float32, ``action`` (B,) int64 (index in the manifest's ``action_classes``, -1 when the
     motion has no label), ``caption_index`` (B,) int64, ``ids`` list[str], ``captions`` list[str],
     ``caption_tokens`` list[list[str]]; with token features also ``text_tokens`` (B, L, E) float32 and
-    ``text_token_len`` (B,) int64.
+    ``text_token_len`` (B,) int64. Records skipped in tolerant mode are not in the batch (so B may be smaller
+    than the batch size): their reasons are under ``SKIPPED_RECORDS_KEY``; when every record was skipped the
+    batch is only ``{"ids": [], SKIPPED_RECORDS_KEY: [...]}``.
     """
 
     def __init__(self, window: int, action_classes: Sequence[str]):
@@ -323,7 +358,17 @@ class Collate:
             raise RecordError(f"record {sample.id!r}: action {sample.action!r} is not in the manifest's action_classes")
         return self.action_ids[sample.action]
 
-    def __call__(self, samples: Sequence[TrainingSample]) -> dict[str, Any]:
+    def __call__(self, items: Sequence[TrainingSample | SkippedRecord]) -> dict[str, Any]:
+        samples = [s for s in items if not isinstance(s, SkippedRecord)]
+        skipped = [s.reason for s in items if isinstance(s, SkippedRecord)]
+        if not samples:
+            return {"ids": [], SKIPPED_RECORDS_KEY: skipped}
+        batch = self._collate(samples)
+        if skipped:
+            batch[SKIPPED_RECORDS_KEY] = skipped
+        return batch
+
+    def _collate(self, samples: Sequence[TrainingSample]) -> dict[str, Any]:
         b, dim = len(samples), samples[0].features.shape[1]
         features = np.zeros((b, self.window, dim), np.float32)
         lengths = np.zeros(b, np.int64)

@@ -4,7 +4,13 @@ One object owns a run: the model (wrapped for the device by :mod:`pipeline.distr
 linear warm-up, the self-sharded streaming loader (never passed through ``accelerator.prepare``), and one
 versioned resume state saved atomically by :mod:`pipeline.checkpoint`. ``fit`` reads top to bottom:
 
-    resume → for each optimizer step: stop requested? → train_step → maybe_log → maybe_save
+    resume → write run files → for each optimizer step: stop requested? → train_step → maybe_log → maybe_save
+
+Nothing is written into the run folder before the resume decision: rank 0 first checks train.out_dir
+(:mod:`pipeline.run_folder`), removes unfinished checkpoint folders of dead processes and resolves train.resume
+(auto skips, and sets aside, corrupt checkpoints; an explicit older one is refused while newer ones exist). A save
+that fails (a full disk) stops the run on every rank with :class:`CheckpointSaveError`; the same command continues
+from the newest complete checkpoint once there is space.
 
 Decisions that every rank must take together (skip a non-finite step, stop on SIGTERM/SIGINT) come from ONE
 all-reduce (SUM) of a small flag vector per optimizer step, which also carries the loss, so the logged loss is
@@ -19,6 +25,7 @@ the data position, counters), and metrics.jsonl holds every step once.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import logging
 import math
@@ -26,10 +33,10 @@ import os
 import random
 import signal
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -44,14 +51,22 @@ from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
 from pipeline.data import LoaderOptions, Manifest, MotionLoader, backend_for_format, open_manifest, verify_shards
 from pipeline.distributed import Dist
+from pipeline.run_folder import RunFolderError, check_run_folder
 
 logger = logging.getLogger(__name__)
 
 EXIT_SIGNAL_BASE = 128  # a run stopped by signal N exits with 128 + N (143 SIGTERM, 130 SIGINT)
 
+T = TypeVar("T")
+
 
 class NonFiniteLossError(RuntimeError):
     """The loss or gradient norm was not finite on some rank and the policy (or its budget) says stop."""
+
+
+class CheckpointSaveError(RuntimeError):
+    """A checkpoint could not be written (e.g. a full disk). The run stops there on every rank rather than train on
+    without a way back: the message says what the save needed and where the run can resume from."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -248,6 +263,8 @@ class Trainer:
         self.dist = dist
         self.out_dir = Path(cfg.train.out_dir)
         self.ckpt_root = ckpt.checkpoints_dir(self.out_dir)
+        # Refuse an unusable train.out_dir before the slow part (verifying every shard); fit() checks it again.
+        self._decided_by_main(lambda: check_run_folder(self.out_dir))
 
         self.manifest = open_manifest(cfg.data.manifest)
         bad_shards = self._verified_bad_shards()
@@ -285,6 +302,9 @@ class Trainer:
                 shuffle_buffer=cfg.data.shuffle_buffer,
                 caption_policy=cfg.data.caption_policy,
                 backend=backend_for_format(cfg.data.format),
+                # tolerant: skip (count, log) records that fail to decode, and on a resume whose excluded shards
+                # changed finish the checkpoint's epoch with its plan (pipeline.data, "Tolerant mode at run time")
+                tolerate_bad_data=cfg.data.verify == "tolerant",
             ),
             rank=dist.rank,
             world_size=dist.world_size,
@@ -423,38 +443,58 @@ class Trainer:
         rank_states = self.dist.all_gather_object(rank_state)
         data_states = self.dist.all_gather_object(self.loader.state_dict())
         path = None
+        failure = None
         if self.dist.is_main:
-            path = ckpt.save_checkpoint(
-                self.ckpt_root,
-                self.step,
-                model_state={k: v.detach().cpu() for k, v in self.dist.unwrap(self.model).state_dict().items()},
-                ema_state=self.ema.state_dict(),
-                optimizer_state=self.optimizer.state_dict(),
-                scheduler_state=self.scheduler.state_dict(),
-                rng_states=rank_states,
-                data_states=data_states,
-                config=to_dict(self.cfg),
-                manifest={"dataset_id": self.manifest.dataset_id, "location": str(self.manifest.location),
-                          "feature_spec": self.manifest.data["feature_spec"],
-                          "text_encoder": self.manifest.data["text_encoder"],
-                          "action_classes": list(self.manifest.action_classes),
-                          "normalization": self.manifest.data["normalization"],
-                          "train_lengths": list(self.manifest.split("train")["lengths"])},
-                extra={"samples_seen": self.samples_seen, "skipped_steps": self.skipped_steps,
-                       "consecutive_skips": self.consecutive_skips, "ema_updates": self.ema.num_updates,
-                       "model_config": dataclasses.asdict(self.model_config)},
-            )
-            ckpt.prune_checkpoints(self.ckpt_root, self.cfg.train.keep_last)
-        self.dist.barrier()
+            try:
+                path = self._save_on_main(rank_states, data_states)
+            except OSError as err:
+                failure = self._save_failure(err)
+        # Every rank learns whether the save worked (and waits for it), so all stop together if it did not.
+        failure = self.dist.broadcast_object(failure)
+        if failure is not None:
+            raise CheckpointSaveError(failure)
         self._last_saved_step = self.step
         return path
 
+    def _save_failure(self, err: OSError) -> str:
+        """The stop message after a failed save: what failed (for a full disk: space needed and free, from
+        save_checkpoint, which has removed its partial folder) and where a restart continues from."""
+        newest = ckpt.find_latest_complete(self.ckpt_root)
+        restart = (f"train.resume=auto continues from {newest.name}" if newest is not None
+                   else "there is no complete checkpoint yet: it starts over")
+        what = err.strerror if isinstance(err, ckpt.CheckpointWriteError) else f"checkpoint not saved ({err})"
+        fix = "Free space" if err.errno in (errno.ENOSPC, errno.EDQUOT) else "Fix that"
+        return f"the run stopped at step {self.step}: {what}. {fix} and run the same command again ({restart})"
+
+    def _save_on_main(self, rank_states: list[Any], data_states: list[Any]) -> Path:
+        """Rank 0's part of :meth:`save`: write the checkpoint, then apply train.keep_last."""
+        path = ckpt.save_checkpoint(
+            self.ckpt_root,
+            self.step,
+            model_state={k: v.detach().cpu() for k, v in self.dist.unwrap(self.model).state_dict().items()},
+            ema_state=self.ema.state_dict(),
+            optimizer_state=self.optimizer.state_dict(),
+            scheduler_state=self.scheduler.state_dict(),
+            rng_states=rank_states,
+            data_states=data_states,
+            config=to_dict(self.cfg),
+            manifest={"dataset_id": self.manifest.dataset_id, "location": str(self.manifest.location),
+                      "feature_spec": self.manifest.data["feature_spec"],
+                      "text_encoder": self.manifest.data["text_encoder"],
+                      "action_classes": list(self.manifest.action_classes),
+                      "normalization": self.manifest.data["normalization"],
+                      "train_lengths": list(self.manifest.split("train")["lengths"])},
+            extra={"samples_seen": self.samples_seen, "skipped_steps": self.skipped_steps,
+                   "consecutive_skips": self.consecutive_skips, "ema_updates": self.ema.num_updates,
+                   "model_config": dataclasses.asdict(self.model_config)},
+        )
+        ckpt.prune_checkpoints(self.ckpt_root, self.cfg.train.keep_last)
+        return path
+
     def resume(self) -> Path | None:
-        """Restore the newest complete checkpoint (train.resume), chosen by rank 0 and broadcast to all ranks."""
-        path = None
-        if self.dist.is_main:
-            path = ckpt.resolve_resume(self.cfg.train.resume, self.ckpt_root)
-        path = self.dist.broadcast_object(None if path is None else str(path))
+        """Restore the checkpoint train.resume names, chosen by rank 0 (:meth:`_open_run_folder`) and broadcast to
+        all ranks; a refusal there is raised on every rank."""
+        path = self._decided_by_main(self._open_run_folder)
         if path is None:
             return None
         model_state, ema_state, state = ckpt.load_checkpoint(path)
@@ -485,13 +525,44 @@ class Trainer:
         self.dist.log0("resumed from %s at step %d", path, self.step)
         return Path(path)
 
+    def _decided_by_main(self, decide: Callable[[], T]) -> T:
+        """Take a start-up decision on rank 0 only (it may touch the run folder) and hand the answer to every rank.
+        If rank 0 refuses, every rank raises (the refusal itself when it is one of the user-facing kinds), so no
+        rank waits forever in a collective."""
+        answer: T | None = None
+        refusal: Exception | None = None
+        if self.dist.is_main:
+            try:
+                answer = decide()
+            except Exception as err:  # noqa: BLE001 - raised again below, on every rank
+                refusal = err
+        shared = refusal
+        if refusal is not None and not isinstance(refusal, (RunFolderError, ckpt.CheckpointError, OSError)):
+            shared = RuntimeError(f"rank 0 could not start the run: {type(refusal).__name__}: {refusal}")
+        answer, shared = self.dist.broadcast_object((answer, shared))
+        if refusal is not None:
+            raise refusal
+        if shared is not None:
+            raise shared
+        return answer
+
+    def _open_run_folder(self) -> Path | None:
+        """Rank 0's start-up decisions, before anything is written: the run folder is one this run may use, the
+        unfinished checkpoint folders of dead writers are removed (they may hold the space the run needs), and
+        train.resume is resolved (resume=auto sets corrupt checkpoints aside; an explicit older one is refused
+        while newer checkpoints exist, unless train.resume_discard_newer)."""
+        check_run_folder(self.out_dir)
+        ckpt.remove_stale_tmp(self.ckpt_root)
+        train = self.cfg.train
+        return ckpt.resolve_resume(train.resume, self.ckpt_root, discard_newer=train.resume_discard_newer)
+
     # -- the loop ---------------------------------------------------------------------------------------------
 
     def fit(self) -> int:
         """Train to ``train.max_steps``; returns the process exit code (0, or 128 + signal after a clean stop)."""
         cfg = self.cfg
+        self.resume()  # decided (and possibly refused) before anything in the run folder is written
         self._write_run_files()
-        self.resume()
         logger_sink = MetricsSink(self.out_dir, cfg, self.dist, self.model_config, self.num_parameters, self.step)
         self.stop_signal.install()
         # Creating the DataLoader iterator (num_workers > 0) draws the workers' base seed from the global torch
@@ -547,7 +618,8 @@ class Trainer:
         }
 
     def _write_run_files(self) -> None:
-        """config.yaml (the resolved config) and shard_report.json (what verification found and skipped)."""
+        """config.yaml (the resolved config) and shard_report.json (what verification found and skipped); written
+        only once the resume was accepted, so a refused resume leaves the run's files as they were."""
         if self.dist.is_main:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             (self.out_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(self.cfg), sort_keys=False))
@@ -645,14 +717,17 @@ def drop_records_after(metrics_path: Path, step: int) -> None:
     about to be trained (again), and a killed run may have logged some of them, or left a torn last line."""
     if not metrics_path.exists():
         return
+    text = metrics_path.read_text(encoding="utf-8")
     kept = []
-    for line in metrics_path.read_text(encoding="utf-8").splitlines():
+    for line in text.splitlines():
         try:
             record = json.loads(line)
         except json.JSONDecodeError:
             continue
         if isinstance(record, dict) and isinstance(record.get("step"), int) and record["step"] <= step:
             kept.append(line + "\n")
+    if "".join(kept) == text:
+        return  # nothing to drop: no rewrite (on a nearly full disk, no temporary copy either)
     tmp = metrics_path.with_name(metrics_path.name + ".tmp")
     tmp.write_text("".join(kept), encoding="utf-8")
     os.replace(tmp, metrics_path)

@@ -1,8 +1,13 @@
+import errno
 import json
 import logging
 import os
 import random
+import re
 import shutil
+import socket
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -18,6 +23,7 @@ from pipeline.checkpoint import (
     CheckpointError,
     CorruptCheckpointError,
     IncompleteCheckpointError,
+    ResumeConflictError,
     capture_rng_state,
     checkpoints_dir,
     find_latest_complete,
@@ -219,24 +225,27 @@ def test_crash_mid_write_keeps_previous_checkpoint(tmp_path, monkeypatch, mode):
         return real_write(path, payload)
 
     monkeypatch.setattr(ckpt, "_write_file", crashing_write)
-    with pytest.raises(SimulatedCrash):
+    with pytest.raises(ckpt.CheckpointWriteError, match="step-00000020 was not saved") as err:
         save_step(tmp_path, 20)
     monkeypatch.undo()
+    assert isinstance(err.value, OSError) and isinstance(err.value.__cause__, SimulatedCrash)
 
-    partial = [p.name for p in tmp_path.iterdir() if p.name.startswith("step-00000020")]
-    assert partial == [f"step-00000020.tmp-{os.getpid()}"]  # never reached its final name
-    assert not (tmp_path / partial[0] / COMPLETE_MARKER).exists()
-    if mode == "zero_byte_file":
-        assert (tmp_path / partial[0] / STATE_FILE).stat().st_size == 0
+    # A failed save removes its partial folder itself (on a full disk it holds the space a restart needs).
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["step-00000010"]
     assert find_latest_complete(tmp_path) == previous
     assert resolve_resume("auto", tmp_path) == previous
     model_state, _, state = load_checkpoint(previous)
     assert state["step"] == 10 and model_state
 
-    # the next successful save commits, and retention then clears the stale partial folder
+    # A save that was killed leaves its partial folder: never read, and retention clears it once a newer
+    # checkpoint commits.
+    killed = tmp_path / ckpt.tmp_dir_name(20, pid=os.getpid() + 1)
+    killed.mkdir()
+    (killed / STATE_FILE).write_bytes(b"")
+    assert resolve_resume("auto", tmp_path) == previous
     save_step(tmp_path, 30)
     removed = prune_checkpoints(tmp_path, keep_last=3)
-    assert [p.name for p in removed] == partial
+    assert removed == [killed]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["step-00000010", "step-00000030"]
 
 
@@ -342,3 +351,118 @@ def test_per_rank_lists_must_agree(tmp_path):
 def test_non_tensor_in_model_state_is_rejected(tmp_path):
     with pytest.raises(TypeError, match="model.safetensors: 'step' is a int"):
         save_step(tmp_path, 1, model_state={"w": torch.zeros(2), "step": 3})
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# A full disk, killed saves, corrupt and conflicting checkpoints (issue 12, items 4 and 5)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_a_save_on_a_full_disk_removes_its_folder_and_logs_space_needed_and_free(tmp_path, monkeypatch, caplog):
+    """ENOSPC in the middle of a save: the partial folder is gone (it would hold the space a restart needs), one
+    error line gives the space needed against the space free, and the next save succeeds."""
+    previous = save_step(tmp_path, 10)
+    real_write = ckpt._write_file
+
+    def full_disk(path, payload):
+        if path.parent.name.startswith("step-00000020") and path.name == STATE_FILE:
+            path.write_bytes(payload[: len(payload) // 2])  # the disk fills up part-way through a file
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real_write(path, payload)
+
+    monkeypatch.setattr(ckpt, "_write_file", full_disk)
+    monkeypatch.setattr(ckpt.shutil, "disk_usage", lambda path: shutil._ntuple_diskusage(10**9, 10**9 - 12345, 12345))
+    with caplog.at_level(logging.ERROR, logger="pipeline.checkpoint"), pytest.raises(ckpt.CheckpointWriteError) as err:
+        save_step(tmp_path, 20)
+    monkeypatch.undo()
+
+    assert err.value.errno == errno.ENOSPC
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["step-00000010"]  # nothing partial left behind
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(errors) == 1 and errors[0] == str(err.value)
+    needed = re.search(r"it needs ([\d.]+) MB, 0\.0 MB free on (\S+)$", errors[0])
+    assert needed and "No space left on device" in errors[0] and needed.group(2) == str(tmp_path)
+
+    saved = save_step(tmp_path, 20)  # space freed: the same save now goes through
+    size = sum(f.stat().st_size for f in saved.iterdir() if f.name != COMPLETE_MARKER)
+    assert float(needed.group(1)) == pytest.approx(size / 1e6, abs=0.05)
+    assert find_latest_complete(tmp_path) == saved and is_complete(previous)
+
+
+def dead_pid() -> int:
+    """The pid of a process that has exited (and been reaped)."""
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_start_up_removes_unfinished_folders_of_dead_writers_only(tmp_path):
+    host, gone = socket.gethostname().replace("-", "_"), dead_pid()
+    complete = save_step(tmp_path, 10)
+    aside = tmp_path / "step-00000030.corrupt-20250101T000000"
+    aside.mkdir()
+    stale = [
+        tmp_path / ckpt.tmp_dir_name(20, pid=gone),  # a save killed on a full disk
+        tmp_path / f"step-00000020.tmp-{gone}",  # named before the host was recorded
+        tmp_path / f"step-00000020.tmp-incomplete-{host}-{gone}",
+        tmp_path / ckpt.tmp_dir_name(40, pid=os.getpid()),  # an earlier process with this pid (a container restart)
+    ]
+    kept = [
+        tmp_path / ckpt.tmp_dir_name(40, pid=os.getppid()),  # a live process on this host: a save in progress
+        tmp_path / "step-00000040.tmp-other_host-1",  # another host's: cannot be checked from here
+    ]
+    for folder in stale + kept:
+        folder.mkdir()
+        (folder / MODEL_FILE).write_bytes(b"x" * 100)
+
+    assert sorted(ckpt.remove_stale_tmp(tmp_path)) == sorted(stale)
+    assert sorted(tmp_path.iterdir()) == sorted([complete, aside, *kept])
+    assert ckpt.remove_stale_tmp(tmp_path / "missing") == []
+
+
+def test_auto_resume_sets_a_corrupt_newest_checkpoint_aside_and_falls_back(tmp_path, caplog):
+    for step in (10, 20, 30):
+        save_step(tmp_path, step)
+    flipped = (tmp_path / "step-00000030" / MODEL_FILE).read_bytes()
+    flipped = flipped[:-8] + bytes([flipped[-8] ^ 0xFF]) + flipped[-7:]  # one flipped byte, same size
+    (tmp_path / "step-00000030" / MODEL_FILE).write_bytes(flipped)
+    assert is_complete(tmp_path / "step-00000030")  # sizes alone do not see it
+
+    with caplog.at_level(logging.WARNING, logger="pipeline.checkpoint"):
+        assert resolve_resume("auto", tmp_path) == tmp_path / "step-00000020"
+    aside = [p for p in tmp_path.iterdir() if p.name.startswith("step-00000030.")]
+    assert len(aside) == 1 and re.fullmatch(r"step-00000030\.corrupt-\d{8}T\d{6}", aside[0].name)
+    assert (aside[0] / MODEL_FILE).read_bytes() == flipped  # moved, not deleted
+    assert "step-00000030 is corrupt" in caplog.text and aside[0].name in caplog.text
+    assert prune_checkpoints(tmp_path, keep_last=1) == [tmp_path / "step-00000010"]  # never pruned
+    assert aside[0].exists()
+
+
+def test_auto_resume_refuses_when_no_checkpoint_verifies(tmp_path):
+    path = save_step(tmp_path, 10)
+    data = bytearray((path / STATE_FILE).read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (path / STATE_FILE).write_bytes(bytes(data))
+    with pytest.raises(CorruptCheckpointError, match="train.resume=never"):
+        resolve_resume("auto", tmp_path)
+    assert [p.name.split(".")[1].split("-")[0] for p in tmp_path.iterdir()] == ["corrupt"]
+    assert resolve_resume("never", tmp_path) is None  # the way to start over that the message names
+
+
+def test_explicit_older_resume_refuses_newer_checkpoints_or_sets_them_aside(tmp_path, caplog):
+    older = save_step(tmp_path, 10)
+    save_step(tmp_path, 20)
+    save_step(tmp_path, 30)
+    with pytest.raises(ResumeConflictError, match="train.resume_discard_newer=true") as err:
+        resolve_resume(str(older), tmp_path)
+    assert "step-00000020, step-00000030" in str(err.value) and "resume=auto" in str(err.value)
+    assert [step for step, _ in ckpt.list_complete(tmp_path)] == [10, 20, 30]  # refused: nothing touched
+    assert resolve_resume(str(tmp_path / "step-00000030"), tmp_path) == tmp_path / "step-00000030"
+
+    with caplog.at_level(logging.WARNING, logger="pipeline.checkpoint"):
+        assert resolve_resume(str(older), tmp_path, discard_newer=True) == older
+    assert sorted(p.name.split(".")[0] for p in tmp_path.iterdir() if ".discarded-" in p.name) == [
+        "step-00000020", "step-00000030"]
+    assert "moved step-00000020 aside" in caplog.text
+    assert find_latest_complete(tmp_path) == older
+    assert is_complete(save_step(tmp_path, 20))  # training on from 10 can save its own step 20

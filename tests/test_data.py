@@ -10,6 +10,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import tarfile
 from collections import Counter
 from pathlib import Path
@@ -613,6 +614,202 @@ def test_unverified_truncated_shard_fails_loudly_naming_it(tmp_path):
 def test_exclude_shards_must_name_known_shards(dataset):
     with pytest.raises(ValueError, match="exclude_shards names shards"):
         MotionLoader(dataset, "train", opts(), exclude_shards=["train/nope.tar"])
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Manifest counts, tampered ground truth, tolerant mode at run time (issue 12, items 1-3)
+# ----------------------------------------------------------------------------------------------------------
+
+
+def edit_manifest(manifest: Path, change) -> None:
+    data = json.loads(manifest.read_text())
+    change(data)
+    manifest.write_text(json.dumps(data, indent=1))
+
+
+def shard_ids(shard_sizes, index: int) -> list[str]:
+    start = sum(shard_sizes[:index])
+    return [motion_id(n) for n in range(start, start + shard_sizes[index])]
+
+
+def rewrite_tar(manifest: Path, shard_sizes, index: int, change, *, split: str = "train",
+                update_manifest: bool = True) -> None:
+    """Rewrite tar shard ``index`` with ``change(records)`` applied; with ``update_manifest`` its entry (bytes,
+    sha256) follows, as if the dataset had been built that way; without, the shard is tampered with."""
+    root = manifest.parent
+    start = sum(shard_sizes[:index])
+    records = [fixture_motion(n) for n in range(start, start + shard_sizes[index])]
+    change(records)
+    rel = f"{split}/shard-{index:05d}.tar"
+    _write_tar(root / rel, records, split)
+    if update_manifest:
+        edit_manifest(manifest, lambda m: m["splits"][split]["shards"].__setitem__(
+            index, _file_entry(root, rel, shard_sizes[index])))
+
+
+@pytest.mark.parametrize("backend", ["webdataset", "parquet"])
+@pytest.mark.parametrize("delta", [-2, +2])
+def test_a_shard_count_that_differs_from_the_shard_fails_strict_and_is_excluded_tolerant(tmp_path, delta, backend):
+    """Issue 12.1: a lowered count silently dropped records (strict passed: size and sha256 only); a raised one
+    crashed mid-training. The shard itself (and its sha256) is unchanged: only reading it can tell."""
+    sizes = (4, 5, 6)
+    manifest = write_fixture_dataset(tmp_path, sizes)
+    key = "shards" if backend == "webdataset" else "parquet"
+    name = "shard-00001.tar" if backend == "webdataset" else "part-00001.parquet"
+    edit_manifest(manifest, lambda m: m["splits"]["train"][key][1].__setitem__("num_motions", 5 + delta))
+    with pytest.raises(ShardVerificationError,
+                       match=rf"{re.escape(name)}: bad shard \(record count: holds 5 records, manifest says {5 + delta}\)"):
+        verify_shards(manifest, "train", mode="strict", backend=backend)
+
+    report = verify_shards(manifest, "train", mode="tolerant", backend=backend)
+    assert report.bad_paths == (f"train/{name}",) and report.bad[0].reason.startswith("record count")
+    assert report.manifest_problems and "add up to" in report.manifest_problems[0]  # 15 != 15 + delta
+    assert not report.verified and report.as_dict()["bad"][0]["path"] == f"train/{name}"
+    loader = MotionLoader(manifest, "train", opts(backend=backend, batch_size=1), exclude_shards=report.bad_paths)
+    ids = [i for b in loader.iter_epoch() for i in b["ids"]]
+    assert sorted(ids) == sorted(shard_ids(sizes, 0) + shard_ids(sizes, 2))
+
+
+def test_a_lowered_count_is_found_by_the_reader_without_verification(tmp_path):
+    """verify=off: the reader still reads each shard to its end and compares the count with the manifest."""
+    manifest = write_fixture_dataset(tmp_path, (4, 5))
+    edit_manifest(manifest, lambda m: m["splits"]["train"]["shards"][1].__setitem__("num_motions", 3))
+    loader = MotionLoader(manifest, "train", opts(shuffle=False, batch_size=1))
+    with pytest.raises(ShardReadError, match=r"shard-00001\.tar: holds 5 records where the manifest says 3"):
+        list(loader.iter_epoch())
+
+
+def test_manifest_totals_and_duplicate_ids_are_checked(tmp_path):
+    sizes = (4, 5)
+    manifest = write_fixture_dataset(tmp_path, sizes)
+    edit_manifest(manifest, lambda m: m["splits"]["train"].__setitem__("num_motions", 10))
+    with pytest.raises(ShardVerificationError, match=r"manifest\.json: inconsistent manifest: split 'train': "
+                                                     r"num_motions is 10 but 9 lengths are listed"):
+        verify_shards(manifest, "train", mode="strict")
+    report = verify_shards(manifest, "train", mode="tolerant")
+    assert report.bad == () and len(report.manifest_problems) == 2 and not report.verified
+
+    manifest = write_fixture_dataset(tmp_path / "dup", sizes)
+    rewrite_tar(manifest, sizes, 1, lambda records: records.__setitem__(0, fixture_motion(2)))  # m00002 twice
+    with pytest.raises(ShardVerificationError, match=r"shard-00001\.tar: bad shard \(duplicate record ids: "
+                                                     r"'m00002' is also in train/shard-00000\.tar"):
+        verify_shards(manifest, "train", mode="strict")
+
+
+def test_ground_truth_from_a_tampered_test_shard_is_refused(tmp_path):
+    """Issue 12.2: the evaluator read ground truth without any check; features x 50 (same byte size, only the
+    sha256 differs) changed FID under the same dataset id."""
+    from pipeline.eval_spaces import UnverifiedGroundTruth, build_ground_truth
+
+    sizes = (3, 4)
+    manifest = write_fixture_dataset(tmp_path, sizes, split="test")
+    gt = build_ground_truth(manifest, "test", max_length=24, unit_length=4)
+    assert gt.verification["verified"] and {"sha256", "record_count"} <= set(gt.verification["checks"])
+    assert gt.verification["mode"] == "strict" and gt.verification["num_checked"] == 2
+
+    size = (tmp_path / "test/shard-00001.tar").stat().st_size
+    rewrite_tar(manifest, sizes, 1, lambda records: [r.__setitem__("features", r["features"] * 50) for r in records],
+                split="test", update_manifest=False)
+    assert (tmp_path / "test/shard-00001.tar").stat().st_size == size
+    with pytest.raises(UnverifiedGroundTruth, match=r"test/shard-00001\.tar: bad shard \(corrupted: sha256"):
+        build_ground_truth(manifest, "test", max_length=24, unit_length=4)
+    with pytest.raises(ShardVerificationError, match=r"shard-00001\.tar"):  # tools read through the same check
+        list(iter_motions(manifest, "test"))
+
+
+def nan_record_dataset(root: Path, sizes, bad: tuple[int, int]) -> tuple[Path, str]:
+    """A dataset built with one record whose features hold a NaN (its shard verifies: the manifest was written
+    from it). ``bad``: (shard index, record index in the shard)."""
+    manifest = write_fixture_dataset(root, sizes)
+    shard, record = bad
+    rewrite_tar(manifest, sizes, shard, lambda records: records[record]["features"].__setitem__((3, 1), np.nan))
+    return manifest, shard_ids(sizes, shard)[record]
+
+
+def test_tolerant_mode_skips_a_nonfinite_record_keeps_the_batches_and_resumes_exactly(tmp_path):
+    """Issue 12.3a: a record with non-finite features crashed a tolerant run. Now it is left out of its batch
+    (counted), every other batch is unchanged, and a resume at any point gives the same batches and count."""
+    sizes = (5, 6, 7, 4)
+    manifest, bad_id = nan_record_dataset(tmp_path, sizes, (1, 2))
+    assert verify_shards(manifest, "train", mode="strict").verified  # only decoding finds it
+    options = dict(shuffle=False, batch_size=3)
+    with pytest.raises(RecordError, match=rf"record '{bad_id}': features contain NaN"):
+        list(MotionLoader(manifest, "train", opts(**options)).iter_epoch())
+
+    tolerant = opts(tolerate_bad_data=True, **options)
+    loader = MotionLoader(manifest, "train", tolerant)
+    batches = list(loader.iter_epoch()) + list(loader.iter_epoch())  # two epochs
+    assert len(batches) == 2 * loader.batches_per_epoch(0) and loader.records_skipped == 2
+    short = [b for b in batches if len(b["ids"]) < 3]
+    assert len(short) == 2 and all(b["features"].shape[0] == 2 for b in short)
+    assert bad_id not in {i for b in batches for i in b["ids"]}
+    assert len({i for b in batches[:loader.batches_per_epoch(0)] for i in b["ids"]}) == loader.plan(0).samples_used - 1
+
+    for position in (0, 2, 3, loader.batches_per_epoch(0) - 1):  # before, at (batch 2) and after the bad record
+        reference = MotionLoader(manifest, "train", tolerant)
+        _take_batches(reference, position)
+        resumed = MotionLoader(manifest, "train", tolerant)
+        resumed.load_state_dict(reference.state_dict())
+        assert_batches_equal(list(resumed.iter_epoch()), batches[position:loader.batches_per_epoch(0)])
+        assert resumed.state_dict() == MotionLoader(manifest, "train", tolerant).state_dict() | {
+            "epoch": 1, "batches_in_epoch": 0, "records_skipped": 1}
+
+    # With DataLoader workers the skip happens in a worker process and is counted by the loader all the same.
+    with_workers = MotionLoader(manifest, "train", opts(tolerate_bad_data=True, num_workers=2, **options))
+    batches = list(with_workers.iter_epoch())
+    assert len(batches) == with_workers.batches_per_epoch(0) and with_workers.records_skipped == 1
+    assert bad_id not in {i for b in batches for i in b["ids"]}
+
+
+def _take_batches(loader: MotionLoader, count: int) -> list[dict]:
+    batches = loader.iter_batches()
+    return [next(batches) for _ in range(count)]
+
+
+def test_a_shard_excluded_after_a_checkpoint_finishes_the_epoch_without_it(tmp_path):
+    """Issue 12.3b: a shard that went bad after a checkpoint made a tolerant resume impossible. The rule: the
+    checkpoint's epoch goes on with the plan it started with, minus the records of the newly excluded shard
+    (counted as skipped, the file never opened); later epochs are planned without it. Strict mode refuses."""
+    sizes = (5, 6, 7, 4, 6, 5)
+    manifest = write_fixture_dataset(tmp_path, sizes)
+    tolerant = opts(tolerate_bad_data=True, batch_size=3, shuffle_buffer=4)
+    uninterrupted = MotionLoader(manifest, "train", tolerant)
+    saved_at = 3
+    planned = list(uninterrupted.iter_epoch())
+    checkpoint = MotionLoader(manifest, "train", tolerant)
+    _take_batches(checkpoint, saved_at)
+    state = checkpoint.state_dict()
+
+    gone = "train/shard-00002.tar"
+    lost = set(shard_ids(sizes, 2))
+    flip_byte(tmp_path / gone)  # after the checkpoint: tolerant verification now excludes it
+    assert verify_shards(manifest, "train", mode="tolerant").bad_paths == (gone,)
+
+    with pytest.raises(ValueError, match=r"excluded shards \[\], and verification now excludes "
+                                         r"\['train/shard-00002\.tar'\].*data\.verify=tolerant") as refused:
+        MotionLoader(manifest, "train", opts(batch_size=3, shuffle_buffer=4), exclude_shards=[gone]).load_state_dict(state)
+    assert "start a new epoch from scratch" not in str(refused.value)
+
+    resumed = MotionLoader(manifest, "train", tolerant, exclude_shards=[gone])
+    resumed.load_state_dict(state)
+    assert resumed.state_dict()["carried_epoch"] == {"epoch": 0, "excluded_shards": []}
+    rest: list[dict] = []
+    for batch in resumed.iter_epoch():
+        rest.append(batch)
+        if len(rest) == 2:  # a second interruption inside the carried epoch continues the same way
+            again = MotionLoader(manifest, "train", tolerant, exclude_shards=[gone])
+            again.load_state_dict(resumed.state_dict())
+            continued = list(again.iter_epoch())
+    expected = [[i for i in b["ids"] if i not in lost] for b in planned[saved_at:]]
+    assert [b["ids"] for b in rest] == [ids for ids in expected if ids]
+    assert [b["ids"] for b in continued] == [b["ids"] for b in rest[2:]]
+    assert resumed.records_skipped == again.records_skipped == sum(i in lost for b in planned[saved_at:]
+                                                                   for i in b["ids"]) > 0
+    # The next epoch is planned without the shard, exactly as a run that excluded it from the start.
+    assert resumed.epoch == 1 and resumed.state_dict()["carried_epoch"] is None
+    fresh = MotionLoader(manifest, "train", tolerant, exclude_shards=[gone])
+    fresh.load_state_dict({**resumed.state_dict(), "records_skipped": 0})
+    assert_batches_equal(list(resumed.iter_epoch()), list(fresh.iter_epoch()))
 
 
 # ----------------------------------------------------------------------------------------------------------

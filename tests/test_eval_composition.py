@@ -180,7 +180,7 @@ def test_switch_sweep_writes_one_result_per_switch_with_every_metric(sweep, gt, 
              "transition_fid", "transition_diversity", "peak_jerk", "auj"}
     # contact_foot_speed is left out where no sequence (or GT clip) touches the floor: undefined
     plausibility = {"bone_length_range", "bone_length_deviation", "floor_penetration", "foot_skating_ratio",
-                    "skating_foot_speed", "mean_jerk", "jerk_ratio"}
+                    "skating_foot_speed", "mean_jerk", "jerk_ratio", "pose_speed", "root_speed", "pose_spread"}
     for switch, result in results.items():
         assert result["task"] == "composition" and result["sampling"]["switch"] == switch
         for section in ("metrics", "ground_truth"):

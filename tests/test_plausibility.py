@@ -158,6 +158,55 @@ def test_jerk_ratio_is_one_against_itself_and_above_one_with_high_frequency_nois
         metrics.jerk_ratio(clip, np.stack([clip, clip]))
 
 
+# ------------------------------------------------------------------------------------------------ motion amount
+
+
+def test_a_gliding_body_travels_at_its_speed_without_moving_its_pose():
+    amount = metrics.motion_amount(sliding(16, 1.2, foot_height=0.0), FPS)
+    assert amount.root_speed[0] == pytest.approx(1.2, rel=1e-9)
+    assert amount.pose_speed[0] == pytest.approx(0.0, abs=1e-12)
+    assert amount.pose_spread[0] == pytest.approx(0.0, abs=1e-12)
+    frozen = metrics.motion_amount(standing(16), FPS)  # what a collapsed generator draws: no speed at all
+    assert frozen.root_speed[0] == 0.0 and frozen.pose_speed[0] == 0.0
+    assert frozen.pose_spread[0] == pytest.approx(0.0, abs=1e-12)
+    assert np.isnan(metrics.motion_amount(standing(1), FPS).pose_speed[0])  # one frame: no frame pair
+
+
+def test_a_swinging_arm_gives_its_tip_speeds_averaged_over_the_joints():
+    frames, omega = 21, 2.0  # rad/s: the right shoulder's children rotate about the shoulder in the xy plane
+    shoulder, arm = 17, (19, 21)  # right shoulder -> elbow 19 -> wrist 21
+    clip = standing(frames)
+    offsets = clip[0, list(arm)] - clip[0, shoulder]
+    radii = np.linalg.norm(offsets[:, :2], axis=1)
+    for f in range(frames):
+        rotation = Rotation.from_euler("z", omega * f / FPS).as_matrix()
+        clip[f, list(arm)] = clip[f, shoulder] + offsets @ rotation.T
+    amount = metrics.motion_amount(clip, FPS)
+    # each moving joint covers a chord of its circle per frame: 2 r sin(ω / 2 fps) · fps; the other joints stay put
+    chord_speed = 2 * radii * np.sin(omega / FPS / 2) * FPS
+    assert amount.pose_speed[0] == pytest.approx(chord_speed.sum() / HUMANML3D.num_joints, rel=1e-9)
+    assert amount.root_speed[0] == 0.0
+    walking = clip.copy()
+    walking[..., 2] += (0.8 / FPS) * np.arange(frames)[:, None]  # the whole body carried along +z at 0.8 m/s
+    carried = metrics.motion_amount(walking, FPS)
+    assert carried.pose_speed[0] == pytest.approx(amount.pose_speed[0], rel=1e-9)  # translation is not pose motion
+    assert carried.root_speed[0] == pytest.approx(0.8, rel=1e-9)
+    assert carried.pose_spread[0] == pytest.approx(amount.pose_spread[0], rel=1e-9)
+
+
+def test_pose_spread_is_the_rms_excursion_and_ignores_jitter_speed():
+    frames, wrist, amplitude = 40, 21, 0.2  # the wrist alone sways ±0.2 m along x: RMS amplitude / √2 over periods
+    sway = standing(frames)
+    sway[:, wrist, 0] += amplitude * np.sin(2 * np.pi * np.arange(frames) / 20)
+    amount = metrics.motion_amount(sway, FPS)
+    assert amount.pose_spread[0] == pytest.approx(amplitude / np.sqrt(2) / HUMANML3D.num_joints, rel=1e-9)
+    jitter = standing(frames)
+    jitter[:, wrist, 0] += 0.01 * (-1.0) ** np.arange(frames)  # 1 cm back and forth every frame: fast, small
+    shaky = metrics.motion_amount(jitter, FPS)
+    assert shaky.pose_spread[0] == pytest.approx(0.01 / HUMANML3D.num_joints, rel=1e-9)
+    assert shaky.pose_speed[0] == pytest.approx(0.02 * FPS / HUMANML3D.num_joints, rel=1e-9)
+
+
 # ------------------------------------------------------------------------------------------------ lengths, API
 
 
@@ -181,7 +230,8 @@ def test_plausibility_collects_every_figure_and_summarises_medians():
     clips = np.stack([sliding(16, 1.2, 0.01), sliding(16, 0.3, 0.01), sliding(16, 1.2, 0.3)])
     figures = metrics.plausibility(clips, HUMANML3D)
     assert figures.names == ("bone_length_range", "bone_length_deviation", "floor_penetration",
-                             "foot_skating_ratio", "contact_foot_speed", "skating_foot_speed", "mean_jerk")
+                             "foot_skating_ratio", "contact_foot_speed", "skating_foot_speed", "mean_jerk", "pose_speed",
+                             "root_speed", "pose_spread")
     np.testing.assert_allclose(figures.foot_skating_ratio, [1.0, 0.0, 0.0])
     summary = figures.summary()
     assert summary["foot_skating_ratio"] == 0.0 and summary["skating_foot_speed"] == 0.0
@@ -222,3 +272,5 @@ def test_a_real_humanml3d_clip_is_rigid_on_the_floor(reference_data):
     assert clip["foot_skating_ratio"] == pytest.approx(29 / 169)
     assert clip["contact_foot_speed"] == pytest.approx(0.301, abs=1e-3)
     assert clip["mean_jerk"] == pytest.approx(0.0707, abs=1e-4)
+    assert clip["pose_speed"] == pytest.approx(0.451, abs=1e-3) and clip["root_speed"] == pytest.approx(0.646, abs=1e-3)
+    assert clip["pose_spread"] > 0.05

@@ -28,7 +28,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_thread")]
 
 sample_entry = load_launch_script("sample")
 PLAUSIBILITY_FIGURES = {"bone_length_range", "bone_length_deviation", "floor_penetration", "foot_skating_ratio",
-                        "contact_foot_speed", "skating_foot_speed", "mean_jerk"}
+                        "contact_foot_speed", "skating_foot_speed", "mean_jerk", "pose_speed", "root_speed", "pose_spread"}
 
 
 def _train_once(tmp_path_factory, name: str, manifest: Path, *overrides: str) -> Path:

@@ -8,9 +8,12 @@ in every run); the rest run in this process through launch/train.py's ``main``.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
 import shutil
+import socket
 import signal
 import subprocess
 import sys
@@ -25,9 +28,10 @@ import yaml
 import pipeline.trainer as trainer_module
 from conftest import REPO_ROOT, load_launch_script
 from pipeline import checkpoint as ckpt
-from pipeline.config import TrainConfig, from_dict, load_config
+from pipeline.config import TrainConfig, from_dict, load_config, to_dict
 from pipeline.data import ShardVerificationError
 from pipeline.distributed import Dist
+from pipeline.run_folder import RunFolderError, check_run_folder
 from pipeline.trainer import NonFiniteLossError, Trainer
 
 
@@ -444,3 +448,231 @@ def test_learning_rate_schedules():
         load_config(TrainConfig, "tiny", ["optim.schedule=linear"])
     with pytest.raises(Exception, match="prediction"):
         load_config(TrainConfig, "tiny", ["train.objective=diffusion", "model.prediction=data"])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Nothing lost, nothing stuck: a full disk, corrupt or newer checkpoints, the run folder (issue 12, items 4, 5, 8)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def continue_overrides(manifest: Path, run: Path, *extra: str) -> list[str]:
+    """Train to step 6 with a checkpoint every 2 steps, all kept (the four-step run below continued)."""
+    return base_overrides(manifest, run, "train.max_steps=6", "train.save_every=2", "train.keep_last=0", *extra)
+
+
+@pytest.fixture(scope="module")
+def four_step_run(dataset, tmp_path_factory) -> Path:
+    """A tiny run stopped at step 4 with checkpoints 2 and 4 (trained once; tests work on copies)."""
+    run = tmp_path_factory.mktemp("four-step") / "run"
+    assert train_entry.main(["--config", "tiny", *continue_overrides(dataset, run, "train.max_steps=4")]) == 0
+    assert complete_steps(run) == [2, 4]
+    return run
+
+
+def copy_of(run: Path, tmp_path: Path) -> Path:
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    return copy
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    """Every file below ``folder`` with its bytes: a start that was refused must leave all of them as they were."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def one_error_line(capsys: pytest.CaptureFixture[str]) -> str:
+    """The launcher's message: exactly one ``error:`` line on stderr and no traceback."""
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("error: ")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def forbid_training(monkeypatch) -> None:
+    def trained(self, micro_batches, draws=None):
+        raise AssertionError("a training step ran although the start should have been refused")
+
+    monkeypatch.setattr(Trainer, "train_step", trained)
+
+
+def test_full_disk_at_a_save_stops_the_run_cleanly_and_a_restart_continues(dataset, tmp_path, monkeypatch, capsys,
+                                                                           caplog):
+    """Item 4: ENOSPC while writing checkpoint 4. The save removes its partial folder, logs one line with the space
+    needed and free, the run stops (exit 1, one line naming the checkpoint to resume from); the same command run
+    again once there is space resumes from checkpoint 2 and finishes."""
+    run = tmp_path / "run"
+    real_write = ckpt._write_file
+
+    def full_disk(path: Path, payload: bytes):
+        if path.parent.name.startswith("step-00000004."):
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real_write(path, payload)
+
+    monkeypatch.setattr(ckpt, "_write_file", full_disk)
+    caplog.set_level("INFO")
+    assert train_entry.main(["--config", "tiny", *continue_overrides(dataset, run)]) == 1
+    error = one_error_line(capsys)
+    assert "the run stopped at step 4" in error and "No space left on device" in error
+    assert re.search(r"it needs [\d.]+ MB, [\d.]+ MB free on ", error) and "continues from step-00000002" in error
+    assert sorted(p.name for p in ckpt.checkpoints_dir(run).iterdir()) == ["step-00000002"]  # nothing partial
+    save_errors = [r for r in caplog.records if r.name == "pipeline.checkpoint" and r.levelname == "ERROR"]
+    assert len(save_errors) == 1 and "MB free" in save_errors[0].getMessage()
+
+    monkeypatch.setattr(ckpt, "_write_file", real_write)  # space freed
+    caplog.clear()
+    assert train_entry.main(["--config", "tiny", *continue_overrides(dataset, run)]) == 0
+    assert "step-00000002 at step 2" in caplog.text
+    assert complete_steps(run) == [2, 4, 6]
+    assert sorted(metrics_by_step(run)) == list(range(1, 7))
+
+
+def test_unfinished_checkpoint_folders_of_dead_processes_are_removed_before_anything_is_written(
+        four_step_run, dataset, tmp_path, monkeypatch):
+    """Item 4: a save killed on a full disk left its folder; at start-up it is removed before the run writes
+    (otherwise that write is the one that fails), whichever step it was for."""
+    run = copy_of(four_step_run, tmp_path)
+    host = re.sub(r"[^A-Za-z0-9.]", "_", socket.gethostname())
+    stale = [ckpt.checkpoints_dir(run) / f"step-00000008.tmp-{dead_pid()}",  # named before hosts were recorded
+             ckpt.checkpoints_dir(run) / f"step-00000005.tmp-{host}-{dead_pid()}"]
+    for folder in stale:
+        folder.mkdir()
+        (folder / ckpt.MODEL_FILE).write_bytes(bytes(4096))
+    real_write_run_files = Trainer._write_run_files
+
+    def write_run_files(self) -> None:
+        assert not any(folder.exists() for folder in stale), "the run wrote its files before removing the folders"
+        real_write_run_files(self)
+
+    monkeypatch.setattr(Trainer, "_write_run_files", write_run_files)
+    assert train_entry.main(["--config", "tiny", *continue_overrides(dataset, run)]) == 0
+    assert not any(folder.exists() for folder in stale) and complete_steps(run) == [2, 4, 6]
+
+
+def test_auto_resume_moves_a_corrupt_newest_checkpoint_aside_and_falls_back(four_step_run, dataset, tmp_path,
+                                                                             caplog):
+    """Item 5: one flipped byte (same size) in the newest model.safetensors. resume=auto resumes from the
+    checkpoint before it, keeps the corrupt one under another name, says so, and trains on to the end."""
+    run = copy_of(four_step_run, tmp_path)
+    model_file = ckpt.checkpoints_dir(run) / "step-00000004" / ckpt.MODEL_FILE
+    flip_byte(model_file, model_file.stat().st_size - 8)
+    corrupt = model_file.read_bytes()
+    caplog.set_level("INFO")
+    assert train_entry.main(["--config", "tiny", *continue_overrides(dataset, run)]) == 0
+    aside = [p for p in ckpt.checkpoints_dir(run).iterdir() if p.name.startswith("step-00000004.corrupt-")]
+    assert len(aside) == 1 and (aside[0] / ckpt.MODEL_FILE).read_bytes() == corrupt  # renamed, never deleted
+    assert "step-00000004 is corrupt" in caplog.text and aside[0].name in caplog.text
+    assert "step-00000002 at step 2" in caplog.text  # resumed from the one before
+    assert complete_steps(run) == [2, 4, 6]
+    assert sorted(metrics_by_step(run)) == list(range(1, 7))
+
+
+def test_explicit_older_resume_is_refused_before_any_step_while_newer_checkpoints_exist(
+        four_step_run, dataset, tmp_path, monkeypatch, capsys):
+    """Item 5: resuming explicitly from checkpoint 2 while (a corrupt) checkpoint 4 exists used to train two steps
+    and then die on checkpoint 4. Now it is refused before training with the command that continues; that command
+    moves checkpoint 4 aside (renamed, kept) and trains to the end."""
+    run = copy_of(four_step_run, tmp_path)
+    model_file = ckpt.checkpoints_dir(run) / "step-00000004" / ckpt.MODEL_FILE
+    flip_byte(model_file, model_file.stat().st_size - 8)
+    older = ckpt.checkpoints_dir(run) / "step-00000002"
+    before = snapshot(run)
+    forbid_training(monkeypatch)
+    argv = ["--config", "tiny", *continue_overrides(dataset, run, f"train.resume={older}")]
+    assert train_entry.main(argv) == 2
+    error = one_error_line(capsys)
+    assert "step-00000004" in error and "train.resume=auto" in error
+    assert error.endswith("python launch/train.py " + " ".join(argv) + " train.resume_discard_newer=true")
+    assert snapshot(run) == before  # nothing written, nothing moved
+
+    monkeypatch.undo()
+    assert train_entry.main([*argv, "train.resume_discard_newer=true"]) == 0
+    assert len([p for p in ckpt.checkpoints_dir(run).iterdir() if p.name.startswith("step-00000004.discarded-")]) == 1
+    assert complete_steps(run) == [2, 4, 6]
+    assert sorted(metrics_by_step(run)) == list(range(1, 7))
+
+
+def test_a_refused_resume_leaves_the_run_folder_untouched(four_step_run, dataset, tmp_path, monkeypatch):
+    """Item 8: a changed batch size cannot resume the data stream; the refusal used to come after config.yaml had
+    been overwritten with the refused settings."""
+    run = copy_of(four_step_run, tmp_path)
+    before = snapshot(run)
+    forbid_training(monkeypatch)
+    with pytest.raises(ValueError, match="batch_size"):
+        train_entry.main(["--config", "tiny", *continue_overrides(dataset, run, "data.batch_size=2")])
+    assert snapshot(run) == before
+
+
+@pytest.mark.parametrize("kind", ["file", "folder_that_is_not_a_run"])
+def test_out_dir_that_is_not_a_run_folder_is_refused_before_writing(dataset, tmp_path, monkeypatch, capsys, kind):
+    """Item 8: train.out_dir=README.md was a bare FileExistsError; a folder of other files was trained into."""
+    if kind == "file":
+        out = tmp_path / "README.md"
+        out.write_text("# notes\n")
+    else:
+        out = tmp_path / "project"
+        out.mkdir()
+        (out / "notes.txt").write_text("mine\n")
+        (out / "config.yaml").write_text("tool: something else\n")  # not a training config
+    before, paths = snapshot(tmp_path), sorted(tmp_path.rglob("*"))
+    forbid_training(monkeypatch)
+    assert train_entry.main(["--config", "tiny", *base_overrides(dataset, out)]) == 2
+    error = one_error_line(capsys)
+    assert f"train.out_dir='{out}'" in error
+    assert ("is a file" if kind == "file" else "not a run folder (no checkpoints/") in error
+    assert snapshot(tmp_path) == before and sorted(tmp_path.rglob("*")) == paths  # nothing written or created
+
+
+def test_run_folder_rules(tmp_path):
+    """Item 8: what train.out_dir may be, checked before anything is written (``/`` is never written to here)."""
+    for root in ("/", "/tmp/.."):
+        with pytest.raises(RunFolderError, match="filesystem root"):
+            check_run_folder(root)
+    a_file = tmp_path / "README.md"
+    a_file.write_text("hi\n")
+    with pytest.raises(RunFolderError, match="is a file"):
+        check_run_folder(a_file)
+    with pytest.raises(RunFolderError, match="which is a file"):
+        check_run_folder(a_file / "run")
+    other = tmp_path / "other"
+    other.mkdir()
+    for i in range(7):
+        (other / f"f{i}.txt").write_text("")
+    with pytest.raises(RunFolderError, match=r"it holds f0.txt, f1.txt, f2.txt, f3.txt, f4.txt and 2 more"):
+        check_run_folder(other)
+
+    check_run_folder(tmp_path / "new" / "nested" / "run")  # created when the run writes
+    (tmp_path / "empty").mkdir()
+    check_run_folder(tmp_path / "empty")  # e.g. made by the scheduler
+    with_checkpoints = tmp_path / "with-checkpoints"
+    (with_checkpoints / "checkpoints").mkdir(parents=True)
+    (with_checkpoints / "slurm-1.out").write_text("")
+    check_run_folder(with_checkpoints)
+    with_config = tmp_path / "with-config"
+    with_config.mkdir()
+    (with_config / "config.yaml").write_text(yaml.safe_dump(to_dict(load_config(TrainConfig, "tiny"))))
+    check_run_folder(with_config)  # a run stopped before its first checkpoint
+
+
+@pytest.mark.parametrize("override", ["train.max_steps=many", "train.no_such_key=1",
+                                      "train.resume_discard_newer=true"])
+def test_bad_settings_are_one_line_and_exit_code_2(tmp_path, capsys, override):
+    """Item 8: config errors from launch/train.py are one line on stderr, not a traceback, as evaluate.py's."""
+    assert train_entry.main(["--config", "tiny", f"train.out_dir={tmp_path / 'run'}", override]) == 2
+    error = one_error_line(capsys)
+    assert override.split("=")[0] in error or "no_such_key" in error
+    assert not (tmp_path / "run").exists()
+
+
+def test_bad_override_through_the_script_is_one_stderr_line(tmp_path):
+    proc = subprocess.run([sys.executable, str(REPO_ROOT / "launch" / "train.py"), "--config", "tiny",
+                           f"train.out_dir={tmp_path / 'run'}", "train.max_steps=many"],
+                          cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 2, output_of(proc)
+    assert len(proc.stderr.strip().splitlines()) == 1 and proc.stderr.startswith("error: train.max_steps")
+    assert not (tmp_path / "run").exists()

@@ -212,3 +212,27 @@ def test_accelerate_launch_two_cpu_ranks_end_to_end(dataset, tmp_path):
     assert [s["batches_in_epoch"] for s in state["data"]] == [4, 4]  # each rank read its own 4 batches
     metrics = metrics_by_step(run)
     assert sorted(metrics) == [2, 4] and metrics[4]["samples_seen"] == 32
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# A start refused on rank 0 is refused on every rank (issue 12, item 5)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_a_resume_refused_on_rank_0_ends_every_rank_before_training(dataset, tmp_path):
+    """Rank 0 alone resolves train.resume; an explicit resume point older than the run's checkpoints is refused
+    there, and the other rank must raise the same refusal at once rather than wait for a broadcast that never
+    comes (resolve_resume only reads markers, so placeholder checkpoints do)."""
+    run = tmp_path / "run"
+    for step in (2, 4):
+        ckpt.save_checkpoint(ckpt.checkpoints_dir(run), step, model_state={"w": torch.zeros(2)}, ema_state=None,
+                             optimizer_state={}, scheduler_state=None, rng_states=[{}, {}], data_states=[{}, {}],
+                             config={}, manifest={})
+    older = ckpt.checkpoints_dir(run) / "step-00000002"
+    scenario = fit_scenario(tmp_path / "out", [f"data.manifest={dataset}", f"train.out_dir={run}",
+                                               "train.max_steps=6", f"train.resume={older}"])
+    proc = run_worker(TORCHRUN, [scenario], tmp_path / "out", timeout=120)
+    assert proc.returncode != 0, output_of(proc)
+    for result in results(tmp_path / "out", 2):
+        assert result["error"] == "ResumeConflictError" and "train.resume_discard_newer=true" in result["message"]
+    assert complete_steps(run) == [2, 4] and not (run / "config.yaml").exists()

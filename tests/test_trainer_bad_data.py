@@ -1,0 +1,166 @@
+"""Tolerant mode through the real training entry point (issue 12, item 3), CPU, the tiny preset, one rank:
+
+* a record that decodes to non-finite features is skipped and counted, and a run interrupted and resumed is still
+  bit-identical to an uninterrupted one;
+* a shard that goes bad after a checkpoint: the tolerant resume finishes the checkpoint's epoch with its plan
+  without that shard's records (exactly the batches that were due, minus those records), plans later epochs
+  without it and says so; a strict resume refuses with a hint that names a real option.
+
+The runs are in-process (launch/train.py's ``main``); the interruption is a SIGINT in the middle of a step, after
+which the trainer writes a checkpoint of that step and returns 130.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import shutil
+import signal
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import checkpoint as ckpt
+from pipeline.config import TrainConfig, load_config
+from pipeline.data import LoaderOptions, MotionLoader, ShardVerificationError, backend_for_format
+from pipeline.stages import RecordError
+from pipeline.trainer import Trainer
+from test_trainer import (
+    MAX_STEPS,
+    SignalAtStep,
+    assert_runs_identical,
+    build_dataset_once,
+    complete_steps,
+    flip_byte,
+    patch_loss,
+    resume_overrides,
+    train_entry,
+)
+
+NEVER = 10**9  # a SignalAtStep that never fires: the same hooked loss in every run that is compared
+
+
+@pytest.fixture(scope="session")
+def dataset(tmp_path_factory) -> Path:
+    return build_dataset_once(tmp_path_factory)
+
+
+def copy_dataset(manifest: Path, to: Path) -> Path:
+    shutil.copytree(manifest.parent, to)
+    return to / "manifest.json"
+
+
+def planned_batches(manifest: Path, overrides: list[str]) -> list[list[str]]:
+    """The sample ids of every batch of epoch 0 at one rank, from a loader built as the trainer builds its own."""
+    cfg = load_config(TrainConfig, "tiny", overrides)
+    options = LoaderOptions(batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers, seed=cfg.data.seed,
+                            window=cfg.data.window, unit_length=cfg.data.unit_length,
+                            shuffle_buffer=cfg.data.shuffle_buffer, caption_policy=cfg.data.caption_policy,
+                            backend=backend_for_format(cfg.data.format))
+    return [batch["ids"] for batch in MotionLoader(manifest, "train", options).iter_epoch()]
+
+
+def shard_of(manifest: Path, sample_id: str) -> str:
+    for entry in json.loads(manifest.read_text())["splits"]["train"]["shards"]:
+        with tarfile.open(manifest.parent / entry["path"]) as tar:
+            if any(name.startswith(sample_id + ".") for name in tar.getnames()):
+                return entry["path"]
+    raise AssertionError(f"{sample_id} is in no train shard")
+
+
+def ids_in_shard(manifest: Path, path: str) -> set[str]:
+    with tarfile.open(manifest.parent / path) as tar:
+        return {name.split(".", 1)[0] for name in tar.getnames()}
+
+
+def write_nan_into(manifest: Path, sample_id: str) -> None:
+    """Put a NaN in one record's features, in place (same bytes count), and record the shard's new sha256 in the
+    manifest: a dataset built with a bad record, whose shards all verify."""
+    path = shard_of(manifest, sample_id)
+    file = manifest.parent / path
+    with tarfile.open(file) as tar:
+        member = tar.getmember(f"{sample_id}.features.npy")
+        features = np.load(io.BytesIO(tar.extractfile(member).read()))
+    features[len(features) // 2, 0] = np.nan
+    payload = io.BytesIO()
+    np.save(payload, features, allow_pickle=False)
+    assert len(payload.getvalue()) == member.size
+    with open(file, "r+b") as handle:
+        handle.seek(member.offset_data)
+        handle.write(payload.getvalue())
+    data = json.loads(manifest.read_text())
+    entry = next(e for e in data["splits"]["train"]["shards"] if e["path"] == path)
+    entry["sha256"] = hashlib.sha256(file.read_bytes()).hexdigest()
+    manifest.write_text(json.dumps(data, indent=1))
+
+
+def final_data_state(run: Path) -> dict:
+    _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(run) / ckpt.step_dir_name(MAX_STEPS))
+    return state["data"][0]
+
+
+def fit(monkeypatch, overrides: list[str], signal_at_step: int = NEVER) -> int:
+    monkeypatch.undo()  # patch_loss wraps whatever build_objective is in place: start from the real one
+    patch_loss(monkeypatch, SignalAtStep(signal_at_step, signal.SIGINT))
+    return train_entry.main(["--config", "tiny", *overrides])
+
+
+def test_tolerant_training_skips_a_nonfinite_record_and_resumes_bit_exactly(dataset, tmp_path, monkeypatch):
+    manifest = copy_dataset(dataset, tmp_path / "data")
+    strict = resume_overrides(manifest, tmp_path / "strict")
+    bad_id = planned_batches(manifest, strict)[9][0]  # trained at step 10, after the interruption at step 7
+    write_nan_into(manifest, bad_id)
+
+    with pytest.raises(RecordError, match=rf"record '{bad_id}': features contain NaN"):  # strict: as before
+        fit(monkeypatch, strict)
+
+    run_a, run_b = tmp_path / "a", tmp_path / "b"
+    assert fit(monkeypatch, resume_overrides(manifest, run_a, "data.verify=tolerant")) == 0
+    assert fit(monkeypatch, resume_overrides(manifest, run_b, "data.verify=tolerant"), signal_at_step=7) == 130
+    assert complete_steps(run_b) == [5, 7]
+    assert fit(monkeypatch, resume_overrides(manifest, run_b, "data.verify=tolerant")) == 0
+
+    assert_runs_identical(run_a, run_b, MAX_STEPS)
+    assert final_data_state(run_a)["records_skipped"] == final_data_state(run_b)["records_skipped"] == 1
+
+
+def test_tolerant_resume_after_a_shard_went_bad_finishes_the_epoch_without_it(dataset, tmp_path, monkeypatch,
+                                                                              caplog):
+    manifest = copy_dataset(dataset, tmp_path / "data")
+    run = tmp_path / "run"
+    tolerant = resume_overrides(manifest, run, "data.verify=tolerant")
+    planned = planned_batches(manifest, tolerant)  # epoch 0: 13 batches at one rank
+    assert fit(monkeypatch, tolerant, signal_at_step=5) == 130 and complete_steps(run) == [5]
+
+    bad = shard_of(manifest, planned[7][0])  # a shard with records due at step 8, after the checkpoint
+    lost = ids_in_shard(manifest, bad)
+    flip_byte(manifest.parent / bad, (manifest.parent / bad).stat().st_size // 2)
+
+    with pytest.raises(ShardVerificationError, match=rf"{bad}: bad shard \(corrupted.*data\.verify=tolerant"):
+        fit(monkeypatch, resume_overrides(manifest, run, "data.verify=strict"))
+
+    trained: dict[int, list[str]] = {}
+    real_step = Trainer.train_step
+
+    def recording_step(self, micro_batches, draws=None):
+        trained[self.step + 1] = [i for b in micro_batches for i in b["ids"]]
+        return real_step(self, micro_batches, draws)
+
+    caplog.set_level("WARNING")
+    monkeypatch.undo()
+    patch_loss(monkeypatch, SignalAtStep(NEVER, signal.SIGINT))
+    monkeypatch.setattr(Trainer, "train_step", recording_step)
+    assert train_entry.main(["--config", "tiny", *tolerant]) == 0
+
+    assert "RESUMING WITH CHANGED SHARDS" in caplog.text and bad in caplog.text
+    due = [[i for i in ids if i not in lost] for ids in planned[5:]]  # the rest of epoch 0, minus the shard
+    assert [trained[step] for step in range(6, 14)] == [ids for ids in due if ids]
+    assert not lost & {i for step in range(14, MAX_STEPS + 1) for i in trained[step]}  # epoch 1: planned without it
+    state = final_data_state(run)
+    assert state["epoch"] == 1 and state["excluded_shards"] == [bad] and state["carried_epoch"] is None
+    assert state["records_skipped"] == sum(i in lost for ids in planned[5:] for i in ids) > 0
+    report = json.loads((run / "shard_report.json").read_text())
+    assert [b["path"] for b in report["bad"]] == [bad] and not report["verified"]
