@@ -23,8 +23,9 @@ results.parquet, plots/. Concurrent jobs (cron, Slurm, CronJob) never evaluate a
 left by a killed job on this host (its pid is gone) is taken over at once; one from another host after
 output.claim_timeout_s without a heartbeat. The last lines summarise the job: units skipped because another live job
 holds them, and (--watch) checkpoints deleted by training (train.keep_last) before any evaluation, as
-``pruned_before_evaluation: [steps]``. Keep checkpoints for the evaluator with train.keep_last=0 (or a value that
-covers the time between evaluator runs), or run ``--watch`` alongside training.
+``pruned_before_evaluation: [steps]`` (training lists every save in <run>/checkpoints/saved.jsonl, so one saved and
+pruned between two --once jobs is reported too). Keep checkpoints for the evaluator with train.keep_last=0 (or a
+value that covers the time between evaluator runs), or run ``--watch`` alongside training.
 Exit code: 0 all done (every unit evaluated, now or before), 3 some units skipped because other live jobs hold them
 and have not finished them (run again later), 2 bad settings, a missing evaluator or checkpoint, 143 on SIGTERM
 (claims released), 1 other errors. Pruned checkpoints are reported, not an error (they cannot be evaluated again).

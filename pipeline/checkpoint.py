@@ -13,6 +13,8 @@ Layout (one folder per optimizer step; zero-padded so names sort by step)::
                                      never read; removed at the next start-up once that pid is gone, or pruned
       step-00001000.corrupt-20250101T120000    set aside by resume=auto (a file fails its sha256): never read,
       step-00001000.discarded-20250101T120000  never pruned, never deleted (by train.resume_discard_newer=true)
+      saved.jsonl             one JSON line per completed save, appended by the trainer after the folder is in place:
+                              {"step", "name", "id" (sha256 of COMPLETE), "time"}; never pruned (see record_saved)
 
 A save writes everything into ``step-N.tmp-<host>-<pid>`` (each file fsynced), writes COMPLETE, fsyncs the folder,
 then renames it to ``step-N`` and fsyncs the parent. A save that fails (a full disk) removes its temporary folder,
@@ -47,6 +49,7 @@ import shutil
 import socket
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +69,7 @@ MODEL_FILE = "model.safetensors"
 EMA_FILE = "ema.safetensors"
 STATE_FILE = "state.pt"
 CHECKPOINTS_SUBDIR = "checkpoints"
+SAVED_LISTING = "saved.jsonl"  # in <out_dir>/checkpoints: one line per completed save, never pruned
 
 _STEP_DIR = re.compile(r"^step-(\d{8})$")
 _TMP_DIR = re.compile(r"^step-(\d{8})\.tmp-(.+)$")
@@ -105,6 +109,17 @@ class ResumeConflictError(CheckpointError):
     ``continue_override`` is the override that continues from the resume point anyway (the newer ones set aside)."""
 
     continue_override = "train.resume_discard_newer=true"
+
+
+class ResumeSettingError(CheckpointError):
+    """The checkpoint cannot be resumed with this run's settings: ``setting`` (e.g. ``data.batch_size``) was
+    ``saved`` when it was written and is ``now`` in this run, and the data position (which samples come next) or the
+    per-rank streams depend on it. Raised before anything in the run folder is written; the message says how to go
+    on (the checkpoint's value, or a new run folder)."""
+
+    def __init__(self, message: str, *, setting: str, saved: Any, now: Any) -> None:
+        super().__init__(message)
+        self.setting, self.saved, self.now = setting, saved, now
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -615,6 +630,71 @@ def _load_safetensors(file: Path) -> dict[str, torch.Tensor]:
         return safetensors.torch.load_file(file, device="cpu")
     except SafetensorError as err:
         raise CorruptCheckpointError(f"{file}: cannot be read ({err})") from err
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The listing of completed saves
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def checkpoint_id(marker: Mapping[str, Any]) -> str:
+    """The identity of one save: sha256 of its COMPLETE marker as sorted-key JSON (the marker lists every file's
+    sha256, so a re-saved checkpoint gets a new id). The evaluator keys its results by it."""
+    return hashlib.sha256(json.dumps(marker, sort_keys=True, default=str).encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class SavedCheckpoint:
+    """One line of ``saved.jsonl``: a save that completed, whether or not its folder still exists."""
+
+    step: int
+    name: str
+    checkpoint_id: str
+    time: str
+    """When the save completed (UTC, ISO 8601)."""
+
+
+def record_saved(ckpt_root: str | Path, folder: str | Path) -> None:
+    """Append ``{"step", "name", "id", "time"}`` for the complete checkpoint ``folder`` (its COMPLETE marker written
+    and the folder renamed into place) to ``<ckpt_root>/saved.jsonl``. The listing is append-only and
+    ``train.keep_last`` never prunes it, so a checkpoint deleted before any evaluator saw it is still known
+    (``launch/evaluate.py --watch`` reports it as pruned before evaluation). Rank 0 only, after the save. A failure to
+    append is logged, never raised: the checkpoint itself is complete."""
+    folder = Path(folder)
+    listing = Path(ckpt_root) / SAVED_LISTING
+    try:
+        marker = read_marker(folder)
+        line = json.dumps({"step": int(marker["step"]), "name": folder.name, "id": checkpoint_id(marker),
+                           "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}) + "\n"
+        with open(listing, "a+b") as handle:
+            handle.seek(0, os.SEEK_END)
+            if handle.tell() > 0:  # a line torn by a crash must not swallow this one
+                handle.seek(-1, os.SEEK_END)
+                if handle.read(1) != b"\n":
+                    line = "\n" + line
+            handle.write(line.encode())
+            handle.flush()
+            os.fsync(handle.fileno())
+    except (OSError, CheckpointError) as err:
+        logger.warning("%s saved, but not listed in %s: %s", folder.name, listing, err)
+
+
+def read_saved(ckpt_root: str | Path) -> list[SavedCheckpoint]:
+    """Every save listed in ``<ckpt_root>/saved.jsonl``, oldest first (unreadable lines are skipped)."""
+    listing = Path(ckpt_root) / SAVED_LISTING
+    try:
+        text = listing.read_text(encoding="utf-8")
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+    out = []
+    for line in text.splitlines():
+        try:
+            record = json.loads(line)
+            out.append(SavedCheckpoint(int(record["step"]), str(record["name"]), str(record["id"]),
+                                       str(record.get("time", ""))))
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            continue
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -643,6 +643,16 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
 # ----------------------------------------------------------------------------------------------------------
 
 
+class DataResumeError(ValueError):
+    """A saved data position cannot be continued: the epoch plan depends on ``key`` (a state entry such as
+    ``batch_size`` or ``world_size``, or ``excluded_shards``), which was ``saved`` when the state was saved and is
+    ``now`` now. The trainer names the setting behind it (``pipeline.checkpoint.ResumeSettingError``)."""
+
+    def __init__(self, message: str, *, key: str, saved: Any, now: Any) -> None:
+        super().__init__(message)
+        self.key, self.saved, self.now = key, saved, now
+
+
 class ShardReadError(RuntimeError):
     """A shard that cannot be read or does not match its manifest entry, discovered while training."""
 
@@ -1067,8 +1077,9 @@ class MotionLoader:
                 "records_skipped": self.records_skipped}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Continue from a saved position. Refuses anything that would change the epoch plan (world size,
-        worker count, batch size, seed, ...): the remaining batches would not be the ones that were due.
+        """Continue from a saved position. Refuses (:class:`DataResumeError`) anything that would change the epoch
+        plan (world size, worker count, batch size, seed, ...): the remaining batches would not be the ones that
+        were due.
 
         Excluded shards that changed since the state was saved (a shard went bad after the checkpoint, or a
         bad one was repaired): with ``tolerate_bad_data`` the saved epoch is finished with the plan it started
@@ -1080,8 +1091,9 @@ class MotionLoader:
         for key in _PLAN_STATE_KEYS:
             saved, now = state.get(key), current[key]
             if saved != now:
-                raise ValueError(f"cannot resume the data stream: {key} was {saved!r} when the state was saved "
-                                 f"and is {now!r} now; the epoch plan would differ. Resume with the same {key}.")
+                raise DataResumeError(f"cannot resume the data stream: {key} was {saved!r} when the state was "
+                                      f"saved and is {now!r} now; the epoch plan would differ. Resume with the "
+                                      f"same {key}.", key=key, saved=saved, now=now)
         epoch, position = int(state["epoch"]), int(state["batches_in_epoch"])
         carried_state = state.get("carried_epoch")
         planned_with = sorted(carried_state["excluded_shards"] if carried_state and carried_state["epoch"] == epoch
@@ -1101,13 +1113,13 @@ class MotionLoader:
         """The rule for a resume into the middle of an epoch planned with other exclusions than now's."""
         now = list(self.excluded_shards)
         if not self.options.tolerate_bad_data:
-            raise ValueError(
+            raise DataResumeError(
                 f"cannot resume the data stream: epoch {epoch} (resumed at batch {position}) was planned with "
                 f"excluded shards {planned_with}, and verification now excludes {now} (a shard went bad, or a bad "
                 "one was repaired, since the checkpoint). Only tolerant mode changes an epoch's data. Restore "
                 "the shard(s) so that they verify as they did, or resume with data.verify=tolerant, which "
                 f"finishes epoch {epoch} with its plan without the newly excluded shard(s) and plans later epochs "
-                "without them.")
+                "without them.", key="excluded_shards", saved=list(planned_with), now=now)
         newly = sorted(set(now) - set(planned_with))
         readmitted = sorted(set(planned_with) - set(now))
         reason = (f"shard excluded since the checkpoint (tolerant mode: epoch {epoch} finishes without it)")

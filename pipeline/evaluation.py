@@ -97,8 +97,9 @@ ended: run again later (distinct from 'all done', so a scheduler can tell nothin
 
 
 def checkpoint_id(folder: Path) -> str:
-    """sha256 of the COMPLETE marker, which lists every file's sha256: a re-saved checkpoint gets a new id."""
-    return digest(ckpt.read_marker(folder))
+    """sha256 of the COMPLETE marker, which lists every file's sha256: a re-saved checkpoint gets a new id (the id
+    training lists in checkpoints/saved.jsonl)."""
+    return ckpt.checkpoint_id(ckpt.read_marker(folder))
 
 
 def check_compatible(trained: TrainedModel, manifest: Manifest) -> None:
@@ -339,7 +340,8 @@ class JobSummary:
     held_by_other_jobs: tuple[str, ...] = ()
     """Units skipped because another live job holds them and had not finished them at the end of this job."""
     pruned_before_evaluation: tuple[int, ...] = ()
-    """Steps of checkpoints that were listed once but deleted (training's ``train.keep_last``) with no result."""
+    """Steps of checkpoints that a watcher listed or training saved (checkpoints/saved.jsonl) but that were deleted
+    (training's ``train.keep_last``) with no result."""
 
     @property
     def exit_code(self) -> int:
@@ -458,16 +460,21 @@ class EvaluationJob:
         return complete[::-1] if self.cfg.output.order == "newest" else complete
 
     def check_pruned(self, run_dir: Path) -> list[SeenCheckpoint]:
-        """Checkpoints of ``run_dir`` that some watcher listed but that are gone with no result written: training
-        deleted them (``train.keep_last``) before any evaluator got to them. Logged once per job, then in the
-        summary; returns those found by this call for the first time."""
+        """Checkpoints of ``run_dir`` that are gone with no result written: training deleted them
+        (``train.keep_last``) before any evaluator got to them. Known from what watchers listed
+        (checkpoints_seen.jsonl) and from training's own listing of its saves (checkpoints/saved.jsonl), which also
+        covers a checkpoint saved and pruned between two ``--watch --once`` jobs. One set aside by training
+        (``.corrupt-``/``.discarded-``, kept) is not reported. Logged once per job, then in the summary; returns
+        those found by this call for the first time."""
         store, run = self.store_for_run(run_dir), str(run_dir.resolve())
         root = ckpt.checkpoints_dir(run_dir)
+        saved = [SeenCheckpoint(run, s.name, s.step, s.checkpoint_id) for s in ckpt.read_saved(root)]
+        known = dict.fromkeys([seen for seen in store.seen() if seen.run == run] + saved)
         new = []
-        for seen in store.seen():
-            if seen.run != run or seen in self._pruned or (root / seen.name).exists():
+        for seen in sorted(known, key=lambda c: c.step):
+            if seen in self._pruned or (root / seen.name).exists():
                 continue
-            if store.has_result_for(seen.name, seen.checkpoint_id):
+            if store.has_result_for(seen.name, seen.checkpoint_id) or _set_aside(root, seen):
                 continue
             self._pruned[seen] = None
             new.append(seen)
@@ -562,6 +569,13 @@ def _known_id(folder: Path) -> str | None:
         return checkpoint_id(folder)
     except (ckpt.CheckpointError, OSError):
         return None
+
+
+def _set_aside(root: Path, seen: SeenCheckpoint) -> bool:
+    """Whether training renamed the checkpoint aside (``step-N.corrupt-...``/``step-N.discarded-...``, kept for the
+    user) rather than deleting it: not a checkpoint lost to pruning."""
+    return any(_known_id(folder) == seen.checkpoint_id
+               for label in ("corrupt", "discarded") for folder in root.glob(f"{seen.name}.{label}-*"))
 
 
 def _training_keep_last(run_dir: Path) -> str:

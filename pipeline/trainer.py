@@ -49,7 +49,15 @@ from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters, draw
 from mfm.skeleton import get_skeleton
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
-from pipeline.data import LoaderOptions, Manifest, MotionLoader, backend_for_format, open_manifest, verify_shards
+from pipeline.data import (
+    DataResumeError,
+    LoaderOptions,
+    Manifest,
+    MotionLoader,
+    backend_for_format,
+    open_manifest,
+    verify_shards,
+)
 from pipeline.distributed import Dist
 from pipeline.run_folder import RunFolderError, check_run_folder
 
@@ -72,6 +80,27 @@ class CheckpointSaveError(RuntimeError):
 # ---------------------------------------------------------------------------------------------------------------
 # Small parts of a run
 # ---------------------------------------------------------------------------------------------------------------
+
+# The loader state entries a resume must keep (pipeline.data._PLAN_STATE_KEYS), as the settings that set them.
+DATA_STATE_SETTINGS = {
+    "batch_size": "data.batch_size", "num_workers": "data.num_workers", "seed": "data.seed",
+    "shuffle_buffer": "data.shuffle_buffer", "window": "data.window", "unit_length": "data.unit_length",
+    "caption_policy": "data.caption_policy", "dataset_id": "data.manifest",
+}
+
+
+def resume_setting_error(path: Path | str, err: DataResumeError) -> ckpt.ResumeSettingError:
+    """The loader's refusal of a saved data position, as the one-line error the launcher prints: which setting
+    changed, its value in the checkpoint and now, and how to go on."""
+    if err.key == "excluded_shards":  # the loader's message already names data.verify and how to go on
+        return ckpt.ResumeSettingError(f"cannot resume from {path}: {err}", setting="data.verify", saved=err.saved,
+                                       now=err.now)
+    setting = DATA_STATE_SETTINGS.get(err.key, err.key)
+    return ckpt.ResumeSettingError(
+        f"cannot resume from {path}: {setting} was {err.saved!r} in the checkpoint and is {err.now!r} now, and the "
+        f"data position (which samples come next) depends on it. Resume with {setting}={err.saved} (the "
+        f"checkpoint's value), or start a new run in another train.out_dir to use {setting}={err.now}",
+        setting=setting, saved=err.saved, now=err.now)
 
 
 def model_config_for(manifest: Manifest, requested: ModelConfig, *, learned_variance: bool = False) -> ModelConfig:
@@ -467,7 +496,8 @@ class Trainer:
         return f"the run stopped at step {self.step}: {what}. {fix} and run the same command again ({restart})"
 
     def _save_on_main(self, rank_states: list[Any], data_states: list[Any]) -> Path:
-        """Rank 0's part of :meth:`save`: write the checkpoint, then apply train.keep_last."""
+        """Rank 0's part of :meth:`save`: write the checkpoint, list it in checkpoints/saved.jsonl, then apply
+        train.keep_last."""
         path = ckpt.save_checkpoint(
             self.ckpt_root,
             self.step,
@@ -488,6 +518,7 @@ class Trainer:
                    "consecutive_skips": self.consecutive_skips, "ema_updates": self.ema.num_updates,
                    "model_config": dataclasses.asdict(self.model_config)},
         )
+        ckpt.record_saved(self.ckpt_root, path)  # complete and in place: listed before keep_last may prune it
         ckpt.prune_checkpoints(self.ckpt_root, self.cfg.train.keep_last)
         return path
 
@@ -499,21 +530,27 @@ class Trainer:
             return None
         model_state, ema_state, state = ckpt.load_checkpoint(path)
         if state["world_size"] != self.dist.world_size:
-            raise RuntimeError(
-                f"{path} was written by {state['world_size']} rank(s); this run has {self.dist.world_size}: "
-                "exact resume needs the same world size (the data order and RNG streams are per rank)"
-            )
+            raise ckpt.ResumeSettingError(
+                f"cannot resume from {path}: it was written by {state['world_size']} rank(s) and this run has "
+                f"{self.dist.world_size}; exact resume needs the same world size (the data order and RNG streams are "
+                f"per rank). Launch {state['world_size']} process(es), or start a new run in another train.out_dir",
+                setting="world_size", saved=state["world_size"], now=self.dist.world_size)
         if state["manifest"]["dataset_id"] != self.manifest.dataset_id:
-            raise RuntimeError(
-                f"{path} was trained on dataset {state['manifest']['dataset_id']}, this run reads "
-                f"{self.manifest.dataset_id} ({self.manifest.location})"
-            )
+            raise ckpt.ResumeSettingError(
+                f"cannot resume from {path}: it was trained on dataset {state['manifest']['dataset_id']} "
+                f"({state['manifest'].get('location')}) and data.manifest={self.cfg.data.manifest} is dataset "
+                f"{self.manifest.dataset_id}. Resume with the checkpoint's data.manifest, or start a new run in "
+                "another train.out_dir",
+                setting="data.manifest", saved=state["manifest"]["dataset_id"], now=self.manifest.dataset_id)
+        try:  # checked before any weights are loaded: a refusal leaves this process as it was
+            self.loader.load_state_dict(state["data"][self.dist.rank])
+        except DataResumeError as err:
+            raise resume_setting_error(path, err) from None
         self.dist.unwrap(self.model).load_state_dict(model_state)
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         extra = state["extra"]
         self.ema.load_state_dict({k: v.to(self.dist.device) for k, v in ema_state.items()}, extra["ema_updates"])
-        self.loader.load_state_dict(state["data"][self.dist.rank])
         own = state["rng"][self.dist.rank]
         ckpt.restore_rng_state(own["rng"])
         self.generator.set_state(own["generator"])
@@ -603,8 +640,11 @@ class Trainer:
         return EXIT_SIGNAL_BASE + signum
 
     def _log_record(self, window: "WindowStats", result: StepResult) -> dict[str, Any]:
+        """One metrics.jsonl line. Called on every rank at a log step (it sums the ranks' skipped records)."""
         stats = window.flush()
         grad_norm = float(result.grad_norm)
+        # Tolerant mode's records left out of their batches so far (this run and the runs it resumes), all ranks.
+        records_skipped = self.dist.all_reduce_sum(torch.tensor(self.loader.records_skipped, device=self.dist.device))
         return {
             "step": self.step,
             "loss": stats["loss"],  # None (JSON null) when every step of the window was skipped
@@ -615,6 +655,7 @@ class Trainer:
             "epoch": self.loader.epoch,
             "samples_seen": self.samples_seen,
             "skipped_steps": self.skipped_steps,
+            "records_skipped": int(records_skipped.item()),
         }
 
     def _write_run_files(self) -> None:

@@ -89,7 +89,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"build_shards: error: {error}", file=sys.stderr)
         return 1
     splits = ", ".join(f"{name} {s['num_motions']}" for name, s in manifest["splits"].items())
-    print(f"{config.out}: {splits} motions; {manifest['skip_report']['total']} skipped; dataset_id {manifest['dataset_id'][:16]}")
+    report = manifest["skip_report"]
+    ignored = report.get("ignored_files", {}).get("count", 0)  # files of the source folder never read
+    print(f"{config.out}: {splits} motions; {report['total']} skipped; {ignored} ignored files; "
+          f"dataset_id {manifest['dataset_id'][:16]}")
     return 0
 
 

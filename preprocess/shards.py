@@ -771,6 +771,10 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
         # A tiny source (DeepMimic: 15 train motions) needs small shards to feed several ranks x workers.
         config = replace(config, shard_size=getattr(source, "default_shard_size", DEFAULT_SHARD_SIZE))
     items = list(source.list_items())
+    if config.strict and hasattr(source, "caption_problems"):  # entries of a caption file read up front (AMASS)
+        problems = list(source.caption_problems())
+        if problems:
+            raise BadInputError(problems[0])
     ignored = list(source.ignored_files()) if hasattr(source, "ignored_files") else []
     if ignored:
         log.warning("%s: %d files not read (not of the layout's file-name pattern; listed in the skip report), "

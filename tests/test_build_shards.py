@@ -153,3 +153,49 @@ def test_default_build_without_arguments(tmp_path, monkeypatch, capsys):
     assert main([]) != 0  # a complete dataset is never overwritten silently
     assert "--overwrite" in capsys.readouterr().err
     assert files_of(out) == before
+
+
+def test_summary_line_counts_the_ignored_files(tmp_path, capsys):
+    """The skip report lists the files of the source folder that were never read (a ``000001.bak.npy``); the
+    summary line says how many, beside the skipped count."""
+    from test_shards import write_humanml3d_folder
+
+    root = write_humanml3d_folder(tmp_path / "HumanML3D")
+    assert main(["--source", "humanml3d", "--root", str(root), "--out", str(tmp_path / "ds"), "--quiet"]) == 0
+    manifest = load_manifest(tmp_path / "ds")
+    assert manifest["skip_report"]["ignored_files"]["count"] == 1
+    summary = capsys.readouterr().out.strip().splitlines()[-1]
+    assert f"; {manifest['skip_report']['total']} skipped; 1 ignored files;" in summary
+
+
+def test_amass_caption_map_entries_are_counted_unless_strict(tmp_path, capsys):
+    """A malformed entry of an AMASS JSON caption map is counted by reason in the skip report (the build goes on);
+    with --strict the build stops before writing anything, naming the caption file and the entry."""
+    from test_sources import write_body_model, write_motion
+
+    model = write_body_model(tmp_path / "model.npz")
+    frames = 180  # 3 s at 60 fps: long enough for the default min_frames
+    poses = np.random.default_rng(0).normal(size=(frames, 156)) * 0.05
+    trans = np.cumsum(np.tile([0.0, 0.01, 0.0], (frames, 1)), axis=0)
+    for name in ("walk", "wave"):
+        write_motion(tmp_path / "amass" / "a" / f"{name}_poses.npz", poses, trans, fps=60.0)
+    captions = tmp_path / "captions.json"
+    captions.write_text(json.dumps({
+        "a/walk_poses.npz": ["a person walks", {"text": "turns", "start": 5.0, "end": 2.0}, "", 42],
+        "a/wave_poses.npz": ["waves#t/X#-1#2"],
+    }))
+    args = ["--source", "amass", "--root", str(tmp_path / "amass"), "--body-model", str(model),
+            "--source-option", f"captions={captions}", "--quiet"]
+
+    assert main([*args, "--out", str(tmp_path / "ds")]) == 0  # used to stop at the first bad entry
+    report = load_manifest(tmp_path / "ds")["skip_report"]
+    assert report["dropped_captions"] == {"empty": 1, "malformed_entry": 1, "span_end_not_after_start": 1}
+    (only_bad,) = report["items"]
+    assert (only_bad["id"], only_bad["reason"]) == ("a__wave_poses", "no_captions")
+    assert "1 span_negative; entry 'a/wave_poses.npz', caption 1" in only_bad["detail"]
+
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "strict"), "--strict"]) == 1
+    assert (f"build_shards: error: {captions}: span_end_not_after_start (entry 'a/walk_poses.npz', caption 2: span "
+            "end 2.0 s is not after its start 5.0 s)") in capsys.readouterr().err
+    assert not (tmp_path / "strict").exists()

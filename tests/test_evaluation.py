@@ -546,3 +546,33 @@ def test_a_checkpoint_pruned_before_evaluation_is_reported(text_run, manifest, t
     assert "step-00000001 (step 1) is gone and was never evaluated" in caplog.text
     assert "train.keep_last=0" in caplog.text
     assert [r["checkpoint_name"] for r in ResultsStore(out).table_rows()] == ["step-00000002", "step-00000002"]
+
+
+def test_a_checkpoint_saved_and_pruned_between_two_jobs_is_reported(text_run, manifest, tmp_path, caplog, capsys):
+    """No evaluator job ever listed step 1: training saved and pruned it between two ``--watch --once`` jobs. Its
+    line in checkpoints/saved.jsonl (no folder, no result) makes it ``pruned_before_evaluation``; a checkpoint
+    training set aside (kept, renamed) is not reported, nor one that has a result."""
+    from pipeline import checkpoint as ckpt
+    from pipeline.evaluation import checkpoint_id
+
+    evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
+    run, out = tmp_path / "run", tmp_path / "eval"
+    shutil.copytree(text_run, run)
+    root = run / "checkpoints"
+    assert [(c.step, c.name) for c in ckpt.read_saved(root)] == [(1, "step-00000001"), (2, "step-00000002")]
+    first_id = checkpoint_id(root / "step-00000001")
+    shutil.rmtree(root / "step-00000001")  # pruned by train.keep_last before any evaluator job ran
+    ckpt.move_aside(root / "step-00000002", "discarded")  # train.resume_discard_newer: kept under another name
+    args = _quick_eval_args(evaluator, out)
+    with caplog.at_level("WARNING", logger="pipeline.evaluation"):
+        assert evaluate("--watch", str(run), "--once", *args) == 0
+    printed = capsys.readouterr().out
+    assert "0 unit(s) evaluated" in printed and "pruned_before_evaluation: [1]" in printed
+    assert "step-00000001 (step 1) is gone and was never evaluated" in caplog.text
+    assert not (out / "checkpoints_seen.jsonl").exists()  # known from training's listing alone
+
+    result = out / "results" / "step-00000001" / "euler-2steps-g2.5.x.json"  # evaluated after all (another job)
+    result.parent.mkdir(parents=True)
+    result.write_text(json.dumps({"checkpoint": {"id": first_id}}))
+    assert evaluate("--watch", str(run), "--once", *args) == 0
+    assert "pruned_before_evaluation" not in capsys.readouterr().out

@@ -448,6 +448,55 @@ def test_amass_index_mode_bad_captions_missing_ids_and_complex_arrays(tmp_path: 
         assert refused.path.endswith(file)
 
 
+AMASS_BAD_CAPTIONS = {
+    "json": json.dumps({
+        "a/walk_poses.npz": ["a person walks forward", {"text": "turns", "start": 5.0, "end": 2.0}, "runs#t/X#-1#2", "",
+                             {"text": "  "}, 42, {"text": "jumps", "start": "abc"}, {"text": "waves", "start": 0.5, "end": 1.5}],
+        "a/only_bad_poses.npz": [{"text": "kicks", "start": 3, "end": 1}],
+    }),
+    "csv": "path,text,start,end\n"
+           "a/walk_poses.npz,a person walks forward,,\n"
+           "a/walk_poses.npz,turns,5.0,2.0\n"
+           "a/walk_poses.npz,runs,-1,2\n"
+           "a/walk_poses.npz,,,\n"
+           "a/walk_poses.npz,jumps,abc,\n"
+           "a/walk_poses.npz,waves,0.5,1.5\n"
+           "a/only_bad_poses.npz,kicks,3,1\n",
+}
+
+
+@pytest.mark.parametrize("kind", ["json", "csv"])
+def test_amass_caption_map_bad_entries_are_counted_by_reason(tmp_path: Path, kind: str) -> None:
+    """A malformed entry of a JSON/CSV caption map (bad span, empty text, another shape) no longer stops the build:
+    it is dropped and counted by reason in its clip's dropped_captions, as HumanML3D's caption lines are; a clip
+    left without captions says why; ``caption_problems()`` names the file and the entry of each (for --strict)."""
+    model = write_body_model(tmp_path / "model.npz")
+    root = tmp_path / "amass"
+    for name in ("walk", "only_bad"):
+        write_motion(root / "a" / f"{name}_poses.npz", np.zeros((4, 156)), np.zeros((4, 3)))
+    captions = tmp_path / f"captions.{kind}"
+    captions.write_text(AMASS_BAD_CAPTIONS[kind])
+    source = AMASSSource(str(root), body_model=str(model), captions=str(captions))  # used to raise ValueError here
+    clip = source.load("a/walk_poses.npz")
+    assert isinstance(clip, Clip)
+    assert clip.captions == [Caption("a person walks forward"), Caption("waves", (), 0.5, 1.5)]
+    expected = {"span_end_not_after_start": 1, "span_negative": 1, "span_not_a_number": 1, "empty": 1}
+    if kind == "json":
+        expected |= {"empty": 2, "malformed_entry": 1}  # "" and {"text": "  "}; the number 42
+    assert clip.dropped_captions == expected
+
+    only_bad = source.load("a/only_bad_poses.npz")
+    assert isinstance(only_bad, SkippedInput) and only_bad.reason == "no_captions"
+    assert "1 span_end_not_after_start" in only_bad.detail and str(captions) in only_bad.detail
+
+    problems = source.caption_problems()
+    assert sum(expected.values()) + 1 == len(problems)
+    first = problems[0]
+    assert (first.id, first.path, first.reason) == ("a__walk_poses", str(captions), "span_end_not_after_start")
+    where = "entry 'a/walk_poses.npz', caption 2" if kind == "json" else "line 3 ('a/walk_poses.npz')"
+    assert first.detail == f"{where}: span end 2.0 s is not after its start 5.0 s"
+
+
 # ----------------------------------------------------------------------------------------------------
 # DeepMimic (real motion capture from pybullet)
 # ----------------------------------------------------------------------------------------------------

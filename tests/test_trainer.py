@@ -165,7 +165,7 @@ def assert_runs_identical(run_a: Path, run_b: Path, step: int) -> None:
     assert_identical(state_a, state_b, "state.pt")
     metrics_a, metrics_b = metrics_by_step(run_a), metrics_by_step(run_b)
     assert sorted(metrics_a) == sorted(metrics_b) == list(range(1, step + 1))
-    deterministic = ("loss", "grad_norm", "lr", "epoch", "samples_seen", "skipped_steps")
+    deterministic = ("loss", "grad_norm", "lr", "epoch", "samples_seen", "skipped_steps", "records_skipped")
     for s in metrics_a:
         assert {k: metrics_a[s][k] for k in deterministic} == {k: metrics_b[s][k] for k in deterministic}, s
 
@@ -199,7 +199,11 @@ def test_loss_decreases_and_run_folder_is_complete(dataset, tmp_path):
     assert saved.train.max_steps == 60 and saved.data.manifest == str(dataset)
     # keep_last=2: of the checkpoints at 20, 40, 60 the two newest remain, complete, nothing half-written
     assert complete_steps(run) == [40, 60]
-    assert sorted(p.name for p in ckpt.checkpoints_dir(run).iterdir()) == ["step-00000040", "step-00000060"]
+    assert sorted(p.name for p in ckpt.checkpoints_dir(run).iterdir()) == ["saved.jsonl", "step-00000040",
+                                                                             "step-00000060"]
+    # ... and the listing of completed saves still names the pruned one
+    assert [(c.step, c.name) for c in ckpt.read_saved(ckpt.checkpoints_dir(run))] == [
+        (20, "step-00000020"), (40, "step-00000040"), (60, "step-00000060")]
     _, ema, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(run) / "step-00000060")
     assert state["step"] == 60 and state["world_size"] == 1 and state["extra"]["samples_seen"] == 480
     assert ema is not None and state["extra"]["ema_updates"] == 60
@@ -520,7 +524,8 @@ def test_full_disk_at_a_save_stops_the_run_cleanly_and_a_restart_continues(datas
     error = one_error_line(capsys)
     assert "the run stopped at step 4" in error and "No space left on device" in error
     assert re.search(r"it needs [\d.]+ MB, [\d.]+ MB free on ", error) and "continues from step-00000002" in error
-    assert sorted(p.name for p in ckpt.checkpoints_dir(run).iterdir()) == ["step-00000002"]  # nothing partial
+    assert sorted(p.name for p in ckpt.checkpoints_dir(run).iterdir()) == ["saved.jsonl", "step-00000002"]  # nothing partial
+    assert [c.step for c in ckpt.read_saved(ckpt.checkpoints_dir(run))] == [2]  # the failed save is not listed
     save_errors = [r for r in caplog.records if r.name == "pipeline.checkpoint" and r.levelname == "ERROR"]
     assert len(save_errors) == 1 and "MB free" in save_errors[0].getMessage()
 
@@ -530,6 +535,32 @@ def test_full_disk_at_a_save_stops_the_run_cleanly_and_a_restart_continues(datas
     assert "step-00000002 at step 2" in caplog.text
     assert complete_steps(run) == [2, 4, 6]
     assert sorted(metrics_by_step(run)) == list(range(1, 7))
+    assert [c.step for c in ckpt.read_saved(ckpt.checkpoints_dir(run))] == [2, 4, 6]
+
+
+def test_every_completed_save_is_listed_in_saved_jsonl_and_pruning_keeps_the_lines(four_step_run, dataset, tmp_path,
+                                                                                    monkeypatch):
+    """Training appends one line per completed save to checkpoints/saved.jsonl (step, name, id, time), once the
+    COMPLETE marker is written and the folder is in place; train.keep_last prunes folders, never lines. It is how
+    the evaluator learns of a checkpoint saved and pruned while no evaluator job ran."""
+    run = copy_of(four_step_run, tmp_path)
+    root = ckpt.checkpoints_dir(run)
+    real_record = ckpt.record_saved
+    listed_when_complete = []
+
+    def record_saved(ckpt_root, folder):
+        listed_when_complete.append(Path(folder).name.startswith("step-") and ckpt.is_complete(folder))
+        real_record(ckpt_root, folder)
+
+    monkeypatch.setattr(ckpt, "record_saved", record_saved)
+    overrides = continue_overrides(dataset, run, "train.max_steps=8", "train.keep_last=1")
+    assert train_entry.main(["--config", "tiny", *overrides]) == 0
+    assert complete_steps(run) == [8] and listed_when_complete == [True, True]
+    saved = ckpt.read_saved(root)
+    assert [(c.step, c.name) for c in saved] == [(2, "step-00000002"), (4, "step-00000004"), (6, "step-00000006"),
+                                                 (8, "step-00000008")]
+    assert saved[-1].checkpoint_id == ckpt.checkpoint_id(ckpt.read_marker(root / "step-00000008"))
+    assert all(re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", c.time) for c in saved)
 
 
 def test_unfinished_checkpoint_folders_of_dead_processes_are_removed_before_anything_is_written(
@@ -597,14 +628,33 @@ def test_explicit_older_resume_is_refused_before_any_step_while_newer_checkpoint
     assert sorted(metrics_by_step(run)) == list(range(1, 7))
 
 
-def test_a_refused_resume_leaves_the_run_folder_untouched(four_step_run, dataset, tmp_path, monkeypatch):
+def test_a_refused_resume_leaves_the_run_folder_untouched(four_step_run, dataset, tmp_path, monkeypatch, capsys):
     """Item 8: a changed batch size cannot resume the data stream; the refusal used to come after config.yaml had
     been overwritten with the refused settings."""
     run = copy_of(four_step_run, tmp_path)
     before = snapshot(run)
     forbid_training(monkeypatch)
-    with pytest.raises(ValueError, match="batch_size"):
-        train_entry.main(["--config", "tiny", *continue_overrides(dataset, run, "data.batch_size=2")])
+    assert train_entry.main(["--config", "tiny", *continue_overrides(dataset, run, "data.batch_size=2")]) == 2
+    assert "data.batch_size" in one_error_line(capsys)
+    assert snapshot(run) == before
+
+
+def test_a_resume_refused_for_a_changed_data_setting_is_one_line_through_the_script(four_step_run, dataset,
+                                                                                     tmp_path):
+    """Item 8: a data setting the saved data position depends on changed (data.batch_size 4 -> 2) between the
+    checkpoint and the restart: one ``error:`` line naming the setting, both values and how to go on, exit 2, not a
+    traceback, and the run folder as it was."""
+    run = copy_of(four_step_run, tmp_path)
+    before = snapshot(run)
+    proc = subprocess.run([sys.executable, str(REPO_ROOT / "launch" / "train.py"), "--config", "tiny",
+                           *continue_overrides(dataset, run, "data.batch_size=2")],
+                          cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=240, check=False)
+    assert proc.returncode == 2, output_of(proc)
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1 and "Traceback" not in proc.stderr, output_of(proc)
+    assert proc.stderr.rstrip("\n").endswith(errors[0])  # the last line, after the run's INFO log lines
+    assert "step-00000004" in errors[0] and "data.batch_size was 4 in the checkpoint and is 2 now" in errors[0]
+    assert "Resume with data.batch_size=4" in errors[0] and "another train.out_dir" in errors[0]
     assert snapshot(run) == before
 
 

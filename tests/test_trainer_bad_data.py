@@ -35,6 +35,7 @@ from test_trainer import (
     build_dataset_once,
     complete_steps,
     flip_byte,
+    metrics_by_step,
     patch_loss,
     resume_overrides,
     train_entry,
@@ -125,6 +126,11 @@ def test_tolerant_training_skips_a_nonfinite_record_and_resumes_bit_exactly(data
 
     assert_runs_identical(run_a, run_b, MAX_STEPS)
     assert final_data_state(run_a)["records_skipped"] == final_data_state(run_b)["records_skipped"] == 1
+    # Each metrics.jsonl line shows the running count: 0 until the bad record's batch (step 10), then 1, in the
+    # uninterrupted run and across the resume alike.
+    for run in (run_a, run_b):
+        metrics = metrics_by_step(run)
+        assert [metrics[step]["records_skipped"] for step in sorted(metrics)] == [0] * 9 + [1] * (MAX_STEPS - 9)
 
 
 def test_tolerant_resume_after_a_shard_went_bad_finishes_the_epoch_without_it(dataset, tmp_path, monkeypatch,
@@ -162,5 +168,10 @@ def test_tolerant_resume_after_a_shard_went_bad_finishes_the_epoch_without_it(da
     state = final_data_state(run)
     assert state["epoch"] == 1 and state["excluded_shards"] == [bad] and state["carried_epoch"] is None
     assert state["records_skipped"] == sum(i in lost for ids in planned[5:] for i in ids) > 0
+    metrics = metrics_by_step(run)  # the running count in every log line: none before the shard went bad
+    assert all(metrics[step]["records_skipped"] == 0 for step in range(1, 6))
+    assert metrics[MAX_STEPS]["records_skipped"] == state["records_skipped"]
+    assert [metrics[step]["records_skipped"] for step in sorted(metrics)] == sorted(
+        metrics[step]["records_skipped"] for step in metrics)  # never decreases
     report = json.loads((run / "shard_report.json").read_text())
     assert [b["path"] for b in report["bad"]] == [bad] and not report["verified"]

@@ -12,6 +12,9 @@ A source is a picklable class built from keyword options (``build_source(name, r
   to the processing stage;
 * optionally ``ignored_files() -> list[str]``: what the source's folder holds but never reads (names that
   are not of the layout's pattern), listed in the skip report.
+* optionally ``caption_problems() -> list[SkippedInput]``: caption entries of a file the source reads up front
+  (AMASS's JSON/CSV caption map) that it dropped, each naming the file, the entry and the reason; they are
+  counted in their clips' ``dropped_captions``, and ``--strict`` stops at the first.
 
 ``Clip.joints`` are (T, J, 3) float32 in the skeleton's units at the source's own fps; caption spans are
 in seconds. Sources whose skeleton has no built-in bone lengths (KIT) also offer ``target_skeleton()``.

@@ -35,7 +35,11 @@ Captions (AMASS has none), option ``captions=``:
   HumanML3D's ``text#tokens#from#to`` form, or ``{"text", "start", "end"}`` in seconds) or a CSV with
   columns ``path,text`` (and optionally ``start,end`` in seconds). Items are every ``.npz`` under
   ``root``; the clip keeps the capture's own frame rate (the processing stage resamples) and its split
-  is a hash of its path (80/10/10). Files without captions are skipped as ``no_captions``.
+  is a hash of its path (80/10/10). Files without captions are skipped as ``no_captions``. Spans follow
+  HumanML3D's rules (an end of 0 means "to the end"); an entry with a malformed span, an empty text or another
+  shape is dropped, logged and counted by reason in the clip's ``dropped_captions`` (``span_not_a_number``,
+  ``span_negative``, ``span_end_not_after_start``, ``empty``, ``malformed_entry``), never fatal;
+  ``caption_problems()`` lists them, and ``--strict`` stops at the first, naming the file and the entry.
 """
 
 from __future__ import annotations
@@ -54,7 +58,13 @@ from mfm.rotations import axis_angle_to_matrix
 from mfm.skeleton import HUMANML3D
 from preprocess.clip import BAD_SHAPE, NO_CAPTIONS, UNREADABLE, Caption, Clip, SkippedInput, check_joints
 from preprocess.sources.humanml3d import (
+    EMPTY_CAPTION,
+    SPAN_END_NOT_AFTER_START,
+    SPAN_NEGATIVE,
+    SPAN_NOT_A_NUMBER,
     SPLIT_NAMES,
+    CaptionFile,
+    CaptionSpanError,
     as_bool,
     as_name_list,
     check_splits,
@@ -227,48 +237,119 @@ def read_index_csv(path: Path) -> dict[str, IndexRow]:
     return rows
 
 
-def _caption_from_json(value: object, where: str) -> Caption | None:
-    """A caption of a JSON caption map; a malformed one is an error naming ``where`` (the user's own file:
-    fixed before the build rather than counted in it)."""
-    try:
-        if isinstance(value, str):
-            return parse_caption_line(value)
-        if isinstance(value, dict) and isinstance(value.get("text"), str):
-            text = value["text"].strip()
-            end = value.get("end")
-            return Caption(text=text, start=float(value.get("start", 0.0)), end=None if end is None else float(end)) if text else None
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{where}: bad caption {value!r}: {err}") from None
-    raise ValueError(f"{where}: a caption must be a string or {{'text', 'start', 'end'}}, got {value!r}")
+class CaptionEntryError(ValueError):
+    """A caption-map entry that is neither a string nor ``{"text", "start", "end"}``; ``reason`` is its
+    ``dropped_captions`` key (:data:`MALFORMED_ENTRY`)."""
+
+    reason = "malformed_entry"
 
 
-def read_caption_map(path: Path) -> dict[str, list[Caption]]:
-    """``{relative .npz path: captions}`` from a JSON or CSV caption file (see the module docstring)."""
-    table: dict[str, list[Caption]] = {}
+MALFORMED_ENTRY = CaptionEntryError.reason
+
+
+def _span_seconds(start: object, end: object) -> tuple[float, float | None]:
+    """A ``start``/``end`` pair in seconds (JSON numbers or CSV cells; absent or empty: 0 and "to the end"), read by
+    HumanML3D's rules as :func:`parse_caption_line` reads ``#from#to``: NaN counts as 0, an end of 0 means "to the
+    end". Raises :class:`CaptionSpanError` (not a number, negative, end not after start)."""
+
+    def seconds(value: object) -> float:
+        if value is None or (isinstance(value, str) and not value.strip()):
+            return 0.0
+        try:
+            if isinstance(value, bool):
+                raise TypeError
+            number = float(value)
+        except (TypeError, ValueError):
+            raise CaptionSpanError(SPAN_NOT_A_NUMBER, f"span value {value!r} is not a number") from None
+        if math.isinf(number):
+            raise CaptionSpanError(SPAN_NOT_A_NUMBER, f"span value {value!r} is not a finite number")
+        return 0.0 if math.isnan(number) else number
+
+    first, last = seconds(start), seconds(end)
+    if first < 0 or last < 0:
+        raise CaptionSpanError(SPAN_NEGATIVE, f"negative span {first}..{last} s")
+    if last == 0.0:
+        return first, None
+    if last <= first:
+        raise CaptionSpanError(SPAN_END_NOT_AFTER_START, f"span end {last} s is not after its start {first} s")
+    return first, last
+
+
+def _caption_from_json(value: object) -> Caption | None:
+    """A caption of a JSON caption map; None for an empty text. Raises :class:`CaptionSpanError` for a bad span and
+    :class:`CaptionEntryError` for an entry of another shape."""
+    if isinstance(value, str):
+        return parse_caption_line(value)
+    if isinstance(value, dict) and isinstance(value.get("text"), str):
+        text = value["text"].strip()
+        if not text:
+            return None
+        start, end = _span_seconds(value.get("start"), value.get("end"))
+        return Caption(text=text, start=start, end=end)
+    raise CaptionEntryError(f"a caption must be a string or {{'text', 'start', 'end'}}, got {value!r}")
+
+
+def read_caption_map(path: Path) -> tuple[dict[str, CaptionFile], list[SkippedInput]]:
+    """``{relative .npz path: its captions}`` from a JSON or CSV caption file (see the module docstring), and the
+    caption entries dropped from it, in file order, as SkippedInput (id: the clip's id, path: the caption file,
+    reason: the ``dropped_captions`` key, detail: which entry and why) for ``--strict``, which stops at the first.
+    A dropped entry (malformed span, empty text, an entry of another shape) is logged and counted by reason in its
+    path's ``CaptionFile.dropped``, as HumanML3D's caption lines are; a file of the wrong structure (not an object
+    of lists, a CSV without path,text) is an error."""
+    captions: dict[str, list[Caption]] = {}
+    dropped: dict[str, dict[str, int]] = {}
+    first_dropped: dict[str, str] = {}
+    problems: list[SkippedInput] = []
+
+    def drop(key: str, reason: str, where: str, why: str) -> None:
+        counts = dropped.setdefault(key, {})
+        counts[reason] = counts.get(reason, 0) + 1
+        first_dropped.setdefault(key, f"{where}: {why}")
+        problems.append(SkippedInput(motion_id(key), str(path), reason, f"{where}: {why}"))
+        log.warning("%s %s: caption dropped (%s): %s", path, where, reason, why)
+
     if path.suffix.lower() == ".json":
         document = json.loads(path.read_text(encoding="utf-8"))
         if not isinstance(document, dict):
             raise ValueError(f"{path}: expected an object {{relative path: [captions]}}")
-        for key, values in document.items():
+        for raw, values in document.items():
             if not isinstance(values, list):
-                raise ValueError(f"{path}: captions of {key!r} must be a list")
-            captions = [_caption_from_json(v, f"{path} [{key!r}]") for v in values]
-            table[_normal_relpath(key)] = [c for c in captions if c is not None]
-        return table
-    with path.open(newline="", encoding="utf-8") as handle:
-        reader = csv.DictReader(handle)
-        if not reader.fieldnames or not {"path", "text"} <= set(reader.fieldnames):
-            raise ValueError(f"{path}: a caption CSV needs columns path,text (optionally start,end); got {reader.fieldnames}")
-        for number, row in enumerate(reader, start=2):
-            text = (row["text"] or "").strip()
-            captions = table.setdefault(_normal_relpath(row["path"]), [])
-            if text:
-                end = (row.get("end") or "").strip()
+                raise ValueError(f"{path}: captions of {raw!r} must be a list")
+            key = _normal_relpath(raw)
+            kept = captions.setdefault(key, [])
+            for number, value in enumerate(values, start=1):
+                where = f"entry {raw!r}, caption {number}"
                 try:
-                    captions.append(Caption(text=text, start=float(row.get("start") or 0.0), end=float(end) if end else None))
-                except ValueError as err:
-                    raise ValueError(f"{path}:{number}: bad caption span: {err}") from None
-    return table
+                    caption = _caption_from_json(value)
+                except (CaptionSpanError, CaptionEntryError) as err:
+                    drop(key, err.reason, where, str(err))
+                    continue
+                if caption is None:
+                    drop(key, EMPTY_CAPTION, where, "no caption text")
+                    continue
+                kept.append(caption)
+    else:
+        with path.open(newline="", encoding="utf-8") as handle:
+            reader = csv.DictReader(handle)
+            if not reader.fieldnames or not {"path", "text"} <= set(reader.fieldnames):
+                raise ValueError(f"{path}: a caption CSV needs columns path,text (optionally start,end); got {reader.fieldnames}")
+            for number, row in enumerate(reader, start=2):
+                raw = (row["path"] or "").strip()
+                key = _normal_relpath(raw)
+                kept = captions.setdefault(key, [])
+                where = f"line {number} ({raw!r})"
+                text = (row["text"] or "").strip()
+                if not text:
+                    drop(key, EMPTY_CAPTION, where, "no caption text")
+                    continue
+                try:
+                    start, end = _span_seconds(row.get("start"), row.get("end"))
+                except CaptionSpanError as err:
+                    drop(key, err.reason, where, str(err))
+                    continue
+                kept.append(Caption(text=text, start=start, end=end))
+    table = {key: CaptionFile(kept, dropped.get(key, {}), first_dropped.get(key, "")) for key, kept in captions.items()}
+    return table, problems
 
 
 def _normal_relpath(path: str) -> str:
@@ -332,7 +413,8 @@ class AMASSSource:
         (self.default_split,) = check_splits((default_split,), "amass option default_split")
         self.mirror = as_bool(mirror)
         self.index: dict[str, IndexRow] | None = None
-        self.caption_map: dict[str, list[Caption]] = {}
+        self.caption_map: dict[str, CaptionFile] = {}
+        self._caption_problems: list[SkippedInput] = []
         self.split_of: dict[str, str] = {}
         if _is_index_csv(self.captions_path):
             self.index = read_index_csv(self.captions_path)
@@ -343,7 +425,7 @@ class AMASSSource:
         else:
             if self.mirror:
                 raise ValueError("amass: mirror=True needs HumanML3D's index.csv (its M<id> captions swap left and right)")
-            self.caption_map = read_caption_map(self.captions_path)
+            self.caption_map, self._caption_problems = read_caption_map(self.captions_path)
 
     def _load_body_models(self, path: Path) -> dict[str, BodyJointModel]:
         """``{"male": model, "female": model}``; one file serves both."""
@@ -376,6 +458,12 @@ class AMASSSource:
                 len(unmatched), self.captions_path, self.root, unmatched[:3],
             )
         return [p for p in paths if hash_split(p) in self.splits]
+
+    def caption_problems(self) -> list[SkippedInput]:
+        """The entries of a JSON/CSV caption file that were dropped (a malformed span, an empty text, another
+        shape), in file order: each is counted in its clip's ``dropped_captions``; ``--strict`` stops at the first,
+        naming the file and the entry. Index mode reads HumanML3D's caption files clip by clip: none here."""
+        return list(self._caption_problems)
 
     def load(self, item: str) -> Clip | SkippedInput:
         if self.index is not None:
@@ -430,17 +518,20 @@ class AMASSSource:
     def _load_captioned_file(self, item: str) -> Clip | SkippedInput:
         path = self.root / item
         clip_id = motion_id(item)
-        captions = self.caption_map.get(item)
-        if not captions:
-            detail = "no entry in" if captions is None else "only empty captions in"
-            return SkippedInput(clip_id, str(path), NO_CAPTIONS, f"{detail} {self.captions_path}")
+        entry = self.caption_map.get(item)
+        if entry is None:
+            return SkippedInput(clip_id, str(path), NO_CAPTIONS, f"no entry in {self.captions_path}")
+        if not entry.captions:
+            counts = ", ".join(f"{n} {reason}" for reason, n in sorted(entry.dropped.items()))
+            why = f" ({counts}; {entry.first_dropped})" if counts else ": its entry lists none"
+            return SkippedInput(clip_id, str(path), NO_CAPTIONS, f"no usable caption in {self.captions_path}{why}")
         motion = _read_motion(path)
         if isinstance(motion, SkippedInput):
             return replace(motion, id=clip_id)
         poses, trans, betas, fps, gender = motion
         model = self.body_models["male" if gender == "male" else "female"]
         joints = to_humanml3d_axes(model.forward(poses, trans, betas))
-        return self._clip(clip_id, joints, fps, path, captions, hash_split(item))
+        return self._clip(clip_id, joints, fps, path, entry.captions, hash_split(item), entry.dropped)
 
     # -- shared --------------------------------------------------------------------------------------
 
