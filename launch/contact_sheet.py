@@ -37,6 +37,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--text", action="append", default=[], help="prompt (repeatable)")
     add("--prompts-file", help="file with one prompt per line")
     add("--captions-from-manifest", metavar="SPLIT", help="first caption of every motion of this dataset split")
+    add("--max-rows", type=int, help="with --captions-from-manifest: only the split's first N motions")
     add("--manifest", help="dataset manifest for --captions-from-manifest (default: the checkpoint's)")
     add("--ground-truth", action="store_true", help="draw the dataset clips of the captions instead of sampling")
     add("--frames", type=int, default=6, help="frames per row (default 6)")
@@ -60,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
         texts = args.text + (read_prompts(args.prompts_file) if args.prompts_file else [])
         sheet = run_contact_sheet(ContactSheetRequest(
             out=args.out, checkpoint=args.checkpoint, texts=texts, captions_from_manifest=args.captions_from_manifest,
-            manifest=args.manifest, ground_truth=args.ground_truth, frames=args.frames, seconds=args.seconds,
+            max_rows=args.max_rows, manifest=args.manifest, ground_truth=args.ground_truth, frames=args.frames,
+            seconds=args.seconds,
             steps=args.steps, solver=args.solver, guidance=args.guidance, seed=args.seed, decode=args.decode,
             device=args.device, weights=args.model_weights, text_weights=args.text_weights))
     except (SamplingError, FileNotFoundError) as err:

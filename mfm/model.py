@@ -60,12 +60,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mfm.path import velocity_from_data
+from mfm.path import preconditioning, velocity_from_data
 
 ACTIVATIONS = {"gelu": F.gelu, "relu": F.relu, "silu": F.silu}
 POSITIONAL_ENCODINGS = ("absolute", "bpe")
 CONDITIONINGS = ("prefix", "pccat", "cross_attention")
-PREDICTIONS = ("velocity", "data")
+PREDICTIONS = ("velocity", "data", "preconditioned")
 CONDITION_SCALINGS = ("none", "rms")
 
 # MFM feeds the sinusoidal table with t*1000 (its diffusion-step scale); keep the scale so the embedding matches.
@@ -135,7 +135,10 @@ class ModelConfig:
     ``feature_dim`` channels — so a velocity network must carry its input through the Transformer almost
     unchanged; when ``latent_dim`` is not well above ``feature_dim`` (256 vs 263 in the CPU presets) it cannot,
     and the leftover noise shows as jitter, stretching bones and sliding feet. An x1 target is smooth and
-    low-dimensional. Not MFM's choice: our presets say where they use it."""
+    low-dimensional. 'preconditioned': EDM's skip for the flow path (:func:`mfm.path.preconditioning`): x1
+    prediction near t = 0, the input passed through towards t = 1, so late in the path the network only corrects
+    x_t instead of redrawing every detail of the motion through its width. Not MFM's choice: our presets say where
+    they use either."""
 
     def __post_init__(self) -> None:
         positive = {
@@ -184,9 +187,9 @@ class ModelConfig:
             )
         if self.prediction not in PREDICTIONS:
             raise ValueError(f"ModelConfig.prediction must be one of {PREDICTIONS}, got {self.prediction!r}")
-        if self.prediction == "data" and self.output_size != self.feature_dim:
+        if self.prediction != "velocity" and self.output_size != self.feature_dim:
             raise ValueError(
-                f"ModelConfig.prediction='data' predicts the motion itself: output_dim must be feature_dim "
+                f"ModelConfig.prediction={self.prediction!r} predicts the motion: output_dim must be feature_dim "
                 f"({self.feature_dim}), got {self.output_dim}"
             )
         if self.conditioning not in CONDITIONINGS:
@@ -697,7 +700,12 @@ class MotionFlowTransformer(nn.Module):
 
         time = self.time_embedding(t)
         aux = self._auxiliary_tokens(time, cond, cond_mask, lengths)
-        motion = self.input_proj(x)
+        if config.prediction == "preconditioned":
+            path_time = t.to(x.device).float().reshape(-1).expand(batch)
+            c_in, c_skip, c_out = (c[:, None, None] for c in preconditioning(path_time))
+            motion = self.input_proj((x.float() * c_in).to(x.dtype))
+        else:
+            motion = self.input_proj(x)
         tokens = torch.cat([token.unsqueeze(1).to(motion.dtype) for token in aux] + [motion], dim=1)
         if config.positional == "bpe":
             if positional_mode is None:
@@ -736,6 +744,9 @@ class MotionFlowTransformer(nn.Module):
         velocity = self.output_proj(self.final_norm(tokens[:, len(aux) :]))
         if config.prediction == "data":
             velocity = velocity_from_data(velocity.float(), x.float(), t.to(x.device).float())
+        elif config.prediction == "preconditioned":
+            x1_hat = c_skip * x.float() + c_out * velocity.float()
+            velocity = velocity_from_data(x1_hat, x.float(), t.to(x.device).float())
         if frame_mask is not None:
             velocity = velocity * frame_mask.unsqueeze(-1)
         return velocity.to(x.dtype)

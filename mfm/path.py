@@ -26,6 +26,17 @@ amplify an x1 error by up to 1/σ_min = 10⁴ near t = 1; 0.05 is the clip of Li
 Generative Models Denoise" (2025), who parametrise flow matching this way."""
 
 
+def preconditioning(t: torch.Tensor, sigma_min: float = SIGMA_MIN) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """EDM-style ``(c_in, c_skip, c_out)`` (Karras et al. 2022, §5) for the flow path ``x_t = a·x0 + t·x1``,
+    ``a = 1 − (1 − σ_min)·t``, with unit-variance x0 and x1: the network sees ``c_in·x_t`` (unit variance) and
+    ``x̂1 = c_skip·x_t + c_out·F``, where ``c_skip = t / (a² + t²)`` is the least-squares share of x1 in x_t and
+    ``c_out = a / √(a² + t²)`` the spread of what is left, so F's target has unit variance at every t. At t = 0 this
+    is x1 prediction (F = x̂1); towards t = 1 the input passes through and F only corrects it. Shapes follow ``t``."""
+    a = 1 - (1 - sigma_min) * t
+    norm = (a.square() + t.square()).sqrt()
+    return 1 / norm, t / norm.square(), a / norm
+
+
 def velocity_from_data(
     x1_hat: torch.Tensor,
     x_t: torch.Tensor,

@@ -44,6 +44,7 @@ class ContactSheetRequest:
     checkpoint: str | Path | None = None  # a step-XXXXXXXX or run folder; ground truth needs it only for the dataset
     texts: Sequence[str] = ()
     captions_from_manifest: str | None = None  # a split name: its motions' first captions are the prompts
+    max_rows: int | None = None  # captions_from_manifest: only the split's first max_rows motions (None: all)
     manifest: str | Path | None = None  # the dataset for captions_from_manifest; default: the checkpoint's
     ground_truth: bool = False  # draw the dataset clips of the captions instead of sampling
     frames: int = 6  # panels per row
@@ -67,6 +68,9 @@ class ContactSheetRequest:
             raise SamplingError("generating needs a checkpoint (ground truth: a checkpoint or a manifest)")
         if self.decode not in JOINT_DECODES:
             raise SamplingError(f"decode must be one of {sorted(JOINT_DECODES)}, got {self.decode!r}")
+        if self.max_rows is not None and (not self.captions_from_manifest or not isinstance(self.max_rows, int)
+                                          or self.max_rows < 1):
+            raise SamplingError(f"max_rows must be a positive int and needs a manifest split, got {self.max_rows!r}")
         if not isinstance(self.frames, int) or self.frames < 1:
             raise SamplingError(f"frames must be a positive int, got {self.frames!r}")
 
@@ -148,6 +152,7 @@ def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
             raise SamplingError(str(err)) from err
         if not captions:
             raise SamplingError(f"{manifest.location}: split {split!r} holds no motions")
+        captions = captions[: request.max_rows]
     if request.ground_truth:
         spec = manifest.data["feature_spec"]
         skeleton, fps = skeleton_from_spec(spec), float(spec["fps"])

@@ -121,6 +121,10 @@ def test_generated_and_ground_truth_sheets_of_the_manifest_captions_match_row_fo
                                                   decode="rigid"))
     assert alone["rows"] == expected
     np.testing.assert_array_equal(pixels(tmp_path / "alone.png"), pixels(tmp_path / "truth.png"))
+    first_two = run_contact_sheet(ContactSheetRequest(out=tmp_path / "two.png", manifest=trained.data["location"],
+                                                      captions_from_manifest="test", ground_truth=True, frames=3,
+                                                      decode="rigid", max_rows=2))
+    assert first_two["rows"] == expected[:2]
 
 
 def test_comparison_with_the_captions_clips_finds_each_samples_own_clip():
@@ -142,5 +146,9 @@ def test_bad_requests_say_what_is_wrong(tmp_path):
         ContactSheetRequest(out=tmp_path / "x.png", checkpoint="run", texts=["a"], ground_truth=True)
     with pytest.raises(SamplingError, match="needs a checkpoint"):
         ContactSheetRequest(out=tmp_path / "x.png", texts=["a"])
+    with pytest.raises(SamplingError, match="max_rows"):
+        ContactSheetRequest(out=tmp_path / "x.png", checkpoint="run", texts=["a"], max_rows=2)
+    with pytest.raises(SamplingError, match="max_rows"):
+        ContactSheetRequest(out=tmp_path / "x.png", checkpoint="run", captions_from_manifest="test", max_rows=0)
     with pytest.raises(SamplingError, match="decode"):
         ContactSheetRequest(out=tmp_path / "x.png", checkpoint="run", texts=["a"], decode="fk")

@@ -253,6 +253,29 @@ def test_data_prediction_returns_the_velocity_towards_its_output():
     torch.testing.assert_close(x[:2] + (1 - t[:2, None, None]) * velocity[:2], x1_hat[:2], atol=1e-3, rtol=0)
 
 
+def test_preconditioned_prediction_is_data_prediction_at_the_start_and_a_skip_at_the_end():
+    """prediction='preconditioned': x̂1 = c_skip·x_t + c_out·F(c_in·x_t) (mfm.path.preconditioning), F being the
+    network of a velocity model with the same weights fed c_in·x_t."""
+    torch.manual_seed(0)
+    velocity_model = tiny_model(prediction="velocity").eval()
+    model = tiny_model(prediction="preconditioned").eval()
+    model.load_state_dict(velocity_model.state_dict())
+    x, cond = torch.randn(3, 6, 7), torch.randn(3, 5)
+    t = torch.tensor([0.0, 0.5, 0.9])
+    sigma = 1e-4
+    a = 1 - (1 - sigma) * t
+    norm = (a.square() + t.square()).sqrt()[:, None, None]
+    c_in, c_skip, c_out = 1 / norm, t[:, None, None] / norm.square(), a[:, None, None] / norm
+    with torch.no_grad():
+        network = velocity_model(x * c_in, t, cond)
+        velocity = model(x, t, cond)
+    x1_hat = c_skip * x + c_out * network
+    torch.testing.assert_close(velocity, (x1_hat - (1 - sigma) * x) / a[:, None, None], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(c_skip[0], torch.zeros(1, 1))  # t = 0: x1 prediction (c_in = c_out = 1)
+    # the target of F has unit variance at every t for unit-variance x0, x1: c_skip² (a² + t²) − 2 c_skip t + 1 = c_out²
+    torch.testing.assert_close((c_skip.square() * norm.square() - 2 * c_skip * t[:, None, None] + 1), c_out.square())
+
+
 def test_rms_condition_scaling_makes_the_condition_scale_free_and_keeps_the_null_condition():
     model = tiny_model(cond_scaling="rms").eval()
     x, t, cond = torch.randn(4, 6, 7), torch.rand(4), torch.randn(4, 5)
