@@ -50,7 +50,12 @@ Tolerant mode at run time (``LoaderOptions.tolerate_bad_data``). A record that f
 (e.g. non-finite features) is left out of its batch, counted and logged; it keeps its place in the stream
 until the batch is collated, so batch boundaries, the resume position and every later batch are the same as
 if it had been read (the skip is a function of the record's bytes, so a resumed run skips it again at the
-same place; exact resume holds). A batch whose every record was skipped is passed over. Shards excluded
+same place; exact resume holds). A batch whose every record was skipped is NOT passed over: it is yielded as
+an empty batch (zero rows, ``ids == []``; counted in ``empty_batches``), so every rank still takes exactly one
+planned batch per step and all ranks agree on the number of batches per epoch and on the data position (a
+rank that passed it over would run one batch ahead of the others and could run out of batches a step before
+them, which hangs a collective). The trainer steps through an empty batch with zero weight in the loss
+(``pipeline.trainer.Trainer.train_step``). Shards excluded
 since the checkpoint (a shard that went bad after it; or readmitted, repaired ones): the checkpoint's epoch
 is finished with the plan it started with, so the batches still due are the ones that were due, except that
 the records of newly excluded shards are left out of their batches (counted as skipped records, their files
@@ -963,7 +968,8 @@ class _RankStream(IterableDataset):
         pipeline = wds.DataPipeline(
             functools.partial(ordered_records, shards, emission, _READERS[opts.backend], spec.left_out(epoch)),
             *[wds.map(stage) for stage in sample_stages],
-            wds.batched(batch_size, collation_fn=Collate(opts.window, spec.action_classes), partial=False),
+            wds.batched(batch_size, collation_fn=Collate(opts.window, spec.action_classes, spec.record_spec),
+                        partial=False),
         )
         for local, batch in enumerate(pipeline, start=skip_batches):
             batch["_position"] = (epoch, local * plan.readers_per_rank + reader)
@@ -982,9 +988,10 @@ class MotionLoader:
     """Batches of one rank, exactly once per epoch across ranks and workers, resumable bit-exactly.
 
     ``iter_batches()`` yields forever (epochs roll over); ``iter_epoch()`` yields the rest of the current
-    epoch. ``epoch`` and ``batches_in_epoch`` say where the next batch comes from; ``state_dict()`` saves
-    that. Do not pass this loader through ``accelerator.prepare()`` (it is already sharded; see the module
-    docstring); move batches to the device yourself.
+    epoch: every planned batch, on every rank, including (tolerant mode) empty batches whose every record was
+    skipped (``ids == []``, zero rows). ``epoch`` and ``batches_in_epoch`` say where the next batch comes from;
+    ``state_dict()`` saves that. Do not pass this loader through ``accelerator.prepare()`` (it is already
+    sharded; see the module docstring); move batches to the device yourself.
 
     Args:
         manifest: a :class:`Manifest`, or the path/URL of ``manifest.json`` (or of its directory).
@@ -1011,6 +1018,7 @@ class MotionLoader:
         self.epoch = 0
         self.batches_in_epoch = 0
         self.records_skipped = 0  # records left out of their batches (tolerant mode); saved with the position
+        self.empty_batches = 0  # batches whose every record was left out, yielded empty (tolerant mode); saved too
         self._skip_reasons_logged: set[str] = set()
         self._generation = 0
         self._plan_logged = False
@@ -1061,8 +1069,8 @@ class MotionLoader:
     # -- state -----------------------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """Position and everything that fixes the epoch plan. Identical on every rank, except
-        ``records_skipped`` (and the position after a batch whose every record was skipped: tolerant mode)."""
+        """Position and everything that fixes the epoch plan. Identical on every rank, except the counts of
+        tolerant mode, ``records_skipped`` and ``empty_batches`` (an empty batch still takes its position)."""
         opts = self.options
         carried = self._spec.carried
         return {"version": STATE_VERSION, "epoch": self.epoch, "batches_in_epoch": self.batches_in_epoch,
@@ -1074,7 +1082,7 @@ class MotionLoader:
                 # The exclusions the current epoch was planned with, while it differs from excluded_shards.
                 "carried_epoch": ({"epoch": carried.epoch, "excluded_shards": list(carried.excluded_shards)}
                                   if carried is not None and carried.epoch == self.epoch else None),
-                "records_skipped": self.records_skipped}
+                "records_skipped": self.records_skipped, "empty_batches": self.empty_batches}
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         """Continue from a saved position. Refuses (:class:`DataResumeError`) anything that would change the epoch
@@ -1107,6 +1115,7 @@ class MotionLoader:
         self._spec = spec
         self.epoch, self.batches_in_epoch = epoch, position
         self.records_skipped = int(state.get("records_skipped", 0))
+        self.empty_batches = int(state.get("empty_batches", 0))
         self._generation += 1  # iterators created before this point are stale
 
     def _carried_epoch(self, epoch: int, position: int, planned_with: Sequence[str]) -> CarriedEpoch:
@@ -1142,14 +1151,14 @@ class MotionLoader:
         """Batches forever, from the current position; ``epoch``/``batches_in_epoch`` advance as they are
         yielded (so ``state_dict()`` taken after consuming a batch resumes at the next one). Creating a new
         iterator or loading a state makes older iterators raise."""
-        return _with_samples(self._positioned_batches())
+        return self._positioned_batches()
 
     def iter_epoch(self) -> Iterator[dict[str, Any]]:
         """The remaining batches of the current epoch, then stop (workers are shut down)."""
-        return _with_samples(_take(self._positioned_batches(), self.batches_per_epoch() - self.batches_in_epoch))
+        return _take(self._positioned_batches(), self.batches_per_epoch() - self.batches_in_epoch)
 
     def _positioned_batches(self) -> Iterator[dict[str, Any]]:
-        """Every batch position from the current one, including batches whose every record was skipped."""
+        """Every batch position from the current one, including (empty) batches whose every record was skipped."""
         self._generation += 1
         stream = _RankStream(self._spec, self.epoch, self.batches_in_epoch)
         if self.options.num_workers == 0:
@@ -1177,7 +1186,8 @@ class MotionLoader:
 
     def _count_skipped(self, position: tuple[int, ...], reasons: Sequence[str], kept: int) -> None:
         """Count the records tolerant mode left out of a batch; each distinct reason is logged once as a
-        warning (a shard left out for the rest of an epoch would otherwise log one line per batch)."""
+        warning (a shard left out for the rest of an epoch would otherwise log one line per batch). A batch left
+        with no record is counted in ``empty_batches`` and logged as a warning every time."""
         self.records_skipped += len(reasons)
         for reason, count in Counter(reasons).items():
             level = logging.DEBUG if reason in self._skip_reasons_logged else logging.WARNING
@@ -1185,7 +1195,10 @@ class MotionLoader:
             logger.log(level, "tolerant mode: %d record(s) left out of batch %s (%d skipped in this run so "
                        "far): %s", count, position, self.records_skipped, reason)
         if kept == 0:
-            logger.warning("tolerant mode: every record of batch %s was skipped; it is passed over", position)
+            self.empty_batches += 1
+            logger.warning("tolerant mode: every record of batch %s was skipped: it is yielded as an empty batch "
+                           "(no sample; trained with zero weight, in step with the other ranks; %d empty batch(es) "
+                           "so far)", position, self.empty_batches)
 
     def _advance(self) -> None:
         self.batches_in_epoch += 1
@@ -1198,17 +1211,6 @@ class MotionLoader:
 def _as_is(batch: dict) -> dict:
     """DataLoader collate for already-collated batches (its default would turn tuples into lists)."""
     return batch
-
-
-def _with_samples(batches: Iterator[dict]) -> Iterator[dict]:
-    """The batches that hold at least one sample: one whose every record was skipped (tolerant mode) has
-    taken its position in the stream, but there is nothing in it to train on."""
-    try:
-        for batch in batches:
-            if batch["ids"]:
-                yield batch
-    finally:
-        batches.close()
 
 
 def _take(batches: Iterator[dict], count: int) -> Iterator[dict]:

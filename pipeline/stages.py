@@ -8,7 +8,9 @@ Order in the stream (see ``pipeline.data`` for the shard-level stages that come 
 
 Tolerant mode wraps each per-sample stage in :class:`SkipBadRecords`: a record that fails to decode or validate
 becomes a :class:`SkippedRecord` that flows on in its place until ``Collate`` drops it, so a batch is cut from
-the same stream positions whether or not some of its records were bad.
+the same stream positions whether or not some of its records were bad. A batch whose every record was skipped
+is still a batch: an empty one (zero rows, same keys), which the trainer steps through like any other, so every
+rank takes exactly one planned batch per step.
 
 Randomness. A stage that draws (caption pick, crop length and offset) seeds a fresh generator from
 ``(seed, epoch, sample id, stage)`` through :func:`sample_rng`. No generator state is carried from one
@@ -343,13 +345,16 @@ class Collate:
     motion has no label), ``caption_index`` (B,) int64, ``ids`` list[str], ``captions`` list[str],
     ``caption_tokens`` list[list[str]]; with token features also ``text_tokens`` (B, L, E) float32 and
     ``text_token_len`` (B,) int64. Records skipped in tolerant mode are not in the batch (so B may be smaller
-    than the batch size): their reasons are under ``SKIPPED_RECORDS_KEY``; when every record was skipped the
-    batch is only ``{"ids": [], SKIPPED_RECORDS_KEY: [...]}``.
+    than the batch size): their reasons are under ``SKIPPED_RECORDS_KEY``. When every record was skipped the
+    batch is EMPTY, not missing: every key is there with zero rows (``features`` (0, W, D), ``ids`` [], ...;
+    the sizes come from ``record_spec``), so that the batch still takes its place in the stream and the trainer
+    steps through it in lockstep with the other ranks (see ``pipeline.trainer.Trainer.train_step``).
     """
 
-    def __init__(self, window: int, action_classes: Sequence[str]):
+    def __init__(self, window: int, action_classes: Sequence[str], record_spec: RecordSpec | None = None):
         self.window = window
         self.action_ids = {name: i for i, name in enumerate(action_classes)}
+        self.record_spec = record_spec
 
     def action_id(self, sample: TrainingSample) -> int:
         if sample.action is None:
@@ -362,10 +367,31 @@ class Collate:
         samples = [s for s in items if not isinstance(s, SkippedRecord)]
         skipped = [s.reason for s in items if isinstance(s, SkippedRecord)]
         if not samples:
-            return {"ids": [], SKIPPED_RECORDS_KEY: skipped}
+            return {**self.empty_batch(), SKIPPED_RECORDS_KEY: skipped}
         batch = self._collate(samples)
         if skipped:
             batch[SKIPPED_RECORDS_KEY] = skipped
+        return batch
+
+    def empty_batch(self) -> dict[str, Any]:
+        """A batch with no sample: the keys and trailing sizes of a real one, zero rows."""
+        spec = self.record_spec
+        if spec is None:
+            raise ValueError("Collate needs the record_spec to build an empty batch (every record was skipped)")
+        batch: dict[str, Any] = {
+            "features": torch.zeros((0, self.window, spec.feature_dim), dtype=torch.float32),
+            "lengths": torch.zeros(0, dtype=torch.int64),
+            "mask": torch.zeros((0, self.window), dtype=torch.bool),
+            "text_emb": torch.zeros((0, spec.text_dim), dtype=torch.float32),
+            "action": torch.zeros(0, dtype=torch.int64),
+            "caption_index": torch.zeros(0, dtype=torch.int64),
+            "ids": [],
+            "captions": [],
+            "caption_tokens": [],
+        }
+        if spec.token_features:
+            batch["text_tokens"] = torch.zeros((0, spec.max_tokens, spec.text_dim), dtype=torch.float32)
+            batch["text_token_len"] = torch.zeros(0, dtype=torch.int64)
         return batch
 
     def _collate(self, samples: Sequence[TrainingSample]) -> dict[str, Any]:

@@ -12,10 +12,19 @@ Nothing is written into the run folder before the resume decision: rank 0 first 
 that fails (a full disk) stops the run on every rank with :class:`CheckpointSaveError`; the same command continues
 from the newest complete checkpoint once there is space.
 
-Decisions that every rank must take together (skip a non-finite step, stop on SIGTERM/SIGINT) come from ONE
-all-reduce (SUM) of a small flag vector per optimizer step, which also carries the loss, so the logged loss is
-the mean over all ranks at no extra cost; that and the ``.tolist()`` reading it are the only host syncs outside
-log steps.
+Decisions that every rank must take together (skip a non-finite step, skip the update of a step with no sample,
+stop on SIGTERM/SIGINT) come from ONE all-reduce (SUM) of a small flag vector per optimizer step, which also
+carries the loss and the sample count, so the logged loss is the mean over all ranks at no extra cost; that and
+the ``.tolist()`` reading it are the only host syncs outside log steps.
+
+Bad records (``data.verify=tolerant``). A record that fails to decode is left out of its batch, and a batch
+whose every record was left out is an EMPTY batch, never passed over: every rank takes exactly one planned
+batch per micro-step, so all ranks take the same number of steps, stay at the same data position and run the
+same collectives. The step's loss is the mean over the samples it really holds, on all ranks: a micro-batch of
+n samples weighs n (an empty one 0) and the sum is divided by the step's global sample count, which one extra
+all-reduce (tolerant mode only; strict batches are always full) gives before the backward pass. An empty
+micro-batch still runs forward and backward, on a zero stand-in with weight 0, so the gradient all-reduce
+happens on every rank. A step with no sample on any rank makes no update (see :meth:`Trainer.train_step`).
 
 Exact resume: a run killed at any point and resumed with ``train.resume=auto`` continues bit-identically to an
 uninterrupted one (weights, EMA, optimizer, scheduler, Python/NumPy/torch RNGs, the per-rank draw generator,
@@ -278,10 +287,11 @@ def build_objective(cfg: TrainConfig, manifest: Manifest):
 
 @dataclasses.dataclass
 class StepResult:
-    loss: float  # mean loss over the step's micro-batches and all ranks (NaN when some rank's was not finite)
+    loss: float  # mean loss over the step's samples on all ranks (NaN when some rank's was not finite)
     grad_norm: torch.Tensor  # global gradient norm before clipping (device tensor: read it on log steps only)
     skipped: bool  # the update was skipped on every rank (non-finite loss or gradient norm on some rank)
     stop_signal: int  # the signal number some rank received before this step's end (0: none)
+    empty: bool = False  # no rank had a sample (tolerant mode: every record skipped): no update, loss meaningless
 
 
 class Trainer:
@@ -345,6 +355,7 @@ class Trainer:
         self.samples_seen = 0
         self.skipped_steps = 0
         self.consecutive_skips = 0
+        self.empty_steps = 0  # steps with no sample on any rank (tolerant mode): stepped through, no update
         self.stop_signal = StopSignal()
         self._last_saved_step = -1
 
@@ -383,10 +394,13 @@ class Trainer:
             return batch["action"].to(self.dist.device)
         return batch["text_emb"].to(self.dist.device)
 
-    def _micro_batch_loss(self, batch: Mapping[str, Any], draws: Draws | None) -> torch.Tensor:
+    def _micro_batch_loss(self, batch: Mapping[str, Any], draws: Draws | None,
+                          generator: torch.Generator | None = None) -> torch.Tensor:
         """The objective's loss on one micro-batch. Draw order from the per-rank generator (replayed exactly on
-        resume): dropped conditions, the BPE positional mode (BPE models), then the objective's own draws."""
+        resume; ``generator`` replaces it): dropped conditions, the BPE positional mode (BPE models), then the
+        objective's own draws."""
         device, config = self.dist.device, self.model_config
+        generator = self.generator if generator is None else generator
         features = batch["features"].to(device, non_blocking=True)
         lengths = batch["lengths"].to(device, non_blocking=True)
         model_kwargs: dict[str, Any] = {}
@@ -398,32 +412,87 @@ class Trainer:
             model_kwargs["text_token_len"] = batch["text_token_len"].to(device, non_blocking=True)
         overrides: dict[str, torch.Tensor] = {}
         if draws is None:
-            cond_mask = draw_cond_drop_mask(features.shape[0], config.cond_drop_prob, self.generator, device)
+            cond_mask = draw_cond_drop_mask(features.shape[0], config.cond_drop_prob, generator, device)
             if config.positional == "bpe":
                 model_kwargs["positional_mode"] = draw_positional_mode(
-                    features.shape[0], config.bpe_train_relative_prob, self.generator).to(device)
+                    features.shape[0], config.bpe_train_relative_prob, generator).to(device)
         else:
             draws = draws.to(device)
             cond_mask, overrides = draws.cond_mask, {"t": draws.t, "x0": draws.x0}
             if draws.positional_mode is not None:
                 model_kwargs["positional_mode"] = draws.positional_mode
-        loss, _ = self.objective.loss(self.model, features, self._condition(batch), lengths, generator=self.generator,
+        loss, _ = self.objective.loss(self.model, features, self._condition(batch), lengths, generator=generator,
                                       cond_mask=cond_mask, model_kwargs=model_kwargs, **overrides)
         return loss
+
+    def _stand_in(self, empty: Mapping[str, Any]) -> dict[str, Any]:
+        """What an empty micro-batch runs through the model (with weight 0) so that its rank takes part in the
+        gradient all-reduce: ``data.batch_size`` zero motions of full length with the empty batch's trailing
+        sizes (the usual shapes, so a compiled model is not recompiled), action 0, one text token each."""
+        rows = self.cfg.data.batch_size
+        window = empty["features"].shape[1]
+        batch: dict[str, Any] = {
+            "features": empty["features"].new_zeros((rows, *empty["features"].shape[1:])),
+            "lengths": torch.full((rows,), window, dtype=torch.int64),
+            "text_emb": empty["text_emb"].new_zeros((rows, *empty["text_emb"].shape[1:])),
+            "action": torch.zeros(rows, dtype=torch.int64),
+            "ids": [],
+        }
+        if "text_tokens" in empty:
+            batch["text_tokens"] = empty["text_tokens"].new_zeros((rows, *empty["text_tokens"].shape[1:]))
+            batch["text_token_len"] = torch.ones(rows, dtype=torch.int64)
+        return batch
+
+    def _stand_in_loss(self, empty: Mapping[str, Any]) -> torch.Tensor:
+        """The loss of :meth:`_stand_in`, drawn from a fixed generator with the global RNGs forked: an empty
+        micro-batch takes no draw from this rank's streams, so they do not depend on where records went bad
+        (and a resumed run replays them exactly all the same)."""
+        device = self.dist.device
+        generator = torch.Generator(device=device).manual_seed(0)
+        with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+            return self._micro_batch_loss(self._stand_in(empty), None, generator)
+
+    def _micro_batch_weights(self, counts: list[int]) -> list[float | torch.Tensor]:
+        """Weight of each micro-batch's (per-sample mean) loss, such that the rank-averaged gradient is the mean
+        over the step's samples on all ranks: ``n_i · accum · world_size / N`` for a micro-batch of ``n_i`` of
+        the step's ``N`` samples (0 for an empty one; exactly 1 for full batches). Only tolerant mode can have
+        short or empty batches; there ``N`` comes from one all-reduce (a device tensor: no host sync)."""
+        if not self.loader.options.tolerate_bad_data:
+            return [1.0] * len(counts)
+        device = self.dist.device
+        scale = len(counts) * self.dist.world_size
+        total = self.dist.all_reduce_sum(torch.tensor(float(sum(counts)), device=device)).clamp_min(1.0)
+        return [torch.full((), float(n * scale), device=device) / total if n else 0.0 for n in counts]
 
     def train_step(self, micro_batches: list[Mapping[str, Any]], draws: list[Draws] | None = None) -> StepResult:
         """Forward/backward over the micro-batches (gradient accumulation), clip, and one AdamW + EMA update —
         unless the loss or gradient norm is non-finite on ANY rank, in which case every rank skips the update.
-        ``draws`` replaces the generator's draws (tests slice a global batch's draws across ranks)."""
+        ``draws`` replaces the generator's draws (tests slice a global batch's draws across ranks).
+
+        Empty micro-batches (tolerant mode: every record of the batch was skipped) are stepped through, never
+        passed over: the loss is the mean over the step's samples on all ranks (each micro-batch weighted by its
+        sample count, :meth:`_micro_batch_weights`), an empty one weighs 0 and still runs forward and backward on
+        a stand-in (:meth:`_stand_in_loss`, no draw from this rank's generator), so the gradient all-reduce and
+        every other collective happen on every rank, and no 0/0 arises. If the step holds no sample on ANY rank
+        (at one rank without accumulation: every empty batch), there is nothing to learn from:
+        every rank skips the update as for a non-finite step (no optimizer, scheduler or EMA step: the LR
+        schedule counts updates), but the step counts (``Trainer.step`` advances: train.max_steps counts the
+        planned batches consumed) and is counted in ``empty_steps``, not in ``skipped_steps``; the non-finite
+        policy and budget ignore it. Every part of this is a function of the data, so exact resume holds."""
         model, device = self.model, self.dist.device
         accum = len(micro_batches)
+        weights = self._micro_batch_weights([len(batch["ids"]) for batch in micro_batches])
         loss_sum = torch.zeros((), device=device)
         for i, batch in enumerate(micro_batches):
             sync = i == accum - 1
             with nullcontext() if sync else self.dist.no_sync(model):
-                loss = self._micro_batch_loss(batch, None if draws is None else draws[i])
-                self.dist.backward(loss / accum)
-            loss_sum += loss.detach()
+                if batch["ids"]:
+                    loss = self._micro_batch_loss(batch, None if draws is None else draws[i])
+                else:
+                    loss = self._stand_in_loss(batch)
+                weighted = loss if isinstance(weights[i], float) and weights[i] == 1.0 else loss * weights[i]
+                self.dist.backward(weighted / accum)
+            loss_sum += weighted.detach()
         loss_mean = loss_sum / accum
         if self.cfg.optim.grad_clip > 0:
             grad_norm = self.dist.clip_grad_norm_(model.parameters(), self.cfg.optim.grad_clip)
@@ -432,12 +501,14 @@ class Trainer:
                 torch.stack([p.grad.detach().norm() for p in model.parameters() if p.grad is not None])
             )
         nonfinite = ~(torch.isfinite(loss_mean) & torch.isfinite(grad_norm))
-        signals = torch.tensor(self.stop_signal.flags(), device=device)
-        flags = self.dist.all_reduce_sum(torch.cat([nonfinite.float().view(1), signals, loss_mean.float().view(1)]))
+        samples = sum(len(batch["ids"]) for batch in micro_batches)
+        host_flags = torch.tensor([*self.stop_signal.flags(), float(samples)], device=device)
+        flags = self.dist.all_reduce_sum(torch.cat([nonfinite.float().view(1), loss_mean.float().view(1), host_flags]))
         # The one host sync per step: every rank reads the same sums, so every rank decides alike.
-        nonfinite_ranks, *signal_counts, loss_sum = flags.tolist()
+        nonfinite_ranks, loss_sum, *signal_counts, total_samples = flags.tolist()
         skip = nonfinite_ranks > 0
-        if skip:
+        empty = total_samples == 0
+        if skip or empty:
             self.optimizer.zero_grad(set_to_none=True)
         else:
             self.optimizer.step()
@@ -446,9 +517,15 @@ class Trainer:
             if self.step % self.cfg.optim.ema_every == 0:
                 self.ema.update(self.dist.unwrap(model))
         loss = loss_sum / self.dist.world_size
-        return StepResult(loss, grad_norm, skip, StopSignal.from_flags(signal_counts))
+        return StepResult(loss, grad_norm, skip, StopSignal.from_flags(signal_counts), empty=empty and not skip)
 
     def _handle_nonfinite(self, result: StepResult) -> None:
+        if result.empty:  # neither a non-finite step nor a normal one: counted apart, the budget untouched
+            self.empty_steps += 1
+            self.dist.log0("step %d: no rank had a sample (tolerant mode: every record of its batches was skipped); "
+                           "stepped through without an update (%d such step(s) so far)", self.step, self.empty_steps,
+                           level=logging.WARNING)
+            return
         if not result.skipped:
             self.consecutive_skips = 0
             return
@@ -515,7 +592,8 @@ class Trainer:
                       "normalization": self.manifest.data["normalization"],
                       "train_lengths": list(self.manifest.split("train")["lengths"])},
             extra={"samples_seen": self.samples_seen, "skipped_steps": self.skipped_steps,
-                   "consecutive_skips": self.consecutive_skips, "ema_updates": self.ema.num_updates,
+                   "consecutive_skips": self.consecutive_skips, "empty_steps": self.empty_steps,
+                   "ema_updates": self.ema.num_updates,
                    "model_config": dataclasses.asdict(self.model_config)},
         )
         ckpt.record_saved(self.ckpt_root, path)  # complete and in place: listed before keep_last may prune it
@@ -558,6 +636,7 @@ class Trainer:
         self.samples_seen = extra["samples_seen"]
         self.skipped_steps = extra["skipped_steps"]
         self.consecutive_skips = extra.get("consecutive_skips", 0)
+        self.empty_steps = extra.get("empty_steps", 0)
         self._last_saved_step = self.step
         self.dist.log0("resumed from %s at step %d", path, self.step)
         return Path(path)
@@ -643,8 +722,10 @@ class Trainer:
         """One metrics.jsonl line. Called on every rank at a log step (it sums the ranks' skipped records)."""
         stats = window.flush()
         grad_norm = float(result.grad_norm)
-        # Tolerant mode's records left out of their batches so far (this run and the runs it resumes), all ranks.
-        records_skipped = self.dist.all_reduce_sum(torch.tensor(self.loader.records_skipped, device=self.dist.device))
+        # Tolerant mode's records left out of their batches, and batches left empty, so far (this run and the runs
+        # it resumes), all ranks.
+        records_skipped, empty_batches = self.dist.all_reduce_sum(torch.tensor(
+            [self.loader.records_skipped, self.loader.empty_batches], device=self.dist.device)).tolist()
         return {
             "step": self.step,
             "loss": stats["loss"],  # None (JSON null) when every step of the window was skipped
@@ -655,7 +736,9 @@ class Trainer:
             "epoch": self.loader.epoch,
             "samples_seen": self.samples_seen,
             "skipped_steps": self.skipped_steps,
-            "records_skipped": int(records_skipped.item()),
+            "records_skipped": int(records_skipped),
+            "empty_batches": int(empty_batches),  # batches (all ranks) whose every record was skipped
+            "empty_steps": self.empty_steps,  # steps with no sample on any rank: no update
         }
 
     def _write_run_files(self) -> None:
@@ -688,8 +771,8 @@ class WindowStats:
         return out
 
     def add(self, result: StepResult, samples: int) -> None:
-        # A skipped (non-finite) step has no loss to average: it is counted in skipped_steps instead.
-        if not result.skipped:
+        # A skipped (non-finite) or empty step has no loss to average: it is counted in skipped_steps/empty_steps.
+        if not (result.skipped or result.empty):
             self.loss_sum += result.loss
             self.loss_steps += 1
         self.samples += samples

@@ -761,6 +761,53 @@ def test_tolerant_mode_skips_a_nonfinite_record_keeps_the_batches_and_resumes_ex
     assert bad_id not in {i for b in batches for i in b["ids"]}
 
 
+def test_a_batch_whose_every_record_is_bad_is_yielded_empty_so_every_rank_keeps_its_batches(tmp_path):
+    """Issue 12.3: a batch whose every record was skipped used to be passed over, so that rank yielded one batch
+    fewer per epoch than the others (at the end of an epoch it ran out a step early: a hang in the trainer's
+    collectives). Now it is an empty batch in its place: same keys, zero rows; counted."""
+    sizes = (6, 6, 7, 5)
+    manifest = write_fixture_dataset(tmp_path, sizes)
+    options = dict(batch_size=3, shuffle_buffer=4)
+    clean = [[b["ids"] for b in MotionLoader(manifest, "train", opts(**options), rank=r, world_size=2).iter_epoch()]
+             for r in (0, 1)]
+    bad = set(clean[1][1])  # every record of rank 1's second batch
+    for index in range(len(sizes)):
+        rewrite_tar(manifest, sizes, index, lambda records: [r["features"].__setitem__((3, 1), np.nan)
+                                                             for r in records if r["id"] in bad])
+    assert verify_shards(manifest, "train", mode="strict").verified  # only decoding finds them
+
+    loaders = [MotionLoader(manifest, "train", opts(tolerate_bad_data=True, **options), rank=r, world_size=2)
+               for r in (0, 1)]
+    epochs = [list(loader.iter_epoch()) for loader in loaders]
+    assert [len(batches) for batches in epochs] == [loader.batches_per_epoch(0) for loader in loaders] == [
+        len(ids) for ids in clean]
+    assert [b["ids"] for b in epochs[0]] == clean[0]
+    assert [b["ids"] for b in epochs[1]] == [[] if k == 1 else ids for k, ids in enumerate(clean[1])]
+    empty, full = epochs[1][1], epochs[1][0]
+    assert empty.keys() == full.keys()
+    for key, value in full.items():
+        if isinstance(value, torch.Tensor):
+            assert empty[key].shape == (0, *value.shape[1:]) and empty[key].dtype == value.dtype, key
+        else:
+            assert empty[key] == [], key
+    assert [loader.records_skipped for loader in loaders] == [0, 3]
+    assert [loader.empty_batches for loader in loaders] == [0, 1]
+    assert [(loader.epoch, loader.batches_in_epoch) for loader in loaders] == [(1, 0), (1, 0)]
+    # Resumed right after the empty batch: the same position and counts, then the same batches.
+    resumed = MotionLoader(manifest, "train", opts(tolerate_bad_data=True, **options), rank=1, world_size=2)
+    reference = MotionLoader(manifest, "train", opts(tolerate_bad_data=True, **options), rank=1, world_size=2)
+    _take_batches(reference, 2)
+    resumed.load_state_dict(reference.state_dict())
+    assert resumed.state_dict()["batches_in_epoch"] == 2 and resumed.empty_batches == 1
+    assert_batches_equal(list(resumed.iter_epoch()), epochs[1][2:])
+
+    # With token features the empty batch has them too, with their trailing sizes.
+    tokens = Collate(8, (), RecordSpec(feature_dim=DIM, text_dim=TEXT_DIM, token_features=True,
+                                       max_tokens=MAX_TOKENS)).empty_batch()
+    assert tokens["text_tokens"].shape == (0, MAX_TOKENS, TEXT_DIM) and tokens["text_token_len"].shape == (0,)
+    assert tokens["features"].shape == (0, 8, DIM) and tokens["mask"].shape == (0, 8)
+
+
 def _take_batches(loader: MotionLoader, count: int) -> list[dict]:
     batches = loader.iter_batches()
     return [next(batches) for _ in range(count)]
@@ -801,7 +848,7 @@ def test_a_shard_excluded_after_a_checkpoint_finishes_the_epoch_without_it(tmp_p
             again.load_state_dict(resumed.state_dict())
             continued = list(again.iter_epoch())
     expected = [[i for i in b["ids"] if i not in lost] for b in planned[saved_at:]]
-    assert [b["ids"] for b in rest] == [ids for ids in expected if ids]
+    assert [b["ids"] for b in rest] == expected  # a batch left with no record is yielded empty, in its place
     assert [b["ids"] for b in continued] == [b["ids"] for b in rest[2:]]
     assert resumed.records_skipped == again.records_skipped == sum(i in lost for b in planned[saved_at:]
                                                                    for i in b["ids"]) > 0

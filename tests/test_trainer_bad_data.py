@@ -2,6 +2,9 @@
 
 * a record that decodes to non-finite features is skipped and counted, and a run interrupted and resumed is still
   bit-identical to an uninterrupted one;
+* a batch whose every record is bad is not passed over: it is an empty batch that the trainer steps through (no
+  update at one rank), counted, every later step keeps its planned batch, and exact resume across it holds (the
+  same at two ranks, where the other rank's samples still train: tests/test_trainer_multirank.py);
 * a shard that goes bad after a checkpoint: the tolerant resume finishes the checkpoint's epoch with its plan
   without that shard's records (exactly the batches that were due, minus those records), plans later epochs
   without it and says so; a strict resume refuses with a hint that names a real option.
@@ -54,14 +57,17 @@ def copy_dataset(manifest: Path, to: Path) -> Path:
     return to / "manifest.json"
 
 
-def planned_batches(manifest: Path, overrides: list[str]) -> list[list[str]]:
-    """The sample ids of every batch of epoch 0 at one rank, from a loader built as the trainer builds its own."""
+def planned_batches(manifest: Path, overrides: list[str], *, rank: int = 0, world_size: int = 1,
+                    epochs: int = 1) -> list[list[str]]:
+    """The sample ids of every batch of the first ``epochs`` epochs at ``rank``, from a loader built as the trainer
+    builds its own."""
     cfg = load_config(TrainConfig, "tiny", overrides)
     options = LoaderOptions(batch_size=cfg.data.batch_size, num_workers=cfg.data.num_workers, seed=cfg.data.seed,
                             window=cfg.data.window, unit_length=cfg.data.unit_length,
                             shuffle_buffer=cfg.data.shuffle_buffer, caption_policy=cfg.data.caption_policy,
                             backend=backend_for_format(cfg.data.format))
-    return [batch["ids"] for batch in MotionLoader(manifest, "train", options).iter_epoch()]
+    loader = MotionLoader(manifest, "train", options, rank=rank, world_size=world_size)
+    return [batch["ids"] for _ in range(epochs) for batch in loader.iter_epoch()]
 
 
 def shard_of(manifest: Path, sample_id: str) -> str:
@@ -103,9 +109,19 @@ def final_data_state(run: Path) -> dict:
     return state["data"][0]
 
 
-def fit(monkeypatch, overrides: list[str], signal_at_step: int = NEVER) -> int:
+def fit(monkeypatch, overrides: list[str], signal_at_step: int = NEVER,
+        trained: dict[int, list[str]] | None = None) -> int:
+    """launch/train.py's main; ``trained`` (if given) collects the sample ids of every step, by step number."""
     monkeypatch.undo()  # patch_loss wraps whatever build_objective is in place: start from the real one
     patch_loss(monkeypatch, SignalAtStep(signal_at_step, signal.SIGINT))
+    if trained is not None:
+        real_step = Trainer.train_step
+
+        def recording_step(self, micro_batches, draws=None):
+            trained[self.step + 1] = [i for b in micro_batches for i in b["ids"]]
+            return real_step(self, micro_batches, draws)
+
+        monkeypatch.setattr(Trainer, "train_step", recording_step)
     return train_entry.main(["--config", "tiny", *overrides])
 
 
@@ -131,6 +147,56 @@ def test_tolerant_training_skips_a_nonfinite_record_and_resumes_bit_exactly(data
     for run in (run_a, run_b):
         metrics = metrics_by_step(run)
         assert [metrics[step]["records_skipped"] for step in sorted(metrics)] == [0] * 9 + [1] * (MAX_STEPS - 9)
+
+
+def test_a_batch_of_only_bad_records_is_an_empty_step_in_the_plan_and_resumes_bit_exactly(dataset, tmp_path,
+                                                                                          monkeypatch):
+    """Every record of the batch due at step 10 decodes to NaN. The loader used to pass that batch over, so step 10
+    trained the batch planned for step 11 and the rank ran one batch ahead of its plan for the rest of the run
+    (at several ranks: ahead of the other ranks). Now step 10 is an empty step: no sample, no update (one rank),
+    counted; every other step trains exactly its planned batch; a run interrupted before it and resumed ends
+    bit-identical to an uninterrupted one."""
+    manifest = copy_dataset(dataset, tmp_path / "data")
+    plan = planned_batches(manifest, resume_overrides(manifest, tmp_path / "plan"), epochs=2)
+    epoch_batches = len(plan) // 2
+    bad_step = 10  # after the interruption at step 7 and the checkpoint at step 5
+    bad_ids = plan[bad_step - 1]
+    for sample_id in bad_ids:
+        write_nan_into(manifest, sample_id)
+
+    run_a, run_b = tmp_path / "a", tmp_path / "b"
+    trained_a: dict[int, list[str]] = {}
+    trained_b: dict[int, list[str]] = {}
+    tolerant_a = resume_overrides(manifest, run_a, "data.verify=tolerant")
+    tolerant_b = resume_overrides(manifest, run_b, "data.verify=tolerant")
+    assert fit(monkeypatch, tolerant_a, trained=trained_a) == 0
+    assert fit(monkeypatch, tolerant_b, signal_at_step=7, trained=trained_b) == 130
+    assert complete_steps(run_b) == [5, 7]
+    assert fit(monkeypatch, tolerant_b, trained=trained_b) == 0
+
+    steps = range(1, MAX_STEPS + 1)
+    expected = {step: [i for i in plan[step - 1] if i not in bad_ids] for step in steps}  # bad in epoch 1 too
+    assert [step for step in steps if not expected[step]] == [bad_step]  # (in epoch 1 the bad records are spread)
+    assert trained_a == expected  # lockstep with the plan: the empty batch takes its step, nothing shifts
+    assert trained_b == expected
+    assert_runs_identical(run_a, run_b, MAX_STEPS)
+
+    _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(run_a) / ckpt.step_dir_name(MAX_STEPS))
+    data = state["data"][0]
+    assert (data["epoch"], data["batches_in_epoch"]) == (1, MAX_STEPS - epoch_batches)  # the planned position
+    skipped_so_far = [sum(i in bad_ids for ids in plan[:step] for i in ids) for step in steps]
+    assert data["records_skipped"] == skipped_so_far[-1] and data["empty_batches"] == 1
+    # One rank, one micro-batch: the step had no sample anywhere, so no update (optimizer, schedule, EMA).
+    assert state["extra"]["empty_steps"] == 1 and state["extra"]["skipped_steps"] == 0
+    assert state["extra"]["ema_updates"] == MAX_STEPS - 1 and state["scheduler"]["last_epoch"] == MAX_STEPS - 1
+    for run in (run_a, run_b):
+        metrics = metrics_by_step(run)
+        before, after = range(1, bad_step), range(bad_step, MAX_STEPS + 1)
+        assert [metrics[s]["records_skipped"] for s in sorted(metrics)] == skipped_so_far
+        assert [metrics[s]["empty_batches"] for s in sorted(metrics)] == [0] * len(before) + [1] * len(after)
+        assert [metrics[s]["empty_steps"] for s in sorted(metrics)] == [0] * len(before) + [1] * len(after)
+        assert metrics[bad_step]["loss"] is None  # nothing to average, not a NaN
+        assert all(metrics[s]["loss"] > 0 for s in metrics if s != bad_step)
 
 
 def test_tolerant_resume_after_a_shard_went_bad_finishes_the_epoch_without_it(dataset, tmp_path, monkeypatch,
@@ -163,7 +229,7 @@ def test_tolerant_resume_after_a_shard_went_bad_finishes_the_epoch_without_it(da
 
     assert "RESUMING WITH CHANGED SHARDS" in caplog.text and bad in caplog.text
     due = [[i for i in ids if i not in lost] for ids in planned[5:]]  # the rest of epoch 0, minus the shard
-    assert [trained[step] for step in range(6, 14)] == [ids for ids in due if ids]
+    assert [trained[step] for step in range(6, 14)] == due  # a batch left with no record is an empty step
     assert not lost & {i for step in range(14, MAX_STEPS + 1) for i in trained[step]}  # epoch 1: planned without it
     state = final_data_state(run)
     assert state["epoch"] == 1 and state["excluded_shards"] == [bad] and state["carried_epoch"] is None

@@ -2,6 +2,9 @@
 
 * data parallelism is exact: 2 ranks on halves of fixed global batches == 1 process on the whole batches;
 * a NaN on one rank makes every rank skip the same step (or all raise with nonfinite=stop), without a hang;
+* a batch whose every record is bad on one rank (tolerant mode) is an empty step on that rank, not passed over:
+  both ranks stay on their planned batches and at the same data position, the other rank's samples train with the
+  empty rank weighing nothing in the mean, and the skipped records are counted;
 * SIGTERM to one rank stops all ranks after the same step, with one complete checkpoint, exit code 143;
 * a run interrupted by that SIGTERM and later by a SIGKILL, resumed twice, ends bit-identical to an
   uninterrupted run (weights, EMA, optimizer, per-rank RNG and data position, per-step losses and sample ids);
@@ -42,6 +45,7 @@ from test_trainer import (
     results,
     run_worker,
 )
+from test_trainer_bad_data import copy_dataset, planned_batches, write_nan_into
 
 pytestmark = [pytest.mark.multirank, pytest.mark.slow]
 
@@ -125,6 +129,89 @@ def test_nan_with_nonfinite_stop_raises_on_every_rank(misc_launch):
     assert "train.nonfinite=stop" in results(out, 2)[0]["message"]
     assert complete_steps(out / "run") == []  # stopped before the update, nothing saved after it
     assert sorted(metrics_by_step(out / "run")) == [1]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# A batch of only bad records on one rank (tolerant mode; issue 12, item 3)
+# ---------------------------------------------------------------------------------------------------------------
+
+EMPTY_STEP = 3  # every record of rank 1's batch at this step decodes to NaN
+EMPTY_RUN_STEPS = 7  # an epoch is 5 batches per rank at 2 ranks: the run crosses into epoch 1
+
+
+@pytest.fixture(scope="module")
+def empty_batch_launch(dataset, workdir) -> dict[str, Any]:
+    """One torchrun launch: a tolerant run in which rank 1's whole batch at EMPTY_STEP is bad, then the
+    equivalence steps with rank 1's slice of global batch 2 empty. The subprocess timeout turns a hang into a
+    failure."""
+    root = workdir / "empty"
+    manifest = copy_dataset(dataset, root / "data")
+    overrides = [f"data.manifest={manifest}", "data.verify=tolerant", "train.log_every=1",
+                 f"train.max_steps={EMPTY_RUN_STEPS}", "train.save_every=100"]
+    plans = [planned_batches(manifest, overrides, rank=rank, world_size=2, epochs=2) for rank in (0, 1)]
+    assert len(plans[0]) == 10, "the dataset changed: adjust EMPTY_RUN_STEPS to cross the end of epoch 0"
+    bad_ids = plans[1][EMPTY_STEP - 1]
+    for sample_id in bad_ids:
+        write_nan_into(manifest, sample_id)
+    fit = fit_scenario(root / "fit", [*overrides, f"train.out_dir={root / 'fit' / 'run'}"])
+    equivalence = {"kind": "equivalence", "out": str(root / "equivalence"), "steps": EQUIVALENCE_STEPS,
+                   "empty_at": [1, [2]],
+                   "overrides": [f"data.manifest={dataset}", f"train.out_dir={root / 'equivalence' / 'run'}",
+                                 "model.dropout=0.0", "data.verify=tolerant"]}
+    proc = run_worker(TORCHRUN, [fit, equivalence], root, timeout=240)
+    return {"root": root, "proc": proc, "dataset": dataset, "plans": plans, "bad_ids": bad_ids}
+
+
+def test_a_batch_of_only_bad_records_on_one_rank_keeps_both_ranks_on_their_plan(empty_batch_launch):
+    """The loader used to pass the empty batch over: rank 1 then trained its next batch at that step and ran one
+    batch ahead of rank 0 (and of its plan) for the rest of the run, crossing into the next epoch a step early."""
+    launch = empty_batch_launch
+    out, plans, bad_ids = launch["root"] / "fit", launch["plans"], launch["bad_ids"]
+    assert results(out, 2) == [{"exit_code": 0}] * 2, output_of(launch["proc"])
+    steps = range(1, EMPTY_RUN_STEPS + 1)
+    for rank in (0, 1):  # the planned batch at every step, less the bad records (bad again in epoch 1)
+        expected = {step: [[i for i in plans[rank][step - 1] if i not in bad_ids]] for step in steps}
+        assert expected[EMPTY_STEP] == ([[]] if rank == 1 else [plans[0][EMPTY_STEP - 1]])
+        assert ids_by_step(out, rank) == expected, f"rank {rank} left its planned batches"
+    skipped_so_far = [sum(i in bad_ids for ids in plans[1][:step] for i in ids) for step in steps]
+
+    _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(out / "run") / ckpt.step_dir_name(EMPTY_RUN_STEPS))
+    epoch_batches = len(plans[0]) // 2
+    assert [(d["epoch"], d["batches_in_epoch"]) for d in state["data"]] == [(1, EMPTY_RUN_STEPS - epoch_batches)] * 2
+    assert [d["records_skipped"] for d in state["data"]] == [0, skipped_so_far[-1]]
+    assert [d["empty_batches"] for d in state["data"]] == [0, 1]
+    # Rank 0 had samples at that step: a real update on both ranks, nothing skipped.
+    extra = state["extra"]
+    assert extra["empty_steps"] == 0 and extra["skipped_steps"] == 0 and extra["ema_updates"] == EMPTY_RUN_STEPS
+    metrics = metrics_by_step(out / "run")
+    assert sorted(metrics) == list(range(1, EMPTY_RUN_STEPS + 1))
+    assert all(metrics[step]["loss"] > 0 for step in metrics)  # finite at the empty step too: rank 0's mean
+    assert [metrics[s]["records_skipped"] for s in sorted(metrics)] == skipped_so_far
+    assert [metrics[s]["empty_batches"] for s in sorted(metrics)] == [0, 0] + [1] * 5
+    # Every other sample of epoch 0 was trained once: nothing lost besides the bad records, nothing twice.
+    trained = [i for rank in (0, 1) for step in range(1, epoch_batches + 1) for i in ids_by_step(out, rank)[step][0]]
+    planned = [i for rank in (0, 1) for ids in plans[rank][:epoch_batches] for i in ids]
+    assert sorted(trained) == sorted(set(planned) - set(bad_ids)) and len(set(trained)) == len(trained)
+
+
+def test_an_empty_slice_on_one_rank_weighs_nothing_in_the_global_mean(empty_batch_launch, tmp_path):
+    """Rank 1's slice of global batch 2 is empty: the step must equal one process training on rank 0's slice
+    alone (the mean over the samples the step holds), with the gradient all-reduce done on both ranks."""
+    import trainer_worker
+
+    launch = empty_batch_launch
+    root, dataset = launch["root"] / "equivalence", launch["dataset"]
+    assert (root / "result-rank0.json").exists() and (root / "result-rank1.json").exists(), output_of(launch["proc"])
+    ranks = [torch.load(root / f"equivalence-rank{r}.pt") for r in (0, 1)]
+    assert_identical(ranks[0]["model"], ranks[1]["model"], "rank 0 vs rank 1 weights")
+
+    cfg = load_config(TrainConfig, "tiny", [f"data.manifest={dataset}", f"train.out_dir={tmp_path}",
+                                            "model.dropout=0.0"])
+    batches = trainer_worker.global_batches(cfg, EQUIVALENCE_STEPS, 2 * cfg.data.batch_size)
+    batches[1] = trainer_worker.slice_batch(*batches[1], part=0, parts=2)  # only rank 0's samples at step 2
+    with Dist(mixed_precision="no") as dist:
+        single = trainer_worker.run_equivalence(Trainer(cfg, dist), batches)
+    assert_equivalent(ranks[0], single)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -19,6 +19,8 @@ torch processes is most of the cost). Each scenario is a dict:
     snapshot_at   fit: [steps]: before and after each of these steps s, save weights, optimizer state and EMA to
                   OUT/snap-rank{r}-step{s-1}.pt and OUT/snap-rank{r}-step{s}.pt
     steps         equivalence: number of optimizer steps
+    empty_at      equivalence: [rank, [steps]]: that rank's slice of those global batches (1-based steps) is empty,
+                  as a batch whose every record was skipped in tolerant mode
 
 Each rank writes OUT/result-rank{r}.json: {"exit_code": int} after fit returns, or {"error": class name,
 "message"} before re-raising an exception (the process then exits non-zero, like launch/train.py). A non-zero
@@ -85,6 +87,10 @@ def _step_for_rank(spec: Sequence[int] | None, rank: int) -> int | None:
     return int(spec[1]) if spec and spec[0] == rank else None
 
 
+def _steps_for_rank(spec: Sequence[Any] | None, rank: int) -> set[int]:
+    return {int(s) for s in spec[1]} if spec and spec[0] == rank else set()
+
+
 class InstrumentedTrainer(Trainer):
     """The real trainer, recording what each step consumed and snapshotting state around chosen steps."""
 
@@ -147,9 +153,17 @@ def slice_batch(batch: Mapping[str, Any], draws: Draws, part: int, parts: int) -
     return sliced, Draws(draws.t[rows], draws.x0[rows], draws.cond_mask[rows])
 
 
-def run_equivalence(trainer: Trainer, batches: list[tuple[dict[str, Any], Draws]], micro_batches: int = 1) -> dict:
+def empty_slice(batch: Mapping[str, Any], draws: Draws) -> tuple[dict[str, Any], Draws]:
+    """No row of a batch: what the loader yields when every record of a batch was skipped (tolerant mode)."""
+    none = slice(0, 0)
+    return {k: v[none] for k, v in batch.items()}, Draws(draws.t[none], draws.x0[none], draws.cond_mask[none])
+
+
+def run_equivalence(trainer: Trainer, batches: list[tuple[dict[str, Any], Draws]], micro_batches: int = 1,
+                    empty_steps: Sequence[int] = ()) -> dict:
     """Each rank trains on its 1/world_size of every global batch (split further into ``micro_batches``
     accumulated micro-batches); returns the final weights, EMA, and per step the global loss and gradient norm.
+    At ``empty_steps`` (1-based) this rank's pieces are empty.
 
     AdamW's eps is raised to 1e-3 here: the attention key bias has an exactly-zero gradient in exact arithmetic
     (softmax ignores a shift), and with eps=1e-8 Adam turns the float rounding left there into lr-sized steps of
@@ -162,8 +176,10 @@ def run_equivalence(trainer: Trainer, batches: list[tuple[dict[str, Any], Draws]
     initial = {k: v.detach().clone() for k, v in dist.unwrap(trainer.model).state_dict().items()}
     parts = dist.world_size * micro_batches
     losses, grad_norms = [], []
-    for batch, draws in batches:
+    for step, (batch, draws) in enumerate(batches, start=1):
         pieces = [slice_batch(batch, draws, dist.rank * micro_batches + i, parts) for i in range(micro_batches)]
+        if step in empty_steps:
+            pieces = [empty_slice(batch, draws) for _ in pieces]
         result = trainer.train_step([p[0] for p in pieces], draws=[p[1] for p in pieces])
         trainer.step += 1
         losses.append(result.loss)
@@ -198,7 +214,8 @@ def run_scenario(scenario: Mapping[str, Any], dist: Dist) -> int:
         if scenario["kind"] == "equivalence":
             trainer = Trainer(cfg, dist)
             batches = global_batches(cfg, int(scenario["steps"]), cfg.data.batch_size * dist.world_size)
-            torch.save(run_equivalence(trainer, batches), out / f"equivalence-rank{dist.rank}.pt")
+            empty = _steps_for_rank(scenario.get("empty_at"), dist.rank)
+            torch.save(run_equivalence(trainer, batches, empty_steps=empty), out / f"equivalence-rank{dist.rank}.pt")
             code = 0
         else:
             code = InstrumentedTrainer(cfg, dist, scenario, faults).fit()
