@@ -316,11 +316,18 @@ class Dist:
 
     # -- teardown -----------------------------------------------------------------------------------------------
 
-    def close(self) -> None:
-        """Destroy the process group and forget accelerate's process-wide state, so a new Dist can be built."""
+    def close(self, *, wait_for_all: bool = True) -> None:
+        """Destroy the process group and forget accelerate's process-wide state, so a new Dist can be built.
+
+        ``wait_for_all``: first a barrier, so that no rank tears its process group down while another is still
+        in its last steps (without it, 1 of 8 two-rank CPU runs of the accelerate end-to-end test ended with a rank
+        aborting at teardown: "terminate called without an active exception"). Leaving with an exception skips
+        it: the other ranks may never get there."""
         if self._closed:
             return
         self._closed = True
+        if wait_for_all and self.world_size > 1:
+            self.barrier()
         self._accelerator.end_training()
         # accelerate keeps its state in process-wide singletons; a second Accelerator with other settings (a test,
         # or evaluation after training in one process) would otherwise raise or inherit the old settings.
@@ -330,6 +337,6 @@ class Dist:
     def __enter__(self) -> Dist:
         return self
 
-    def __exit__(self, *exc_info: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc_info: object) -> None:
+        self.close(wait_for_all=exc_type is None)
 
