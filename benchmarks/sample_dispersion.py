@@ -23,9 +23,7 @@ import json
 import torch
 
 from mfm.path import SIGMA_MIN
-from pipeline.contact_sheet import first_captions
-from pipeline.data import open_manifest
-from pipeline.inference import load_trained_model
+from flow_probe import load_probe_clips  # benchmarks/, on sys.path when run as a script
 
 
 def main() -> None:
@@ -36,17 +34,9 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
 
-    trained = load_trained_model(args.checkpoint)
-    if trained.objective != "flow":
-        raise SystemExit(f"{args.checkpoint} is a {trained.objective} model: this probe needs a velocity field")
-    captions = first_captions(open_manifest(trained.data["location"]), args.split)[: args.count]
-    lengths = torch.tensor([min(len(c.features), trained.window) for c in captions])
-    frames = int(lengths.max())
-    x1 = torch.zeros(len(captions), frames, trained.model_config.feature_dim)
-    for i, c in enumerate(captions):
-        x1[i, : lengths[i]] = trained.normalize(torch.as_tensor(c.features[: lengths[i]], dtype=torch.float32))
-    mask = (torch.arange(frames)[None] < lengths[:, None]).float()[..., None]
-    cond = trained.conditions(texts=[c.text for c in captions])
+    probe = load_probe_clips(args.checkpoint, args.split, args.count)
+    trained, captions, x1, lengths, mask, cond = (probe.trained, probe.captions, probe.x1, probe.lengths, probe.mask,
+                                                  probe.cond)
     generator = torch.Generator().manual_seed(args.seed)
 
     def temporal_spread(x: torch.Tensor) -> float:
