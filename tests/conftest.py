@@ -55,3 +55,10 @@ def load_launch_script(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def flip_byte(path: Path, offset: int) -> None:
+    """Invert one byte of ``path`` at ``offset``: a same-size corruption that only a hash can see."""
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0xFF
+    path.write_bytes(bytes(data))

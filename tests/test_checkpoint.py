@@ -12,6 +12,7 @@ import sys
 import numpy as np
 import pytest
 import torch
+from conftest import flip_byte
 from torch import nn
 
 import pipeline.checkpoint as ckpt
@@ -198,9 +199,7 @@ def test_broken_final_folder_is_not_complete(tmp_path, breakage):
 
 def test_same_size_corruption_is_caught_by_hash_on_load(tmp_path):
     path = save_step(tmp_path, 10)
-    data = bytearray((path / STATE_FILE).read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    (path / STATE_FILE).write_bytes(bytes(data))
+    flip_byte(path / STATE_FILE, (path / STATE_FILE).stat().st_size // 2)
     with pytest.raises(CorruptCheckpointError, match="sha256"):
         load_checkpoint(path)
 
@@ -423,9 +422,9 @@ def test_start_up_removes_unfinished_folders_of_dead_writers_only(tmp_path):
 def test_auto_resume_sets_a_corrupt_newest_checkpoint_aside_and_falls_back(tmp_path, caplog):
     for step in (10, 20, 30):
         save_step(tmp_path, step)
-    flipped = (tmp_path / "step-00000030" / MODEL_FILE).read_bytes()
-    flipped = flipped[:-8] + bytes([flipped[-8] ^ 0xFF]) + flipped[-7:]  # one flipped byte, same size
-    (tmp_path / "step-00000030" / MODEL_FILE).write_bytes(flipped)
+    model_file = tmp_path / "step-00000030" / MODEL_FILE
+    flip_byte(model_file, model_file.stat().st_size - 8)  # one flipped byte, same size
+    flipped = model_file.read_bytes()
     assert is_complete(tmp_path / "step-00000030")  # sizes alone do not see it
 
     with caplog.at_level(logging.WARNING, logger="pipeline.checkpoint"):
@@ -440,9 +439,7 @@ def test_auto_resume_sets_a_corrupt_newest_checkpoint_aside_and_falls_back(tmp_p
 
 def test_auto_resume_refuses_when_no_checkpoint_verifies(tmp_path):
     path = save_step(tmp_path, 10)
-    data = bytearray((path / STATE_FILE).read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    (path / STATE_FILE).write_bytes(bytes(data))
+    flip_byte(path / STATE_FILE, (path / STATE_FILE).stat().st_size // 2)
     with pytest.raises(CorruptCheckpointError, match="train.resume=never"):
         resolve_resume("auto", tmp_path)
     assert [p.name.split(".")[1].split("-")[0] for p in tmp_path.iterdir()] == ["corrupt"]

@@ -20,6 +20,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import torch
+from conftest import flip_byte as flip_one_byte
 
 from pipeline.data import (
     LoaderOptions,
@@ -559,9 +560,7 @@ def truncate(path: Path) -> None:
 
 
 def flip_byte(path: Path) -> None:
-    data = bytearray(path.read_bytes())
-    data[len(data) // 3] ^= 0xFF
-    path.write_bytes(bytes(data))
+    flip_one_byte(path, path.stat().st_size // 3)
 
 
 def delete(path: Path) -> None:

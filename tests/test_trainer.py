@@ -26,7 +26,7 @@ import torch
 import yaml
 
 import pipeline.trainer as trainer_module
-from conftest import REPO_ROOT, load_launch_script
+from conftest import REPO_ROOT, flip_byte, load_launch_script
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, from_dict, load_config, to_dict
 from pipeline.data import ShardVerificationError
@@ -168,12 +168,6 @@ def assert_runs_identical(run_a: Path, run_b: Path, step: int) -> None:
     deterministic = ("loss", "grad_norm", "lr", "epoch", "samples_seen", "skipped_steps", "records_skipped")
     for s in metrics_a:
         assert {k: metrics_a[s][k] for k in deterministic} == {k: metrics_b[s][k] for k in deterministic}, s
-
-
-def flip_byte(path: Path, offset: int) -> None:
-    data = bytearray(path.read_bytes())
-    data[offset] ^= 0xFF
-    path.write_bytes(bytes(data))
 
 
 # ---------------------------------------------------------------------------------------------------------------
