@@ -48,7 +48,7 @@ import re
 import shutil
 import socket
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -407,17 +407,24 @@ def is_complete(path: str | Path) -> bool:
 
 def list_complete(ckpt_root: str | Path) -> list[tuple[int, Path]]:
     """``(step, path)`` of every complete ``step-N`` folder, oldest first (empty if the folder does not exist)."""
+    return _step_folders(ckpt_root, is_complete)
+
+
+def _step_folders(ckpt_root: str | Path, usable: Callable[[Path], bool]) -> list[tuple[int, Path]]:
+    """``(step, path)`` of every ``step-N`` folder of ``ckpt_root`` that ``usable`` accepts, oldest first; the
+    others are logged as incomplete and skipped."""
     ckpt_root = Path(ckpt_root)
     if not ckpt_root.is_dir():
         return []
     found = []
     for child in ckpt_root.iterdir():
         match = _STEP_DIR.match(child.name)
-        if match and child.is_dir():
-            if is_complete(child):
-                found.append((int(match.group(1)), child))
-            else:
-                logger.warning("ignoring incomplete checkpoint folder %s", child)
+        if not (match and child.is_dir()):
+            continue
+        if usable(child):
+            found.append((int(match.group(1)), child))
+        else:
+            logger.warning("ignoring incomplete checkpoint folder %s", child)
     return sorted(found)
 
 
@@ -491,20 +498,15 @@ def _newest_verified(ckpt_root: Path) -> Path | None:
 def _finished(ckpt_root: Path) -> list[tuple[int, Path]]:
     """``(step, path)`` of every ``step-N`` folder with a valid marker (its save finished), oldest first; their
     files may since have changed. Folders without one are logged and skipped, as :func:`list_complete` does."""
-    if not ckpt_root.is_dir():
-        return []
-    found = []
-    for child in ckpt_root.iterdir():
-        match = _STEP_DIR.match(child.name)
-        if not (match and child.is_dir()):
-            continue
-        try:
-            read_marker(child)
-        except IncompleteCheckpointError:
-            logger.warning("ignoring incomplete checkpoint folder %s", child)
-            continue
-        found.append((int(match.group(1)), child))
-    return sorted(found)
+    return _step_folders(ckpt_root, _has_marker)
+
+
+def _has_marker(path: Path) -> bool:
+    try:
+        read_marker(path)
+    except IncompleteCheckpointError:
+        return False
+    return True
 
 
 def _check_nothing_newer(path: Path, step: int, ckpt_root: Path, discard: bool) -> None:
