@@ -580,7 +580,14 @@ def remove_stale_tmp(ckpt_root: str | Path) -> list[Path]:
 
 def _pid_alive(pid: int) -> bool:
     """Whether ``pid`` is a running process on this host other than this one."""
-    if pid == os.getpid() or pid <= 0:
+    return pid != os.getpid() and process_exists(pid)
+
+
+def process_exists(pid: int) -> bool:
+    """Whether a process with this pid exists on this host (signal 0 checks without signalling; the evaluator's
+    claims use it too). ``PermissionError`` means it exists under another user: alive. Not a valid pid (0 and
+    negative ones would address a process group; too large for the OS): False. A reused pid reads as alive."""
+    if pid <= 0:
         return False
     try:
         os.kill(pid, 0)

@@ -39,6 +39,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pipeline.checkpoint import process_exists
+
 logger = logging.getLogger(__name__)
 
 RESULTS_SUBDIR = "results"
@@ -98,20 +100,6 @@ def this_pid_namespace() -> str | None:
         return None
 
 
-def pid_alive(pid: int) -> bool:
-    """Whether a process with this pid exists on this host (signal 0 checks without signalling).
-
-    ``PermissionError`` means it exists under another user: alive. A reused pid reads as alive, which only delays
-    the takeover to the heartbeat timeout, never steals a live job's unit."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def dead_holder(claim: Mapping[str, Any] | None) -> str | None:
     """Why the claim's holder is certainly dead (its pid is gone on this very host and pid namespace), or None
     when that cannot be told from here (another host or namespace, an unreadable claim, a live pid)."""
@@ -122,7 +110,7 @@ def dead_holder(claim: Mapping[str, Any] | None) -> str | None:
         return None
     if namespace is not None and namespace != this_pid_namespace():
         return None
-    if pid_alive(pid):
+    if process_exists(pid):  # a reused pid reads as alive: only delays the takeover to the heartbeat timeout
         return None
     return f"its job, pid {pid} on this host ({claim['host']}), is no longer running"
 
