@@ -554,11 +554,12 @@ def motion_amount(joints: Any, fps: float, lengths: Any = None, root: int = 0) -
         raise ValueError(f"fps must be positive, got {fps}")
     pos = _clips(joints)
     n, t = pos.shape[:2]
-    in_clip = _frame_mask(_lengths_or_full(lengths, n, t) - 1, t - 1)  # (N, T-1) frame pairs inside each clip
+    lens = _lengths_or_full(lengths, n, t)
+    in_clip = _frame_mask(lens - 1, t - 1)  # (N, T-1) frame pairs inside each clip
     local = pos - pos[:, :, root : root + 1]
     local_speed = np.linalg.norm(np.diff(local, axis=1), axis=-1).mean(axis=-1) * fps  # (N, T-1)
     root_speed = np.linalg.norm(np.diff(pos[:, :, root, [0, 2]], axis=1), axis=-1) * fps
-    frames = _frame_mask(_lengths_or_full(lengths, n, t), t)[..., None, None]  # (N, T, 1, 1)
+    frames = _frame_mask(lens, t)[..., None, None]  # (N, T, 1, 1)
     count = frames.sum(axis=1)  # (N, 1, 1)
     centre = np.where(frames, local, 0.0).sum(axis=1, keepdims=True) / count[:, None]  # (N, 1, J, 3)
     square = np.where(frames, local - centre, 0.0) ** 2
