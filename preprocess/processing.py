@@ -251,7 +251,11 @@ class _WorkerState:
 
 
 _WORKER: _WorkerState | None = None
-_START_METHOD = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+# Never plain fork: the building process may already run threads (torch's OpenMP pool, tokenizers, tqdm's
+# monitor), and a child forked while one of them holds a lock can block forever; this hung a CI run of the
+# test suite. A fork server is a fresh interpreter that imports this module once and forks each worker from
+# a single-threaded state (Python 3.14's default on Linux for the same reason); spawn where there is none.
+_START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 
 
 @contextmanager
@@ -314,9 +318,8 @@ def process_source(
 
     ``workers > 1`` uses a process pool; results come back through ``imap``, which keeps order, so the
     output does not depend on the worker count. Closing the generator early terminates the pool.
-    The pool forks where the platform can (as torch's DataLoader does: workers start at once and share the
-    parent's imports; each sets torch to one thread, so no OpenMP pool is used after the fork), and spawns
-    elsewhere (the source must then pickle, which the source contract asks anyway).
+    Workers come from a fork server where the platform has one and are spawned elsewhere (see
+    ``_START_METHOD``); either way the source is pickled to them, which the source contract asks anyway.
     """
     if workers <= 1:
         with single_threaded_torch():
@@ -326,5 +329,7 @@ def process_source(
     # Small chunks keep the ordered stream flowing; larger ones cut pickling overhead on big sources.
     chunksize = max(1, min(16, len(items) // (workers * 8)))
     context = multiprocessing.get_context(_START_METHOD)
+    if _START_METHOD == "forkserver":
+        context.set_forkserver_preload([__name__])  # import torch and the features once, not per worker
     with context.Pool(workers, initializer=_init_worker, initargs=(source, skeleton, settings)) as pool:
         yield from pool.imap(_process_item, items, chunksize=chunksize)
