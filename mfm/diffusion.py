@@ -64,8 +64,10 @@ DIFFUSION_PRESETS: dict[str, dict] = {
     "flame": dict(num_steps=1000, schedule="cosine", prediction="eps", learn_sigma=True, lambda_vlb=1e-3),
     # FlowMDM parser defaults: 1000 cosine steps, x0 prediction, sigma_small, MSE only.
     "flowmdm": dict(num_steps=1000, schedule="cosine", prediction="x0", learn_sigma=False),
+    # MDM's defaults (FlowMDM inherits them): the same process; named apart so converted MDM checkpoints say so.
+    "mdm": dict(num_steps=1000, schedule="cosine", prediction="x0", learn_sigma=False),
 }
-"""Keyword arguments of :class:`GaussianDiffusion` for the two reference baselines."""
+"""Keyword arguments of :class:`GaussianDiffusion` for the reference baselines."""
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -451,7 +453,7 @@ class GaussianDiffusion:
 
 
 def diffusion_from_preset(name: str, **overrides) -> GaussianDiffusion:
-    """A :class:`GaussianDiffusion` from :data:`DIFFUSION_PRESETS` (``'flame'``, ``'flowmdm'``) with overrides."""
+    """A :class:`GaussianDiffusion` from :data:`DIFFUSION_PRESETS` (``'flame'``, ``'flowmdm'``, ``'mdm'``) with overrides."""
     if name not in DIFFUSION_PRESETS:
         raise ValueError(f"unknown diffusion preset {name!r}; known: {sorted(DIFFUSION_PRESETS)}")
     return GaussianDiffusion(**{**DIFFUSION_PRESETS[name], **overrides})

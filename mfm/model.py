@@ -9,12 +9,14 @@ Token sequence seen by the encoder (default, ``conditioning='prefix'``), batch-f
 * Time ``t ∈ [0, 1]`` (noise at 0, data at 1) goes through a *continuous* sinusoidal embedding of ``t·1000`` and a
   Linear-SiLU-Linear MLP. MFM looks ``(t*1000).long()`` up in the positional table instead; the continuous form is
   identical at integer points but does not collapse an adaptive solver's nearby evaluation times onto one embedding
-  (a piecewise-constant field in ``t`` makes dopri5's error estimate meaningless).
+  (a piecewise-constant field in ``t`` makes dopri5's error estimate meaningless). ``time_grid='floor'`` /
+  ``'nearest'`` reproduce MFM's / MDM's lookup for converted checkpoints (:mod:`mfm.reference_weights`).
 * The condition (pooled text embedding projected by a Linear, or a learned action embedding) is *added* to the time
   embedding, as in MFM/MDM. Classifier-free training zeroes the raw condition for ``cond_drop_prob`` of the samples;
   ``cond_mask`` forces the drop per sample so a sampler can batch its conditional and unconditional halves.
 * Unlike MFM (which attends over the 196-frame zero padding), padded frames are masked out of attention with a
-  boolean key-padding mask and their outputs are zeroed, so a clip's velocity does not depend on how it was padded.
+  boolean key-padding mask and their outputs are zeroed, so a clip's velocity does not depend on how it was padded
+  (``attend_padding=True`` is MFM's behaviour, for converted checkpoints).
 
 The HumanML3D preset (263, 512, 1024, 8 layers, 4 heads, CLIP cond 512, post-norm) has exactly 17,880,327
 parameters, the same as MFM's ``MDM_Flow`` without CLIP (17.88 M). Every option below is off by default and adds
@@ -66,6 +68,8 @@ ACTIVATIONS = {"gelu": F.gelu, "relu": F.relu, "silu": F.silu}
 POSITIONAL_ENCODINGS = ("absolute", "bpe")
 CONDITIONINGS = ("prefix", "pccat", "cross_attention")
 PREDICTIONS = ("velocity", "data", "preconditioned")
+TIME_GRIDS = ("continuous", "floor", "nearest")
+POSITIONAL_TABLES = ("computed", "stored")
 CONDITION_SCALINGS = ("none", "rms")
 
 # MFM feeds the sinusoidal table with t*1000 (its diffusion-step scale); keep the scale so the embedding matches.
@@ -120,6 +124,24 @@ class ModelConfig:
     """One of CONDITIONINGS: 'prefix' (MFM), 'pccat' (FlowMDM), 'cross_attention' (FLAME)."""
     token_dim: int | None = None
     """cross_attention: size of the token-level text features (manifest ``text_encoder.dim``); None = cond_dim."""
+    time_grid: str = "continuous"
+    """How ``t`` reaches the time sinusoid (one of TIME_GRIDS). 'continuous' (ours): the sinusoid of ``t·1000``.
+    'floor' (MFM's ``MDM_Flow``, for converted checkpoints): ``(t·1000).long()`` in float32, i.e. t rounded down
+    to the 1/1000 grid before the table lookup. 'nearest' (MDM's integer diffusion steps, which our diffusion code
+    passes as ``step/1000``): rounded to the nearest grid point, which recovers the integer step exactly. The
+    three agree wherever ``t·1000`` is an integer in float32."""
+    attend_padding: bool = False
+    """False (ours): padded frames are masked out of attention, so a clip's output does not depend on how it was
+    padded. True (MFM/MDM, for converted checkpoints): every frame is a key, padding included, as the reference
+    ``nn.TransformerEncoder`` runs without a key-padding mask, and padded frames' outputs are left as computed
+    (ours zeroes them), so under a sampler the padding evolves as in the reference and its content reaches the
+    valid frames as there. Only with ``positional='absolute'`` and ``conditioning='prefix'``."""
+    positional_table: str = "computed"
+    """Where the sinusoid table comes from (one of POSITIONAL_TABLES). 'computed' (ours): computed on the CPU at
+    construction and never saved. 'stored' (for converted checkpoints): a saved buffer holding the reference's own
+    table, which MFM/MDM computed on their device and differs from ours by float32 rounding (up to 3e-5 in the
+    first 1,000 rows of the 64-wide golden model, 2.4e-4 near row 5,000); with ``time_grid`` 'floor'/'nearest' the
+    time embedding then looks its rows up as the reference does."""
     cond_scaling: str = "none"
     """How a text embedding is scaled before its projection (one of CONDITION_SCALINGS). 'none': as given (MFM/MDM,
     whose CLIP ``encode_text`` output has a norm near 10). 'rms': to unit root-mean-square per channel
@@ -185,6 +207,14 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.cond_scaling must be one of {CONDITION_SCALINGS}, got {self.cond_scaling!r}"
             )
+        if self.positional_table not in POSITIONAL_TABLES:
+            raise ValueError(f"ModelConfig.positional_table must be one of {POSITIONAL_TABLES}, got "
+                             f"{self.positional_table!r}")
+        if self.time_grid not in TIME_GRIDS:
+            raise ValueError(f"ModelConfig.time_grid must be one of {TIME_GRIDS}, got {self.time_grid!r}")
+        if self.attend_padding and (self.positional != "absolute" or self.conditioning != "prefix"):
+            raise ValueError("ModelConfig.attend_padding is MFM/MDM's behaviour: it needs positional='absolute' and "
+                             f"conditioning='prefix', got {self.positional!r} and {self.conditioning!r}")
         if self.prediction not in PREDICTIONS:
             raise ValueError(f"ModelConfig.prediction must be one of {PREDICTIONS}, got {self.prediction!r}")
         if self.prediction != "velocity" and self.output_size != self.feature_dim:
@@ -600,15 +630,31 @@ class EncoderLayer(nn.Module):
 
 
 class TimeEmbedding(nn.Module):
-    """Continuous sinusoid of ``t·1000`` → Linear → SiLU → Linear (MDM's TimestepEmbedder, without rounding)."""
+    """Sinusoid of ``t·1000`` → Linear → SiLU → Linear (MDM's TimestepEmbedder); continuous by default, on MFM's or
+    MDM's integer grid with ``grid`` (ModelConfig.time_grid)."""
 
-    def __init__(self, latent_dim: int) -> None:
+    def __init__(self, latent_dim: int, grid: str = "continuous") -> None:
         super().__init__()
         self.latent_dim = latent_dim
+        self.grid = grid
         self.mlp = nn.Sequential(nn.Linear(latent_dim, latent_dim), nn.SiLU(), nn.Linear(latent_dim, latent_dim))
 
-    def forward(self, t: torch.Tensor) -> torch.Tensor:
-        return self.mlp(sinusoidal_embedding(t.float() * TIME_SCALE, self.latent_dim))
+    def positions(self, t: torch.Tensor) -> torch.Tensor:
+        """The sinusoid's argument for times ``t``: ``t·1000``, floored or rounded on the reference grids."""
+        scaled = t.float() * TIME_SCALE  # float32 like the reference, so the floor lands where MFM's does
+        if self.grid == "floor":
+            return scaled.long().float()
+        if self.grid == "nearest":
+            return scaled.round()
+        return scaled
+
+    def forward(self, t: torch.Tensor, table: torch.Tensor | None = None) -> torch.Tensor:
+        """``table``: a stored (rows, latent) sinusoid table to look grid positions up in (the reference's rows);
+        None computes the sinusoid."""
+        positions = self.positions(t)
+        if table is not None and self.grid != "continuous":
+            return self.mlp(table[positions.long()])
+        return self.mlp(sinusoidal_embedding(positions, self.latent_dim))
 
 
 class MotionFlowTransformer(nn.Module):
@@ -619,7 +665,7 @@ class MotionFlowTransformer(nn.Module):
         self.config = config
         d = config.latent_dim
         self.input_proj = nn.Linear(config.feature_dim, d)
-        self.time_embedding = TimeEmbedding(d)
+        self.time_embedding = TimeEmbedding(d, config.time_grid)
         if config.is_action_model:
             # MDM's EmbedAction: an N(0, 1) table, zeroed (not replaced) when the condition is dropped.
             self.action_embedding = nn.Embedding(config.num_actions, d)
@@ -627,9 +673,11 @@ class MotionFlowTransformer(nn.Module):
             self.cond_proj = nn.Linear(config.cond_dim, d)
         if config.length_token:
             self.length_embedding = nn.Embedding(config.max_frames + 1, d)
-        # Not persistent: it is a pure function of (max_len, d), so checkpoints stay small and max_len can change.
+        # Computed: not persistent, a pure function of (max_len, d), so checkpoints stay small and max_len can
+        # change. Stored: a converted checkpoint's own table (ModelConfig.positional_table).
         self.register_buffer(
-            "positional_table", sinusoidal_embedding(torch.arange(config.max_len), d), persistent=False
+            "positional_table", sinusoidal_embedding(torch.arange(config.max_len), d),
+            persistent=config.positional_table == "stored",
         )
         self.layers = nn.ModuleList(
             EncoderLayer(
@@ -698,7 +746,7 @@ class MotionFlowTransformer(nn.Module):
         if config.length_token and lengths is None:
             lengths = torch.full((batch,), num_frames, dtype=torch.long, device=x.device)
 
-        time = self.time_embedding(t)
+        time = self.time_embedding(t, self.positional_table if config.positional_table == "stored" else None)
         aux = self._auxiliary_tokens(time, cond, cond_mask, lengths)
         if config.prediction == "preconditioned":
             path_time = t.to(x.device).float().reshape(-1).expand(batch)
@@ -726,7 +774,7 @@ class MotionFlowTransformer(nn.Module):
             # The fp32 table promotes the residual stream to fp32 under autocast; only the matmuls run in bf16.
             tokens = tokens + self.positional_table[: tokens.shape[1]]
             key_mask = None
-            if frame_mask is not None:
+            if frame_mask is not None and not config.attend_padding:
                 aux_valid = torch.ones(batch, len(aux), dtype=torch.bool, device=x.device)
                 key_mask = torch.cat([aux_valid, frame_mask], dim=1)[:, None, None, :]
             attention = DenseAttention(key_mask)
@@ -747,7 +795,7 @@ class MotionFlowTransformer(nn.Module):
         elif config.prediction == "preconditioned":
             x1_hat = c_skip * x.float() + c_out * velocity.float()
             velocity = velocity_from_data(x1_hat, x.float(), t.to(x.device).float())
-        if frame_mask is not None:
+        if frame_mask is not None and not config.attend_padding:
             velocity = velocity * frame_mask.unsqueeze(-1)
         return velocity.to(x.dtype)
 

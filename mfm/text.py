@@ -248,6 +248,9 @@ def build_minilm(*, weights: str | Path | None = None, device: str = "cpu") -> M
 CLIP_MODEL_NAME = "ViT-B-32"
 CLIP_MAX_CONTEXT = 77  # positional embeddings of the tower; shorter tokenisations are zero-padded to it
 MDM_CONTEXT_LENGTH = 22  # MDM/MFM: clip.tokenize(..., context_length=20 + 2, truncate=True)
+OPENAI_VIT_B_32_SHA256 = "40d365715913c9da98579312b702a82c18be219cc2a73407c4526f58eba950af"
+"""sha256 of OpenAI's ViT-B-32.pt, the CLIP that MDM and MFM load (``clip.load('ViT-B/32')``): OpenAI's clip
+package and open_clip's 'openai' tag download it from a URL that carries this hash and check it."""
 _RANDOM_INIT_SEED = 0  # random init is seeded so a test dataset and its sampler agree
 # Keys of a CLIP checkpoint that are not text-tower weights (attn_mask: a derived buffer some exports keep).
 _CLIP_NON_TEXT_KEYS = ("logit_scale", "logit_bias", "input_resolution", "context_length", "vocab_size", "attn_mask")

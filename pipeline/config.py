@@ -170,8 +170,9 @@ class TrainLoopConfig:
     flow_bone_weight: float = 0.0
     """objective=flow: weight of ``mfm.flow.bone_length_loss`` (bone lengths of the implied motion against the
     clip's, m²), added to the flow loss. 0 = MFM."""
-    diffusion: Literal["flowmdm", "flame"] = "flowmdm"
-    """With objective=diffusion: flowmdm = 1000-step cosine, x0-prediction; flame = cosine, eps-prediction with
+    diffusion: Literal["flowmdm", "flame", "mdm"] = "flowmdm"
+    """With objective=diffusion: flowmdm = 1000-step cosine, x0-prediction (mdm: the same process, the name
+    converted MDM checkpoints carry); flame = cosine, eps-prediction with
     learned variance and the hybrid loss L_simple + lambda * L_vlb (the model then outputs 2 x feature_dim)."""
 
     def __post_init__(self) -> None:

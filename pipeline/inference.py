@@ -67,7 +67,7 @@ class TrainedModel:
     device: torch.device
     window: int  # frames per training sample: the longest motion the model has learnt
     objective: str = "flow"  # the training objective: "flow" (velocity field) or "diffusion" (denoiser)
-    diffusion_preset: str | None = None  # diffusion models: "flowmdm" or "flame" (mfm.diffusion.DIFFUSION_PRESETS)
+    diffusion_preset: str | None = None  # diffusion models: "flowmdm", "flame" or "mdm" (mfm.diffusion.DIFFUSION_PRESETS)
     diffusion: GaussianDiffusion | None = None  # diffusion models: the process they were trained on
 
     @cached_property

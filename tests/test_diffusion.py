@@ -336,8 +336,9 @@ def test_loss_rejects_a_denoiser_with_the_wrong_number_of_channels():
     with pytest.raises(ValueError, match="schedule"):
         GaussianDiffusion(schedule="sigmoid")
     with pytest.raises(ValueError, match="preset"):
-        diffusion_from_preset("mdm")
-    assert set(DIFFUSION_PRESETS) == {"flame", "flowmdm"}
+        diffusion_from_preset("ddim")
+    assert set(DIFFUSION_PRESETS) == {"flame", "flowmdm", "mdm"}
+    assert DIFFUSION_PRESETS["mdm"] == DIFFUSION_PRESETS["flowmdm"]  # FlowMDM keeps MDM's process
 
 
 # ---------------------------------------------------------------------------------------------- sampling
