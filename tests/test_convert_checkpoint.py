@@ -299,3 +299,32 @@ def test_a_converted_checkpoint_samples_edits_and_is_evaluated(tmp_path, clip_we
     scored = [r for r in results if r["checkpoint_dataset_id"].startswith("humanml3d:mfm-reference:")]
     assert scored and all(np.isfinite(r["fid"]) and np.isfinite(r["r_precision_top1"]) for r in scored)
     assert any("edit_prediction_ade" in r for r in scored)
+
+
+def test_a_kit_state_dict_converts_with_the_kit_feature_spec_and_its_step(tmp_path):
+    from mfm.text import OPENAI_VIT_B_32_SHA256
+    from pipeline.inference import load_trained_model
+
+    state = reference_key_set(251, 64, 128, 2)
+    for key, value in state.items():
+        if "pe" not in key.split(".")[-1]:
+            value.normal_(0, 0.02)
+    source = tmp_path / "model000200000.pt"
+    torch.save(state, source)
+    stats = tmp_path / "motionfm" / "dataset" / "KIT-ML"
+    stats.mkdir(parents=True)
+    np.save(stats / "Mean.npy", np.zeros(251, np.float32))
+    np.save(stats / "Std.npy", np.ones(251, np.float32))
+    assert convert("--from", "mdm", str(source), "--dataset", "kit", "--reference-root", str(tmp_path / "motionfm"),
+                   "--out", str(tmp_path / "kit")) == 0
+    trained = load_trained_model(tmp_path / "kit")
+    assert trained.step == 200_000 and trained.checkpoint.name == "step-00200000"
+    spec = trained.data["feature_spec"]
+    assert (spec["skeleton"], spec["dim"], spec["num_joints"], spec["fps"]) == ("kit", 251, 21, 12.5)
+    assert trained.objective == "diffusion" and trained.diffusion_preset == "mdm"
+    assert trained.model_config.time_grid == "nearest"
+    assert trained.data["text_encoder"]["weights_sha256"] == OPENAI_VIT_B_32_SHA256
+    assert trained.data["normalization"]["files"]["std"]["path"].endswith("KIT-ML/Std.npy")
+    with torch.no_grad():  # the diffusion code passes step/1000: the reference's integer step is recovered
+        steps = torch.arange(1000)
+        assert torch.equal(trained.model.time_embedding.positions(trained.diffusion.model_time(steps)).long(), steps)
