@@ -10,6 +10,9 @@ outputs in pipeline/sampling.py and pipeline/composing.py.
     python launch/sample.py --checkpoint runs/tiny --extrapolate --text "a person walks" --length 100 \\
         --num-segments 10 --out out/long
 
+Flow edits use --edit-settings paper (MFM paper: 30 Euler steps, ς = 0.2, guidance 1.0) unless --steps, --guidance or
+--rewrite-until override a value (results.json records the settings and what was overridden).
+
 --checkpoint takes a step-XXXXXXXX folder or a run folder (its newest complete checkpoint; EMA weights unless
 --model-weights model). Per sample: sample_NNN/{features.npy, joints.npy, motion.mp4|gif, motion.bvh,
 keep_mask.npy (edits), trajectory.png (--plot-trajectory)}, all described in results.json. joints.npy is recovered
@@ -35,8 +38,16 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from mfm.editing import DEFAULT_EDIT_SETTINGS, EDIT_SETTINGS
 from pipeline.composing import parse_switch, run_composition
-from pipeline.sampling import EDIT_PRESETS, JOINT_DECODES, SampleRequest, SamplingError, read_prompts, run_sampling
+from pipeline.sampling import (
+    EDIT_PRESETS,
+    JOINT_DECODES,
+    SampleRequest,
+    SamplingError,
+    read_prompts,
+    run_sampling,
+)
 
 
 def key_value(text: str) -> tuple[str, str]:
@@ -64,16 +75,22 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--length", action="append", type=int, default=[], help="frames: once for all prompts or once per prompt")
     add("--seconds", action="append", type=float, default=[], help="like --length, in seconds")
     add("--num-samples", type=int, default=1, help="samples per prompt (default 1)")
-    add("--steps", type=int, help="solver steps (default 10; diffusion: every training step, respaced if given)")
+    add("--steps", type=int, help="solver steps (default 10, flow edits: the edit settings' 30; diffusion: every "
+                                  "training step, respaced if given)")
     add("--solver", help="flow: euler (default), midpoint, heun, rk4 or a torchdiffeq method such as dopri5; "
                          "diffusion: ddpm (default) or ddim")
-    add("--guidance", type=float, default=2.5, help="classifier-free guidance scale (default 2.5)")
+    add("--guidance", type=float, help="classifier-free guidance scale (default 2.5; flow edits: the edit "
+                                       "settings' 1.0, as MFM's edit.py)")
     add("--seed", type=int, default=0)
     add("--batch-size", type=int, default=64)
     add("--edit", choices=sorted(EDIT_PRESETS), help="edit --source-motion instead of sampling from noise")
     add("--source-motion", help=".npy of un-normalised features (T, D) or joint positions (T, J, 3)")
     add("--keep", action="append", type=key_value, default=[], metavar="KEY=VALUE", help="edit mask option")
-    add("--rewrite-until", type=float, help="edit: rewrite the kept part up to this time ς (default per preset)")
+    add("--rewrite-until", type=float, help="edit: rewrite the kept part up to this time ς (default: the edit "
+                                            "settings')")
+    add("--edit-settings", choices=sorted(EDIT_SETTINGS), default=DEFAULT_EDIT_SETTINGS,
+        help="flow edits: paper (default; N = 30 steps, ς = 0.2, guidance 1.0) or reference-debug (MFM edit.py's "
+             "debug presets: 100 steps, ς per task)")
     add("--compose", metavar="FILE.json", help='FlowMDM prompt file {"text": [...], "lengths": [...]}: one sequence')
     add("--extrapolate", action="store_true", help="one text repeated over segments (--compose file or --text with "
                                                    "--length per segment / --num-segments)")
@@ -106,7 +123,8 @@ def main(argv: list[str] | None = None) -> int:
             seconds=args.seconds, num_samples=args.num_samples, steps=args.steps, solver=args.solver,
             guidance=args.guidance, seed=args.seed, batch_size=args.batch_size, weights=args.model_weights,
             device=args.device, text_weights=args.text_weights, edit=args.edit, source_motion=args.source_motion,
-            keep=dict(args.keep), rewrite_until=args.rewrite_until, video=not args.no_video,
+            keep=dict(args.keep), rewrite_until=args.rewrite_until, edit_settings=args.edit_settings,
+            video=not args.no_video,
             video_format=args.video_format, bvh=not args.no_bvh, plot_trajectory=args.plot_trajectory,
             decode=args.decode, overwrite=args.overwrite, compose_file=args.compose, extrapolate=args.extrapolate,
             num_segments=args.num_segments, switch=args.switch, attention_chunk=args.attention_chunk,

@@ -18,7 +18,9 @@ The source motion must be in the model's feature space, i.e. normalised with the
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -109,6 +111,57 @@ def edit(
 
 
 # ---------------------------------------------------------------------------------------------------
+# settings: steps, ς and guidance of a flow edit
+
+
+@dataclass(frozen=True)
+class EditSettings:
+    """How a flow edit integrates: Euler steps, ς per preset, guidance scale, and where the values come from."""
+
+    name: str
+    steps: int
+    rewrite_until: Mapping[str, float]
+    """ς per mask preset (EDIT_MASK_PRESETS) and ``'joints'`` (a custom joint/frame mask)."""
+    guidance: float
+    source: str
+
+    def rewrite_time(self, preset: str) -> float:
+        if preset not in self.rewrite_until:
+            raise ValueError(f"edit settings {self.name!r} have no ς for preset {preset!r}")
+        return float(self.rewrite_until[preset])
+
+    def record(self) -> dict[str, Any]:
+        """What a results file says about these settings."""
+        return {"settings": self.name, "steps": self.steps, "rewrite_until": dict(self.rewrite_until),
+                "guidance": self.guidance, "source": self.source}
+
+
+_EDIT_KINDS = ("prediction", "inbetween", "interpolation", "upper_body", "joints")
+
+EDIT_SETTINGS: dict[str, EditSettings] = {
+    "paper": EditSettings(
+        name="paper", steps=30, rewrite_until={kind: 0.2 for kind in _EDIT_KINDS}, guidance=1.0,
+        source="MFM paper: N = 30 Euler steps, rewriting until ς = 0.2; guidance 1.0 as the reference edit.py sets "
+               "(cfg.guidance_param = 1.0, i.e. the conditional field alone)"),
+    "reference-debug": EditSettings(
+        name="reference-debug", steps=100,
+        rewrite_until={"prediction": 0.5, "inbetween": 1.0, "interpolation": 1.0, "upper_body": 0.1, "joints": 0.1},
+        guidance=1.0,
+        source="motionfm edit.py is_debug presets: step_size 0.01, edit_till in_between 1.0, upper_body 0.1, "
+               "prediction 0.5 (interpolation keeps config_base's edit_till 1.0; our custom joints mask takes the "
+               "upper body's 0.1)"),
+}
+"""Named edit settings; ``'paper'`` is the default everywhere (launch/sample.py edits and the evaluator)."""
+DEFAULT_EDIT_SETTINGS = "paper"
+
+
+def edit_settings(name: str) -> EditSettings:
+    if name not in EDIT_SETTINGS:
+        raise ValueError(f"unknown edit settings {name!r}; known: {', '.join(EDIT_SETTINGS)}")
+    return EDIT_SETTINGS[name]
+
+
+# ---------------------------------------------------------------------------------------------------
 # masks (True = keep)
 
 
@@ -156,12 +209,15 @@ def inbetween_mask(
 def interpolation_mask(
     lengths: Sequence[int] | Tensor, num_frames: int, layout: FeatureLayout, *, every: int = 5
 ) -> Tensor:
-    """(B, T, D): keep every ``every``-th frame (0, k, 2k, … of the whole window, as the reference), generate the
-    frames between. ``lengths`` fixes the batch size and is validated against ``num_frames``."""
+    """(B, T, D): keep frames 0, k, 2k, … below ``⌊T/k⌋·k`` of the whole window (MFM's edit.py keeps
+    ``i·k for i in range(T // k)``: frames 0 … 190 of a 196-frame window, not 195), generate the frames between.
+    ``lengths`` fixes the batch size and is validated against ``num_frames``."""
     if not isinstance(every, int) or every < 1:
         raise ValueError(f"every must be a positive int, got {every!r}")
     lengths = check_lengths(lengths, num_frames)
-    keep = (torch.arange(num_frames) % every == 0).unsqueeze(0).expand(lengths.shape[0], -1)
+    frames = torch.arange(num_frames)
+    on_grid = (frames % every == 0) & (frames < (num_frames // every) * every)
+    keep = on_grid.unsqueeze(0).expand(lengths.shape[0], -1)
     return _frames_to_feature_mask(keep, layout)
 
 

@@ -9,9 +9,10 @@ import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from mfm.composition import BABEL_SWITCH, HUMANML3D_SWITCH
+from mfm.editing import EDIT_SETTINGS
 from mfm.solvers import is_adaptive
 from pipeline.config import ConfigError, coerce_fields, load_config, parse_yaml
 
@@ -135,17 +136,46 @@ class TasksConfig:
     """MFM Table 3 tasks, mfm.editing presets; empty: none. Needs a fixed-step solver."""
     editing_replications: int = 0
     """0: as many as protocol.replications."""
-    edit_rewrite_until: dict[str, float] = dataclasses.field(default_factory=lambda: {
-        "prediction": 1.0, "inbetween": 1.0, "interpolation": 1.0, "upper_body": 0.1})
-    """ς per preset (MFM's edit.py values)."""
+    edit_settings: str = "paper"
+    """Flow edits' steps, ς and guidance (mfm.editing.EDIT_SETTINGS): 'paper' (MFM paper: 30 Euler steps, ς = 0.2,
+    guidance 1.0 as its edit.py) or 'reference-debug' (edit.py's debug presets: 100 steps, ς per task). Edits
+    integrate with these steps and guidance whatever the sampling point's (a diffusion model's replacement edits
+    use the point's sampler, steps and guidance)."""
+    edit_rewrite_until: dict[str, float] = dataclasses.field(default_factory=dict)
+    """ς per preset overriding the settings' (e.g. {upper_body: 0.1}); empty: the settings' values."""
+    edit_steps: int = 0
+    """Euler steps of a flow edit; 0: the settings'."""
+    edit_guidance: float | None = None
+    """Guidance scale of a flow edit; null: the settings'."""
+    edit_restore_known: bool = False
+    """Diffusion edits: copy the source into the kept part of the output after the last step. false (FLAME, and
+    what the flow edits do): the kept part is what the sampler made of it, so both methods are scored alike."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)
         unknown = [p for p in self.editing if p not in EDIT_PRESETS]
         _require(not unknown, f"tasks.editing: unknown preset(s) {unknown}; known: {list(EDIT_PRESETS)}")
         _require(self.editing_replications >= 0, "tasks.editing_replications must be >= 0")
-        missing = [p for p in self.editing if p not in self.edit_rewrite_until]
-        _require(not missing, f"tasks.edit_rewrite_until has no value for {missing}")
+        _require(self.edit_settings in EDIT_SETTINGS,
+                 f"tasks.edit_settings must be one of {list(EDIT_SETTINGS)}, got {self.edit_settings!r}")
+        unknown = [p for p in self.edit_rewrite_until if p not in EDIT_PRESETS]
+        _require(not unknown, f"tasks.edit_rewrite_until: unknown preset(s) {unknown}; known: {list(EDIT_PRESETS)}")
+        _require(all(0.0 <= v <= 1.0 for v in self.edit_rewrite_until.values()),
+                 f"tasks.edit_rewrite_until values must be in [0, 1], got {self.edit_rewrite_until}")
+        _require(self.edit_steps >= 0, f"tasks.edit_steps must be >= 0 (0: the settings'), got {self.edit_steps}")
+
+    def edit_setup(self) -> dict[str, Any]:
+        """The flow edits' settings as run: name, steps, ς per preset, guidance, and the overridden values."""
+        settings = EDIT_SETTINGS[self.edit_settings]
+        record = settings.record()
+        record["rewrite_until"] = {p: self.edit_rewrite_until.get(p, settings.rewrite_time(p)) for p in EDIT_PRESETS}
+        record["steps"] = self.edit_steps or settings.steps
+        record["guidance"] = settings.guidance if self.edit_guidance is None else self.edit_guidance
+        record["overridden"] = ([f"rewrite_until.{p}" for p in self.edit_rewrite_until]
+                                + (["steps"] if self.edit_steps else [])
+                                + (["guidance"] if self.edit_guidance is not None else []))
+        record["diffusion_restore_known"] = self.edit_restore_known
+        return record
         _require(self.text_to_motion or self.composition,
                  "tasks.text_to_motion and tasks.composition are both false: nothing to evaluate")
 

@@ -384,7 +384,8 @@ def points_for(trained: TrainedModel, points: Sequence[SamplingPoint]) -> tuple[
 @torch.no_grad()
 def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], lengths: Tensor,
              seeds: Sequence[int], point: SamplingPoint, sampling: SamplingConfig, *, known: Tensor | None = None,
-             keep: Tensor | None = None, rewrite_until: float = 1.0) -> tuple[Tensor, int]:
+             keep: Tensor | None = None, rewrite_until: float = 1.0, restore_known: bool = False
+             ) -> tuple[Tensor, int]:
     """Sample (or, with ``known``/``keep``, edit) one batch with the sampling code; raw (un-normalised) features,
     zero past each length, and the number of (guided) model evaluations.
 
@@ -405,7 +406,7 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
         else:
             denoise = classifier_free_guidance(model, cond, scale=point.guidance, lengths=lengths, guided_channels=dim)
             result = replacement_edit(denoise, schedule, known, keep, sampler=point.solver, lengths=lengths,
-                                      generator=generator)
+                                      generator=generator, restore_known=restore_known)
     else:
         velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths)
         x0 = draw_noise((len(seeds), num_frames, dim), seeded_generators(seeds), lengths=lengths,
@@ -433,9 +434,14 @@ class PointRun:
         check_point(ctx.trained, point)
         editable = ctx.trained.objective == "diffusion" or point.solver in FIXED_STEP_SOLVERS
         self.edit_presets: tuple[str, ...] = cfg.tasks.editing if editable else ()
+        # Flow edits integrate with the edit settings' Euler steps and guidance (MFM paper: 30, 1.0), not the
+        # sampling point's; a diffusion model's replacement edits run on the point's sampler and steps.
+        self.edit_setup = cfg.tasks.edit_setup()
+        self.edit_point = point if ctx.trained.objective == "diffusion" else dataclasses.replace(
+            point, solver="euler", steps=self.edit_setup["steps"], guidance=self.edit_setup["guidance"])
         self.notes: list[str] = list(ctx.notes)
         if cfg.tasks.editing and not self.edit_presets:
-            self.notes.append(f"editing skipped: trajectory rewriting needs a fixed-step solver, not {point.solver}")
+            self.notes.append(f"editing skipped: edits run at fixed-step sampling points only, not {point.solver}")
         self.generated: list[dict[str, float | None]] = []
         self.ground_truth: list[dict[str, float | None]] = []
         self.edited: dict[str, list[dict[str, float]]] = defaultdict(list)
@@ -514,8 +520,9 @@ class PointRun:
                 gt_raw, _ = self.gt.padded(batch.items, device)
                 known = self.trained.normalize(gt_raw) * valid_frame_mask(lengths, gt_raw.shape[1]).unsqueeze(-1)
                 keep = edit_mask(preset, lengths.cpu(), gt_raw.shape[1], self.layout).to(device)
-                raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.point, self.cfg.sampling,
-                                    known=known, keep=keep, rewrite_until=self.cfg.tasks.edit_rewrite_until[preset])
+                raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.edit_point, self.cfg.sampling,
+                                    known=known, keep=keep, rewrite_until=self.edit_setup["rewrite_until"][preset],
+                                    restore_known=self.cfg.tasks.edit_restore_known)
             else:
                 raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.point, self.cfg.sampling)
         stats: dict[str, Any] = {"nfe": nfe, "rows": len(batch.items), "seconds": self.timer.seconds[phase] - before}
@@ -634,6 +641,16 @@ class PointRun:
 
     # -- result ------------------------------------------------------------------------------------------------
 
+    def _editing_settings(self) -> dict[str, Any]:
+        """How the edits ran: flow trajectory rewriting with the edit settings, or FLAME's replacement on the
+        point's sampler; and whether the kept part was copied into the output."""
+        if self.trained.objective == "diffusion":
+            return {"method": "replacement (FLAME)", "sampler": self.point.solver, "steps": self.point.steps,
+                    "guidance": self.point.guidance, "restore_known": self.cfg.tasks.edit_restore_known}
+        setup = {k: v for k, v in self.edit_setup.items() if k != "diffusion_restore_known"}
+        return {"method": "trajectory rewriting (MFM)", "solver": "euler", **setup,
+                "rewrite_until": {p: setup["rewrite_until"][p] for p in self.edit_presets}}
+
     def result(self) -> dict[str, Any]:
         rows = sum(r for _, r in self.nfe)
         nfe = sum(n * r for n, r in self.nfe) / rows
@@ -642,6 +659,7 @@ class PointRun:
             "metrics": summarise(self.generated),
             "ground_truth": summarise(self.ground_truth),
             "editing": {preset: summarise(values) for preset, values in self.edited.items()},
+            "editing_settings": self._editing_settings() if self.edited else None,
             "nfe": nfe,
             "model_passes_per_motion": nfe * passes,
             "generation_seconds_per_motion": sum(s for s, _ in self.gen_seconds) / rows,

@@ -287,6 +287,10 @@ def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
     generated.update(_flatten(result["metrics"]))
     for preset, values in result["editing"].items():
         generated.update(_flatten(values, prefix=f"edit_{preset}_"))
+    edits = result.get("editing_settings")
+    if edits:  # which edit settings the edit_* columns were measured with
+        generated.update(edit_method=edits["method"], edit_settings=edits.get("settings"),
+                         edit_steps=edits["steps"], edit_guidance=edits["guidance"])
     truth = {**base, "row_kind": "ground_truth", "row_key": f"{result['key']}:ground_truth"}
     truth.update(_flatten(result["ground_truth"]))
     return [generated, truth]

@@ -65,7 +65,15 @@ from mfm import metrics
 from mfm.composition import BoundInputs
 from mfm.diffusion import GaussianDiffusion
 from mfm.diffusion_sampling import SAMPLERS, replacement_edit, sample_diffusion
-from mfm.editing import edit, edit_mask, joint_frame_mask, motion_to_features
+from mfm.editing import (
+    DEFAULT_EDIT_SETTINGS,
+    EDIT_SETTINGS,
+    EditSettings,
+    edit,
+    edit_mask,
+    joint_frame_mask,
+    motion_to_features,
+)
 from mfm.export import plot_x1_trajectory, render_motion, write_bvh
 from mfm.export.bvh import JOINT_CHANNELS, ROOT_CHANNELS
 from mfm.export.render import Captions
@@ -102,9 +110,6 @@ EDIT_PRESETS: dict[str, str | None] = {
     "upper-body": "upper_body",
     "joints": None,
 }
-# ς per preset: MFM's edit.py uses 1.0 for in-betweening/prediction and 0.1 for the upper body (a body-part mask
-# blends better when the kept part is released early); the custom joints mask is a body-part mask too.
-DEFAULT_REWRITE_UNTIL = {"prediction": 1.0, "inbetween": 1.0, "interpolate": 1.0, "upper-body": 0.1, "joints": 0.1}
 # ``--keep KEY=VALUE`` options each preset accepts, with their parsers.
 KEEP_OPTIONS: dict[str, dict[str, type]] = {
     "prediction": {"prefix": float},
@@ -129,6 +134,7 @@ def known_solvers() -> list[str]:
 
 DEFAULT_FLOW_SOLVER = "euler"
 DEFAULT_FLOW_STEPS = 10
+DEFAULT_GUIDANCE = 2.5  # MFM's sampling scale (its generate.py and evaluation)
 DEFAULT_DIFFUSION_SAMPLER = "ddpm"  # FLAME's and FlowMDM's sampler; its default steps are the training steps
 # How joints.npy (and the video) are decoded from the features, as results.json describes them.
 JOINT_DECODES = {
@@ -155,7 +161,7 @@ class SampleRequest:
     num_samples: int = 1  # per prompt (without prompts: in total, unconditional); composition: sequences
     steps: int | None = None  # None: 10 for flow models, every training step (1000) for diffusion models
     solver: str | None = None  # None: "euler" (flow) or "ddpm" (diffusion); see the module docstring
-    guidance: float = 2.5
+    guidance: float | None = None  # None: DEFAULT_GUIDANCE, or the edit settings' scale for a flow edit
     seed: int = 0
     batch_size: int = 64
     weights: str = "ema"  # "ema" (falls back to the raw weights when the run kept none) or "model"
@@ -164,7 +170,8 @@ class SampleRequest:
     edit: str | None = None  # a key of EDIT_PRESETS
     source_motion: str | Path | None = None
     keep: Mapping[str, str] = dataclasses.field(default_factory=dict)  # preset options (KEEP_OPTIONS)
-    rewrite_until: float | None = None  # ς; None: DEFAULT_REWRITE_UNTIL[edit]
+    rewrite_until: float | None = None  # ς; None: the edit settings' value for the preset
+    edit_settings: str = DEFAULT_EDIT_SETTINGS  # flow edits: steps, ς and guidance (mfm.editing.EDIT_SETTINGS)
     video: bool = True
     video_format: str = "auto"  # "auto" (MP4 if ffmpeg is on PATH, else GIF), "mp4" or "gif"
     bvh: bool = True
@@ -222,6 +229,8 @@ class SampleRequest:
             raise SamplingError("edit 'joints' needs keep joints=NAME,NAME,... (the joints taken from the source)")
         if self.rewrite_until is not None and not 0.0 <= self.rewrite_until <= 1.0:
             raise SamplingError(f"rewrite_until must be in [0, 1], got {self.rewrite_until}")
+        if self.edit_settings not in EDIT_SETTINGS:
+            raise SamplingError(f"unknown edit settings {self.edit_settings!r}; known: {', '.join(EDIT_SETTINGS)}")
 
     @property
     def composes(self) -> bool:
@@ -256,8 +265,23 @@ class SampleRequest:
                                 f"{self.attention_chunk!r}")
 
     @property
+    def settings(self) -> EditSettings:
+        """The flow edit's settings (``edit_settings``); explicit steps, guidance and ς override them."""
+        return EDIT_SETTINGS[self.edit_settings]
+
+    @property
     def rewrite_time(self) -> float:
-        return DEFAULT_REWRITE_UNTIL[self.edit] if self.rewrite_until is None else float(self.rewrite_until)
+        if self.rewrite_until is not None:
+            return float(self.rewrite_until)
+        return self.settings.rewrite_time(EDIT_PRESETS[self.edit] or "joints")
+
+    def guidance_for(self, objective: str) -> float:
+        """The guidance scale: as given, else the edit settings' for a flow edit, else DEFAULT_GUIDANCE."""
+        if self.guidance is not None:
+            return float(self.guidance)
+        if self.edit is not None and objective == "flow":
+            return self.settings.guidance
+        return DEFAULT_GUIDANCE
 
 
 @dataclasses.dataclass(frozen=True)
@@ -464,7 +488,8 @@ def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integra
         if solver in SAMPLERS:
             raise SamplingError(f"{trained.checkpoint} is a flow-matching model (train.objective=flow): {solver!r} is "
                                 f"a diffusion sampler; use an ODE solver ({', '.join(known_solvers())})")
-        return Integrator("flow", solver, request.steps or DEFAULT_FLOW_STEPS)
+        default_steps = request.settings.steps if request.edit is not None else DEFAULT_FLOW_STEPS
+        return Integrator("flow", solver, request.steps or default_steps)
     sampler = request.solver or DEFAULT_DIFFUSION_SAMPLER
     if sampler not in SAMPLERS:
         raise SamplingError(f"{trained.checkpoint} is a diffusion model (train.objective=diffusion, preset "
@@ -561,7 +586,7 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
         batch_conditions, scale = placeholder_conditions(trained, len(specs)), 0.0
     else:
         batch_conditions = conditions.select(torch.tensor([s.prompt for s in specs]))
-        scale = request.guidance
+        scale = request.guidance_for(integrator.objective)
     model = conditioned_model(trained, batch_conditions)
     cond = batch_conditions.cond
     keep = None
@@ -698,6 +723,11 @@ def _edit_record(request: SampleRequest, integrator: Integrator, source: SourceM
         "source_frames": int(source.features.shape[0]),
         "options": dict(options),
         "rewrite_until": None if diffusion else request.rewrite_time,
+        # Flow edits: the named settings and what this edit overrode (steps, guidance and ς given explicitly).
+        "settings": None if diffusion else {
+            **request.settings.record(),
+            "overridden": [name for name, value in (("steps", request.steps), ("guidance", request.guidance),
+                                                   ("rewrite_until", request.rewrite_until)) if value is not None]},
         "kept_frame_ranges": _ranges(keep.any(axis=1)),
         "kept_dim_ranges": _ranges(keep.any(axis=0)),
         "kept_fraction": round(float(keep.mean()), 6),
@@ -752,7 +782,7 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
         "mode": mode,
         "conditioning": "text" if request.texts or request.compose_file else "action" if request.actions else "none",
         **integrator.record(trained),
-        "guidance": request.guidance if conditioned else 0.0,
+        "guidance": request.guidance_for(integrator.objective) if conditioned else 0.0,
         "seed": request.seed,
         "device": str(trained.device),
         "plausibility_thresholds": metrics.plausibility_settings(trained.skeleton),

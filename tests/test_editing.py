@@ -183,8 +183,10 @@ def test_frame_masks_have_the_right_shapes_and_counts(layout):
 
     interp = interpolation_mask(lengths, frames, layout, every=5)
     assert interp.shape == (3, frames, d)
-    assert interp[:, :, 0].sum(1).tolist() == [40, 40, 40]
-    assert interp[:, 0].all() and interp[:, 195].all() and not interp[:, 1].any()
+    # MFM's edit.py keeps i·5 for i in range(196 // 5): frames 0 … 190, 39 of them (195 is generated)
+    assert interp[:, :, 0].sum(1).tolist() == [39, 39, 39]
+    assert interp[:, 0].all() and interp[:, 190].all() and not interp[:, 195].any() and not interp[:, 1].any()
+    assert interpolation_mask([20], 20, layout, every=5)[0, :, 0].nonzero().flatten().tolist() == [0, 5, 10, 15]
     for mask in (pred, between, interp):  # frame masks keep whole frames
         assert torch.equal(mask.all(-1), mask.any(-1))
     assert torch.equal(edit_mask("inbetween", lengths, frames, layout), between)

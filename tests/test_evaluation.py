@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+import torch
 
 from conftest import embedded_dataset_once
 from eval_worker import (
@@ -29,6 +30,7 @@ from eval_worker import (
     random_contrastive_evaluator,
     train_tiny_model,
 )
+from mfm.model import valid_frame_mask
 from pipeline.config import ConfigError
 from pipeline.eval_config import load_eval_config, sweep_overrides
 from pipeline.eval_replications import my_batches, plan_protocol, plan_repeats, plan_rows
@@ -100,6 +102,13 @@ def test_protocol_presets_and_sweep_flags():
         load_eval_config("slow")
     with pytest.raises(ConfigError, match="unknown preset"):
         load_eval_config("fast", overrides=["tasks.editing=[teleport]"])
+    debug = load_eval_config("fast", overrides=["tasks.edit_settings=reference-debug",
+                                                "tasks.edit_rewrite_until={upper_body: 0.3}"]).tasks.edit_setup()
+    assert (debug["settings"], debug["steps"], debug["guidance"]) == ("reference-debug", 100, 1.0)
+    assert debug["rewrite_until"] == {"prediction": 0.5, "inbetween": 1.0, "interpolation": 1.0, "upper_body": 0.3}
+    assert debug["overridden"] == ["rewrite_until.upper_body"]
+    with pytest.raises(ConfigError, match="tasks.edit_settings"):
+        load_eval_config("fast", overrides=["tasks.edit_settings=debug"])
     with pytest.raises(ConfigError, match="mm_times"):
         load_eval_config("fast", overrides=["protocol.mm_times=50"])
 
@@ -295,6 +304,11 @@ def test_evaluate_checkpoint_with_a_steps_sweep(text_run, trained_evaluator, tmp
     for preset in ("prediction", "upper_body"):
         edited = result["editing"][preset]
         assert {"fid", "diversity", "ade", "fde"} <= set(edited) and edited["ade"]["ci"] is None  # 1 replication
+    # Edits at the MFM paper's settings whatever the sampling point (1 or 3 steps, guidance 2.5)
+    edits = result["editing_settings"]
+    assert (edits["method"], edits["settings"], edits["solver"], edits["steps"], edits["guidance"]) == \
+        ("trajectory rewriting (MFM)", "paper", "euler", 30, 1.0)
+    assert edits["rewrite_until"] == {"prediction": 0.2, "upper_body": 0.2} and edits["overridden"] == []
     # Plausibility medians beside the ground truth's; contact_foot_speed may be undefined (feet off the floor).
     for section in (result["metrics"], result["ground_truth"], *result["editing"].values()):
         assert PLAUSIBILITY - {"contact_foot_speed"} <= set(section)
@@ -313,6 +327,7 @@ def test_evaluate_checkpoint_with_a_steps_sweep(text_run, trained_evaluator, tmp
         assert row["evaluator_id"] == evaluator_id and row["protocol"] == "fast" and row["solver"] == "euler"
         assert row["dataset_id"] == result["data"]["dataset_id"] and "fid_ci" in row and "r_precision_top3" in row
     assert "edit_upper_body_ade" in rows[0] and pq.read_table(out / "results.parquet").num_rows == 4
+    assert (rows[0]["edit_settings"], rows[0]["edit_steps"], rows[0]["edit_guidance"]) == ("paper", 30, 1.0)
     assert {"foot_skating_ratio", "jerk_ratio", "edit_prediction_jerk_ratio"} <= set(rows[0])
     assert "foot_skating_ratio" in rows[1]
     assert (out / "plots" / "fid_vs_nfe_step-00000002.png").stat().st_size > 0
@@ -417,7 +432,32 @@ def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, text_ru
         if result["checkpoint"]["objective"] == "diffusion":
             assert result["checkpoint"]["diffusion_preset"] == "flame"
         assert np.isfinite(result["metrics"]["fid"]["mean"]) and set(result["editing"]) == {"prediction", "upper_body"}
+        if result["checkpoint"]["objective"] == "diffusion":  # FLAME's replacement, on the point's sampler, no copy
+            assert result["editing_settings"] == {"method": "replacement (FLAME)", "sampler": "ddim",
+                                                  "steps": result["sampling"]["steps"], "guidance": 2.5,
+                                                  "restore_known": False}
     assert (tmp_path / "e" / "plots" / "fid_vs_nfe_all.png").is_file()  # both runs in one plot
+
+    # Both methods leave the kept part as their sampler made it (FLAME's rule); copying it back is an option.
+    from pipeline.eval_config import SamplingConfig, SamplingPoint
+    from pipeline.eval_replications import generate
+    from pipeline.inference import load_trained_model
+
+    lengths = torch.tensor([12, 9])
+    known = torch.randn(2, 12, 263) * valid_frame_mask(lengths, 12).unsqueeze(-1)
+    keep = torch.zeros(2, 12, 263, dtype=torch.bool)
+    keep[:, :4] = True
+    for path, point in ((flow_checkpoint, SamplingPoint("euler", 4, 2.5)), (checkpoint, SamplingPoint("ddim", 2, 2.5))):
+        trained = load_trained_model(path)
+        cond = torch.zeros(2, trained.model_config.cond_dim)
+        for restore in (False, True):
+            raw, _ = generate(trained, cond, {}, lengths, [1, 2], point, SamplingConfig(), known=known, keep=keep,
+                              restore_known=restore)
+            gap = (trained.normalize(raw) - known)[keep].abs().max()
+            if restore and trained.objective == "diffusion":
+                assert gap < 1e-5  # copied back
+            else:
+                assert gap > 1e-3, (path, restore)  # what the sampler made of it
 
 
 def test_cross_attention_model_gets_the_captions_token_features(tmp_path_factory, tmp_path):

@@ -169,6 +169,7 @@ def test_inbetween_edit_keeps_the_source_frames_and_records_the_mask(text_run, t
                      "--source-motion", str(source_file), "--keep", "prefix=0.2", "--rewrite-until", "1",
                      "--steps", "50", "--no-bvh", "--seed", "1")  # other noise than the source's
     assert files_on_disk(out) == files_described(results)
+    assert results["guidance"] == 1.0  # the edit settings' scale (MFM's edit.py), not sampling's 2.5
     trained = load_trained_model(text_run)
     src = trained.normalize(torch.from_numpy(np.load(source_file))).numpy()
     for s in results["samples"]:
@@ -199,7 +200,15 @@ def test_upper_body_edit_from_joints_colours_the_generated_joints(text_run, tmp_
     (record,) = [s["edit"] for s in results["samples"]]
     assert results["conditioning"] == "none" and results["guidance"] == 0.0
     assert record["source_kind"] == "joints" and record["source_frames"] == 24  # joints -> features drops a frame
-    assert results["samples"][0]["length"] == 24 and record["rewrite_until"] == 0.1
+    # MFM paper's edit settings by default: 30 Euler steps, rewriting until 0.2
+    assert results["samples"][0]["length"] == 24 and record["rewrite_until"] == 0.2 and results["steps"] == 30
+    assert record["settings"]["settings"] == "paper" and record["settings"]["overridden"] == []
+    debug = sample(text_run, tmp_path / "debug", "--edit", "upper-body", "--source-motion", str(joints_file),
+                   "--edit-settings", "reference-debug", "--steps", "12", "--no-bvh", "--no-video")
+    (debug_record,) = [s["edit"] for s in debug["samples"]]
+    assert debug_record["rewrite_until"] == 0.1 and debug["steps"] == 12  # edit.py's upper-body ς; --steps wins
+    assert debug_record["settings"]["settings"] == "reference-debug"
+    assert debug_record["settings"]["overridden"] == ["steps"]
     layout = FeatureLayout(load_trained_model(text_run).skeleton)
     keep = np.load(out / "sample_000" / "keep_mask.npy")
     np.testing.assert_array_equal(keep, np.broadcast_to(layout.lower_body_mask, keep.shape))
