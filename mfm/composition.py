@@ -5,8 +5,9 @@ A list of (condition, length) segments is generated as ONE sequence of Σ length
 * per frame: the index of its segment (``segments``: absolute positions restart there and absolute-mode attention
   stays inside it) and, for a ``'pccat'`` model, the text embedding of its segment (``frame_cond``);
 * the ODE is integrated with every evaluation at flow time ``t < switch`` in the model's absolute mode and every
-  later one in relative mode. FlowMDM uses absolute positions for the first ``bpe_denoising_step`` of its 1000
-  reverse diffusion steps (60 HumanML3D, 125 Babel) and relative ones after; flow matching runs noise → data over
+  later one in relative mode. FlowMDM's ``bpe_denoising_step`` k (60 HumanML3D, 125 Babel) switches at t > 1000 − k:
+  the first k − 1 of its 1000 reverse diffusion steps use absolute positions, relative ones from step 1000 − k on
+  (``BPE_Schedule``: relative iff t ≤ 1000 − k); flow matching runs noise → data over
   t = 0 → 1, so the absolute part is the start of the interval. :func:`flow_time_of_diffusion_step` converts
   FlowMDM's step count into the flow time with the same signal-to-noise ratio (``HUMANML3D_SWITCH``,
   ``BABEL_SWITCH``); ``switch`` also takes a number of leading solver steps;
@@ -70,8 +71,8 @@ def flow_time_of_diffusion_step(
 ) -> float:
     """Flow time at which FlowMDM's BPE schedule switches from absolute to relative mode.
 
-    FlowMDM evaluates its first ``denoising_steps`` reverse steps (t = T−1 … T−k) in absolute mode and the steps
-    ``t <= T − k`` in relative mode. The returned flow time has the signal-to-noise ratio of ``x_{T−k}``
+    FlowMDM's ``BPE_Schedule`` runs its reverse steps t > T − k in absolute mode — the first k − 1 of them,
+    t = T−1 … T−k+1 (k = ``denoising_steps``) — and the steps ``t <= T − k`` in relative mode. The returned flow time has the signal-to-noise ratio of ``x_{T−k}``
     (``√ᾱ / √(1 − ᾱ)`` on the cosine schedule) on MFM's path ``x_t = t·x1 + (1 − (1 − σ_min)·t)·x0``
     (``t / (1 − (1 − σ_min)·t)``), so the same noise level is the first one denoised in relative mode.
     0 steps → 0.0 (all relative); FlowMDM's −1 (all absolute) is ``switch=1.0``.

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -744,6 +745,20 @@ def _canonical_parts(joints: np.ndarray, root: int, face_joints: tuple[int, int,
     return g, root_pos, root_pos[:, [0, 2]], local
 
 
+TEMOS_FLOOR_SOFTNESS = 0.5
+"""``softness`` of TEMOS's ``get_floor`` (temos/transforms/joints2jfeats/tools.py)."""
+
+
+def temos_floor_height(joints: np.ndarray, foot_joints: Sequence[int]) -> float:
+    """The floor height TEMOS's ``get_floor`` estimates for one clip (T, J, 3), y up: the lowest of the foot joints
+    in each frame, then TEMOS's ``softmin`` over frames, ``min − log(softness + exp(min − max))`` (their formula
+    as written: up to log 1.5 ≈ 0.41 m below the minimum when the lowest foot height varies little over the clip,
+    above the minimum when it varies by more than log 2 ≈ 0.69 m)."""
+    heights = joints[:, list(foot_joints), 1].min(axis=1)
+    low, high = float(heights.min()), float(heights.max())
+    return low - math.log(TEMOS_FLOOR_SOFTNESS + math.exp(low - high))
+
+
 def ape_ave(
     pred_joints: Any,
     gt_joints: Any,
@@ -751,6 +766,7 @@ def ape_ave(
     *,
     root: int = 0,
     face_joints: tuple[int, int, int, int] | None = None,
+    floor_joints: Sequence[int] | None = None,
 ) -> dict[str, float]:
     """Average Position Error and Average Variance Error (TEMOS ``ComputeMetrics``, reported by FLAME).
 
@@ -765,7 +781,9 @@ def ape_ave(
     * AVE = ‖σ²_pred − σ²_gt‖₂ over xyz, σ² = per-coordinate variance over the sequence's frames with the T − 1
       denominator, averaged over sequences and, for the joint sets, over joints.
 
-    Unlike TEMOS the floor height is not re-estimated (HumanML3D joints are already floor-aligned). Inputs
+    ``floor_joints`` (the skeleton's foot joints, as TEMOS's LM/LF/RM/RF): each clip's floor is re-estimated with
+    :func:`temos_floor_height` and subtracted from its heights first, as TEMOS's Rifke transform does before
+    FLAME's APE/AVE; None keeps the heights as given (HumanML3D joints are floor-aligned already). Inputs
     (N, T, J, 3) in metres; ``lengths`` (N,) valid frames (≥ 2). Keys: ``APE_root, APE_traj, APE_mean_local,
     APE_mean_global, AVE_root, AVE_traj, AVE_mean_local, AVE_mean_global``.
     """
@@ -781,8 +799,11 @@ def ape_ave(
     ape_sum = dict.fromkeys(names, 0.0)
     ave_sum = dict.fromkeys(names, 0.0)
     for i in range(n):
-        parts_pred = _canonical_parts(pred[i, : lens[i]], root, face_joints)
-        parts_gt = _canonical_parts(gt[i, : lens[i]], root, face_joints)
+        clips = [pred[i, : lens[i]], gt[i, : lens[i]]]
+        if floor_joints is not None:
+            clips = [clip - np.array([0.0, temos_floor_height(clip, floor_joints), 0.0]) for clip in clips]
+        parts_pred = _canonical_parts(clips[0], root, face_joints)
+        parts_gt = _canonical_parts(clips[1], root, face_joints)
         for name, p, g in zip(names, parts_pred, parts_gt):
             # (T, ..., D): sum errors over frames, mean over joints (if any)
             ape_sum[name] += np.linalg.norm(p - g, axis=-1).sum(axis=0).mean()

@@ -130,6 +130,9 @@ class TasksConfig:
     """FlowMDM's composition protocol (section ``composition``; pipeline.eval_composition): bpe + pccat models."""
     flame: bool = True
     """APE/AVE, mCLIP, MID and per-text joint variance (FLAME / TEMOS)."""
+    ape_floor: Literal["temos", "given"] = "temos"
+    """APE/AVE: 'temos' re-estimates each clip's floor from its feet as TEMOS's Rifke transform (FLAME's APE/AVE);
+    'given' keeps the heights as recovered (HumanML3D joints stand on y = 0 already)."""
     mid_eps: float = 5e-4
     """Ridge added to MID's covariances (its authors' advice for small sets)."""
     editing: tuple[str, ...] = ("prediction", "inbetween", "upper_body")

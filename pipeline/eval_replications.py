@@ -552,7 +552,9 @@ class PointRun:
             gt_raw, _ = self.gt.padded(batch.items, raw.device)
         gt_joints = features_to_joints(gt_raw.double(), self.skeleton).cpu().numpy()
         if kind == "main":
-            ape = metrics.ape_ave(joints, gt_joints, lens, face_joints=self.skeleton.face_joints)
+            feet = self.skeleton.foot_left + self.skeleton.foot_right
+            ape = metrics.ape_ave(joints, gt_joints, lens, face_joints=self.skeleton.face_joints,
+                                  floor_joints=feet if self.cfg.tasks.ape_floor == "temos" else None)
             return {**stats, "ape_ave": ape, "frames": int(lens.sum())}
         keep = edit_mask(kind[5:], lengths.cpu(), raw.shape[1], self.layout).numpy()
         regenerated = ~keep.all(axis=-1)  # frames with at least one generated dim

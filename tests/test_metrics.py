@@ -269,6 +269,24 @@ def test_ape_ave_identical_is_zero_and_height_offset_known():
     assert out["APE_mean_local"] == pytest.approx(0.2)  # local keeps height, removes only the root's xz
     assert out["APE_traj"] == pytest.approx(0.0, abs=1e-12)
     assert all(out[k] == pytest.approx(0.0, abs=1e-12) for k in out if k.startswith("AVE"))
+    # TEMOS/FLAME re-estimate each clip's floor from its feet: a clip lifted as a whole is the same motion
+    feet = HUMANML3D.foot_left + HUMANML3D.foot_right
+    floored = metrics.ape_ave(pred, gt, [40, 30, 25], floor_joints=feet)
+    assert all(v == pytest.approx(0.0, abs=1e-9) for v in floored.values())
+
+
+def test_temos_floor_is_their_softmin_of_the_lowest_foot():
+    feet = [0, 1]
+    clip = np.zeros((3, 3, 3))
+    clip[:, 0, 1] = [0.1, 0.3, 0.2]  # the lowest foot joint per frame: 0.05, 0.3, 0.2
+    clip[:, 1, 1] = [0.05, 0.4, 0.9]
+    clip[:, 2, 1] = -5.0  # not a foot joint
+    low, high = 0.05, 0.3
+    # TEMOS: softmin(x) = -softmax(-x), softmax(y) = max(y) + log(softness + exp(min(y) - max(y))), softness 0.5
+    expected = -((-low) + np.log(0.5 + np.exp((-high) - (-low))))
+    assert metrics.temos_floor_height(clip, feet) == pytest.approx(expected)
+    # their formula as written: up to log 1.5 below the minimum for a small height range, above it past ~0.7 m
+    assert metrics.temos_floor_height(clip, feet) < low
 
 
 def test_ape_ave_one_oscillating_joint():
