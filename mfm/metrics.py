@@ -4,7 +4,9 @@ Definitions follow the reference implementations the field reports numbers with:
 
 * Text-to-motion (EricGuo5513/text-to-motion ``final_evaluations.py``, copied into MDM/MFM/FlowMDM): FID, R-precision
   in batches of 32, MM-Dist ("Matching Score"), Diversity, MultiModality, 95% confidence intervals.
-* Editing (MFM Table 3): ADE / FDE, mean over joints of the per-joint Euclidean error.
+* Editing: ADE / FDE, mean over joints of the per-joint Euclidean error in metres: OUR definition. MFM's Table 3
+  reports ADE/FDE, but its public code (dongzhuoyao/motionfm at 08eb88d) computes neither, so MFM's definition
+  (joints or features, frames, units) cannot be reproduced; our numbers are not comparable with that table.
 * Transitions (FlowMDM ``utils/metrics.py::evaluate_jerk``): per-frame jerk curve, Peak Jerk, Area Under the Jerk.
 * Physical plausibility of joint positions, per clip: bone-length consistency, floor penetration, foot skating (GMD
   ``calculate_skating_ratio`` thresholds, as OmniControl), mean jerk and its ratio to the ground truth's.
@@ -265,7 +267,7 @@ def confidence_interval(values: Any) -> tuple[Any, Any]:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Editing: ADE / FDE (MFM Table 3)
+# Editing: ADE / FDE (our definition: MFM's Table 3 has these names, its public code no formula)
 # ---------------------------------------------------------------------------------------------------------------
 
 

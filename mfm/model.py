@@ -41,7 +41,8 @@ Positional encoding (``ModelConfig.positional``):
   True = relative): *absolute* adds the sinusoidal positions restarting at every segment (``segments``) and confines
   the frames' attention to their own segment (block-diagonal); *relative* adds no position, rotates the first
   ``rope_dims`` channels of every head's frame queries/keys (RoPE) and lets frames attend to frames at most
-  ``attention_horizon`` apart, across segments. Training draws the mode per sample (``bpe_train_relative_prob``);
+  ``attention_horizon`` apart, across segments (the horizon limits absolute mode too, as FlowMDM's window mask:
+  ``horizon_in_absolute``). Training draws the mode per sample (``bpe_train_relative_prob``);
   samplers pass it (see :mod:`mfm.composition`). The auxiliary tokens (length, time, condition) carry no position
   and attend only to each other, so in both modes they are a read-only memory for the frames: a segment in absolute
   mode cannot see another segment through them, and in relative mode nothing bypasses the horizon. In relative mode
@@ -118,6 +119,10 @@ class ModelConfig:
     attention_horizon: int = 150
     """bpe relative mode: frames further apart than this do not attend to each other (FlowMDM: 150 HumanML3D,
     100 Babel)."""
+    horizon_in_absolute: bool = True
+    """bpe: the attention horizon also limits absolute mode (within a segment, frames further apart than
+    ``attention_horizon`` do not attend), as FlowMDM, whose x-transformers window mask applies to every sample
+    whatever its mode. False: absolute mode attends over the whole segment (our earlier behaviour)."""
     bpe_train_relative_prob: float = 0.5
     """bpe: probability that a training sample runs in relative mode (FlowMDM's ``bpe_training_ratio``)."""
     conditioning: str = "prefix"
@@ -386,7 +391,8 @@ class BlendedAttention:
 
     * relative: RoPE on the first ``rotary_dims`` channels of the frames' queries and keys at ``positions`` (T,);
       frame i may attend to frame j iff ``|i − j| <= horizon``; the auxiliary keys' rotary channels are zeroed.
-    * absolute: no rotation; frame i may attend to frame j iff both lie in the same segment run (``runs``).
+    * absolute: no rotation; frame i may attend to frame j iff both lie in the same segment run (``runs``) and, with
+      ``horizon_in_absolute`` (FlowMDM), ``|i − j| <= horizon``.
 
     In both modes frames attend to every auxiliary token, auxiliary tokens only to each other, padded frames
     (``frame_valid`` False) are never attended, and every frame may attend to itself (a padded query then has a
@@ -409,6 +415,7 @@ class BlendedAttention:
         frame_valid: Tensor | None = None,
         chunk: int | None = None,
         window: int | None = None,
+        horizon_in_absolute: bool = True,
     ) -> None:
         if chunk is not None and (window is None or window < 0):
             raise ValueError("chunked attention needs the key window (frames either side of a query block)")
@@ -416,6 +423,7 @@ class BlendedAttention:
         self.runs = runs
         self.relative = relative
         self.horizon = horizon
+        self.horizon_in_absolute = horizon_in_absolute
         self.rotary_dims = rotary_dims
         self.rotary = rotary_tables(positions, rotary_dims)
         self.frame_valid = frame_valid
@@ -434,7 +442,8 @@ class BlendedAttention:
         j = torch.arange(k_lo, k_hi, device=device).unsqueeze(0)
         near = (i - j).abs() <= self.horizon
         same_segment = self.runs[:, q_lo:q_hi, None] == self.runs[:, None, k_lo:k_hi]
-        allowed = torch.where(self.relative[:, None, None], near, same_segment)
+        allowed = torch.where(self.relative[:, None, None], near, same_segment & near if self.horizon_in_absolute
+                              else same_segment)
         if self.frame_valid is not None:
             allowed = allowed & self.frame_valid[:, None, k_lo:k_hi]
         return (allowed | (i == j)).unsqueeze(1)
@@ -886,6 +895,7 @@ class MotionFlowTransformer(nn.Module):
             runs=runs,
             relative=relative,
             horizon=config.attention_horizon,
+            horizon_in_absolute=config.horizon_in_absolute,
             rotary_dims=config.rotary_dims,
             positions=torch.arange(runs.shape[1], device=runs.device),
             frame_valid=frame_mask,

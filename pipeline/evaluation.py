@@ -13,7 +13,8 @@ texts), 20 replications (``full``) or 3 (``fast``), mean ± 1.96·std/√R, plus
 small for a constant (32, 300, 100) uses a smaller value, recorded with a note under ``protocol``; never silently.
 The ground-truth row's FID is that of a bootstrap resample of the ground truth against the whole set: the
 sampling-noise floor (the reference's GT FID is likewise nonzero, its crops and captions being re-drawn). Also:
-editing (prediction, in-between, upper body: FID, Diversity, ADE/FDE on joints; MFM Table 3), FLAME's metrics
+editing (prediction, in-between, upper body: FID, Diversity, and ADE/FDE on joints in metres, our definition: MFM's
+Table 3 names them but its public code has no formula), FLAME's metrics
 (APE/AVE, mCLIP, MID, per-text joint variance), and for action models FID / accuracy / Diversity /
 MultiModality in the action classifier's feature space. NFE and generation seconds per motion are reported.
 Plausibility (mfm.metrics.plausibility, on joints recovered from the features): bone-length range and relative

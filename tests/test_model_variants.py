@@ -254,18 +254,22 @@ def test_absolute_mode_attention_stays_inside_each_segment(conditioning):
 
 @pytest.mark.parametrize("conditioning", ["prefix", "pccat"])
 @pytest.mark.parametrize("num_layers", [1, 2])
-def test_attention_horizon_is_respected(conditioning, num_layers):
+@pytest.mark.parametrize("mode, horizon_in_absolute", [("relative", True), ("absolute", True), ("absolute", False)])
+def test_attention_horizon_is_respected(conditioning, num_layers, mode, horizon_in_absolute):
     horizon, frames, poked = 3, 24, 11
-    model = tiny_model(positional="bpe", conditioning=conditioning, attention_horizon=horizon, num_layers=num_layers)
+    model = tiny_model(positional="bpe", conditioning=conditioning, attention_horizon=horizon, num_layers=num_layers,
+                       horizon_in_absolute=horizon_in_absolute)
     x, t, cond = inputs(1, frames)
     poked_x = x.clone()
     poked_x[0, poked] += 3.0
-    relative = torch.ones(1, dtype=torch.bool)
+    relative = torch.tensor([mode == "relative"])
     with torch.no_grad():
         delta = (model(poked_x, t, cond, positional_mode=relative) - model(x, t, cond, positional_mode=relative))
     moved = delta[0].abs().amax(dim=-1) > 1e-6
     reach = num_layers * horizon  # one layer sees ±H; stacking layers widens the receptive field by H each
-    expected = (torch.arange(frames) - poked).abs() <= reach
+    # FlowMDM's window mask limits both modes; without it absolute mode sees the whole (single) segment
+    expected = (torch.arange(frames) - poked).abs() <= reach if horizon_in_absolute or mode == "relative" \
+        else torch.ones(frames, dtype=torch.bool)
     assert torch.equal(moved, expected), (moved.nonzero().flatten().tolist(), reach)
 
 
