@@ -8,20 +8,24 @@ What runs: the job's own code (pipeline.eval_replications.PointRun and ground_tr
 test set of ``--items`` motions (lengths uniform in [40, 196] frames, rounded down to multiples of 4, as the
 HumanML3D test split), a model of ``--model-preset`` (configs/*.yaml, random weights: speed does not depend on
 their values) and a randomly initialised contrastive evaluator of the default size. Phases (seconds, summed over
-replications): ``ground_truth`` (evaluator embeddings of the test set: done once, then cached), ``generation``
-(sampling, ``--steps`` Euler steps with guidance), ``features`` (evaluator on generated motions), ``joints``
-(joint recovery + APE/AVE, joint variance, ADE/FDE), ``editing`` (trajectory-rewriting generation),
-``metrics`` (FID, R-precision, ... on rank 0). ``seconds_per_motion`` = generation seconds per generated motion.
+replications): ``ground_truth`` (evaluator embeddings and plausibility figures of the test set: done once per
+test set), ``generation`` (sampling, ``--steps`` Euler steps with guidance), ``features`` (evaluator on generated
+motions), ``joints`` (joint recovery + APE/AVE, joint variance, ADE/FDE), ``editing`` (trajectory-rewriting
+generation), ``metrics`` (FID, R-precision, ... on rank 0). ``seconds_per_motion`` = generation seconds per
+generated motion. ``--no-multimodality`` skips MultiModality's extra generations (a quicker smoke run).
+``run_evaluation_bench(EvalBenchSettings(...))`` is the same measurement for other scripts (benchmarks/gpu_suite.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -37,37 +41,101 @@ from pipeline.data import Manifest  # noqa: E402
 from pipeline.distributed import Dist  # noqa: E402
 from pipeline.eval_config import SamplingPoint, load_eval_config  # noqa: E402
 from pipeline.eval_replications import (CheckpointContext, PhaseTimer, PointRun, ground_truth_embeddings,  # noqa: E402
-                                        plan_protocol)
+                                        ground_truth_plausibility, plan_protocol)
 from pipeline.eval_spaces import ContrastiveSpace, GroundTruthSet  # noqa: E402
 from pipeline.inference import TrainedModel  # noqa: E402
 
 DIM, TEXT_DIM = 263, 384
+EDITING_TASKS = ("prediction", "inbetween", "upper_body")
 
 
-def synthetic_ground_truth(items: int, seed: int) -> GroundTruthSet:
+@dataclasses.dataclass(frozen=True)
+class EvalBenchSettings:
+    """One evaluation-job measurement (the command-line options of this script, as a value the GPU suite can pass).
+    ``text_dim``: width of the synthetic text embeddings (384 MiniLM, 512 HumanML3D's CLIP)."""
+
+    items: int = 4384
+    protocol: str = "fast"
+    replications: int = 1
+    steps: int = 10
+    batch_size: int = 256
+    model_preset: str = "humanml3d"
+    editing: tuple[str, ...] = EDITING_TASKS
+    flame: bool = True
+    multimodality: bool = True
+    device: str = "auto"
+    text_dim: int = TEXT_DIM
+
+
+def synthetic_ground_truth(items: int, seed: int, text_dim: int = TEXT_DIM) -> GroundTruthSet:
     rng = np.random.default_rng(seed)
     lengths = rng.integers(40, 197, items) // 4 * 4
     features = tuple((0.1 * rng.standard_normal((n, DIM))).astype(np.float32) for n in lengths)
     return GroundTruthSet(dataset_id="bench", split="test", ids=tuple(f"m{i:05d}" for i in range(items)),
                           features=features, lengths=lengths.astype(np.int64), captions=("a person walks",) * items,
-                          caption_tokens=((),) * items, text_cond=rng.standard_normal((items, TEXT_DIM), np.float32),
+                          caption_tokens=((),) * items, text_cond=rng.standard_normal((items, text_dim), np.float32),
                           actions=(None,) * items, dropped={}, key=f"bench-{items}-{seed}")
 
 
-def bench_manifest() -> Manifest:
+def bench_manifest(text_dim: int = TEXT_DIM) -> Manifest:
     return Manifest(data={"dataset_id": "bench", "feature_spec": {"dim": DIM, "skeleton": "humanml3d"},
-                          "text_encoder": {"dim": TEXT_DIM}, "action_classes": [],
+                          "text_encoder": {"dim": text_dim}, "action_classes": [],
                           "normalization": {"mean": [0.0] * DIM, "std": [1.0] * DIM}}, location="<bench>")
 
 
-def bench_model(preset: str, device: torch.device) -> TrainedModel:
-    config = load_config(TrainConfig, preset, ["model.cond_dim=384"]).model
+def bench_model(preset: str, device: torch.device, text_dim: int = TEXT_DIM) -> TrainedModel:
+    config = load_config(TrainConfig, preset, [f"model.cond_dim={text_dim}"]).model
     torch.manual_seed(0)
     model = MotionFlowTransformer(config).to(device).eval()
     data = {"dataset_id": "bench", "feature_spec": {"skeleton": "humanml3d", "dim": DIM, "fps": 20.0},
             "normalization": {"mean": [0.0] * DIM, "std": [1.0] * DIM}, "action_classes": []}
     return TrainedModel(model=model, model_config=config, checkpoint=Path("<bench>"), step=0, weights="model",
                         data=data, device=device, window=196)
+
+
+def run_evaluation_bench(settings: EvalBenchSettings) -> dict[str, Any] | None:
+    """Time the evaluation job's phases on a synthetic test set; the record on rank 0, None on other ranks.
+
+    The ground-truth phase covers what the job does once per test set: the evaluator's embeddings and the
+    plausibility figures of the clips (rank 0)."""
+    overrides = [f"protocol.replications={settings.replications}", f"sampling.batch_size={settings.batch_size}",
+                 f"tasks.editing={json.dumps(list(settings.editing))}", f"tasks.flame={str(settings.flame).lower()}",
+                 f"protocol.multimodality={str(settings.multimodality).lower()}"]
+    cfg = load_eval_config(settings.protocol, overrides=overrides)
+    cpu = settings.device == "cpu" or (settings.device == "auto" and not torch.cuda.is_available())
+    with Dist(mixed_precision="no", cpu=cpu) as dist, tempfile.TemporaryDirectory() as tmp:
+        trained = bench_model(settings.model_preset, dist.device, settings.text_dim)
+        manifest = bench_manifest(settings.text_dim)
+        evaluator_config = ContrastiveEvaluatorConfig(feature_dim=DIM, text_dim=settings.text_dim)
+        torch.manual_seed(0)
+        save_evaluator(Path(tmp) / "ev.safetensors", ContrastiveEvaluator(evaluator_config), evaluator_config, "bench")
+        space = ContrastiveSpace(Path(tmp) / "ev.safetensors", manifest, dist.device)
+        gt = synthetic_ground_truth(settings.items, 0, settings.text_dim)
+        timer = PhaseTimer(dist.device)
+        with timer.phase("ground_truth"):
+            emb, _ = ground_truth_embeddings(gt, space, dist, Path(tmp), settings.batch_size)
+            gt_figures = (ground_truth_plausibility(gt, trained.skeleton, settings.batch_size)
+                          if dist.is_main else None)
+        plan = plan_protocol(cfg, len(gt), len(gt))
+        ctx = CheckpointContext(trained, "bench", manifest, gt, space, emb, False, plan, None, np.arange(len(gt)),
+                                gt_plausibility=gt_figures)
+        start = time.perf_counter()
+        run = PointRun(cfg, dist, ctx, SamplingPoint("euler", settings.steps, 2.5), timer)
+        for replication in range(plan.replications):
+            run.replicate(replication)
+        total = time.perf_counter() - start
+        if not dist.is_main:
+            return None
+        result = run.result()
+        return {"bench": "evaluation", "device": str(dist.device), "world_size": dist.world_size,
+                "items": settings.items, "protocol": settings.protocol, "replications": plan.replications,
+                "steps": settings.steps, "batch_size": settings.batch_size, "model_preset": settings.model_preset,
+                "text_dim": settings.text_dim, "editing": list(settings.editing), "flame": settings.flame,
+                "multimodality": plan.multimodality, "mm_texts": plan.mm_num_texts, "mm_repeats": plan.mm_repeats,
+                "phases_s": {k: round(v, 3) for k, v in timer.seconds.items()},
+                "replications_wall_s": round(total, 3),
+                "seconds_per_motion": round(result["generation_seconds_per_motion"], 5),
+                "nfe": result["nfe"], "torch_threads": torch.get_num_threads()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,47 +146,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=10)
     parser.add_argument("--batch-size", type=int, default=256)
     parser.add_argument("--model-preset", default="humanml3d", help="configs/<preset>.yaml model section")
-    parser.add_argument("--editing", default="prediction,inbetween,upper_body", help="comma list or 'none'")
+    parser.add_argument("--editing", default=",".join(EDITING_TASKS), help="comma list or 'none'")
     parser.add_argument("--no-flame", action="store_true")
+    parser.add_argument("--no-multimodality", action="store_true", help="skip MultiModality's extra generations")
+    parser.add_argument("--text-dim", type=int, default=TEXT_DIM, help="text-embedding width (384 MiniLM, 512 CLIP)")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    editing = [] if args.editing == "none" else args.editing.split(",")
-    overrides = [f"protocol.replications={args.replications}", f"sampling.batch_size={args.batch_size}",
-                 f"tasks.editing={json.dumps(editing)}", f"tasks.flame={str(not args.no_flame).lower()}"]
-    cfg = load_eval_config(args.protocol, overrides=overrides)
-    cpu = args.device == "cpu" or (args.device == "auto" and not torch.cuda.is_available())
-    with Dist(mixed_precision="no", cpu=cpu) as dist, tempfile.TemporaryDirectory() as tmp:
-        trained = bench_model(args.model_preset, dist.device)
-        manifest = bench_manifest()
-        evaluator_config = ContrastiveEvaluatorConfig(feature_dim=DIM, text_dim=TEXT_DIM)
-        torch.manual_seed(0)
-        save_evaluator(Path(tmp) / "ev.safetensors", ContrastiveEvaluator(evaluator_config), evaluator_config, "bench")
-        space = ContrastiveSpace(Path(tmp) / "ev.safetensors", manifest, dist.device)
-        gt = synthetic_ground_truth(args.items, 0)
-        timer = PhaseTimer(dist.device)
-        with timer.phase("ground_truth"):
-            emb, _ = ground_truth_embeddings(gt, space, dist, Path(tmp), args.batch_size)
-        plan = plan_protocol(cfg, len(gt), len(gt))
-        ctx = CheckpointContext(trained, "bench", manifest, gt, space, emb, False, plan, None, np.arange(len(gt)))
-        start = time.perf_counter()
-        run = PointRun(cfg, dist, ctx, SamplingPoint("euler", args.steps, 2.5), timer)
-        for replication in range(plan.replications):
-            run.replicate(replication)
-        total = time.perf_counter() - start
-        if dist.is_main:
-            result = run.result()
-            record = {"bench": "evaluation", "device": str(dist.device), "world_size": dist.world_size,
-                      "items": args.items, "replications": plan.replications, "steps": args.steps,
-                      "batch_size": args.batch_size, "model_preset": args.model_preset, "editing": editing,
-                      "flame": not args.no_flame, "mm_texts": plan.mm_num_texts, "mm_repeats": plan.mm_repeats,
-                      "phases_s": {k: round(v, 3) for k, v in timer.seconds.items()},
-                      "replications_wall_s": round(total, 3),
-                      "seconds_per_motion": round(result["generation_seconds_per_motion"], 5),
-                      "nfe": result["nfe"], "torch_threads": torch.get_num_threads()}
-            print(json.dumps(record), flush=True)
+    settings = EvalBenchSettings(
+        items=args.items, protocol=args.protocol, replications=args.replications, steps=args.steps,
+        batch_size=args.batch_size, model_preset=args.model_preset,
+        editing=() if args.editing == "none" else tuple(args.editing.split(",")), flame=not args.no_flame,
+        multimodality=not args.no_multimodality, device=args.device, text_dim=args.text_dim)
+    record = run_evaluation_bench(settings)
+    if record is not None:
+        print(json.dumps(record), flush=True)
     return 0
 
 

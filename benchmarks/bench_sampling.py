@@ -41,6 +41,38 @@ PRESETS = {
 }
 
 
+@dataclasses.dataclass(frozen=True)
+class SamplingSettings:
+    """What one sampling measurement runs: the solver call (as ``mfm.solvers.sample`` takes it) and how it is timed."""
+
+    device: str
+    frames: int = 196
+    steps: int = 10
+    solver: str = "euler"
+    guidance: float = 2.5
+    repeats: int = 5
+    warmup: int = 1
+    compile: bool = False
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> SamplingSettings:
+        return cls(device=args.device, frames=args.frames, steps=args.steps, solver=args.solver,
+                   guidance=args.guidance, repeats=args.repeats, warmup=args.warmup, compile=args.compile)
+
+
+def preset_model(config: ModelConfig, device: str) -> MotionFlowTransformer:
+    """A randomly initialised model of ``config`` for sampling (dropout off, eval mode, seed 0): speed does not
+    depend on the weights' values."""
+    torch.manual_seed(0)
+    return MotionFlowTransformer(dataclasses.replace(config, dropout=0.0)).to(device).eval()
+
+
+def compiled_for_sampling(model: torch.nn.Module, device: str) -> torch.nn.Module:
+    """``torch.compile`` of the model; on CUDA with ``mode="reduce-overhead"`` (CUDA graphs: a fixed-step solver
+    calls the model with the same shapes every step, so launch overhead disappears after the first call)."""
+    return torch.compile(model, mode="reduce-overhead" if device.startswith("cuda") else "default")
+
+
 def build_model(args: argparse.Namespace) -> tuple[torch.nn.Module, ModelConfig, str]:
     if args.checkpoint:
         from pipeline.inference import load_trained_model
@@ -48,8 +80,7 @@ def build_model(args: argparse.Namespace) -> tuple[torch.nn.Module, ModelConfig,
         trained = load_trained_model(args.checkpoint, device=args.device)
         return trained.model, trained.model_config, str(trained.checkpoint)
     config = dataclasses.replace(PRESETS[args.preset], dropout=0.0)
-    torch.manual_seed(0)
-    return MotionFlowTransformer(config).to(args.device).eval(), config, args.preset
+    return preset_model(config, args.device), config, args.preset
 
 
 def random_conditions(config: ModelConfig, batch: int, device: str) -> torch.Tensor:
@@ -60,6 +91,7 @@ def random_conditions(config: ModelConfig, batch: int, device: str) -> torch.Ten
 
 
 def timed(fn, device: str) -> float:
+    """Wall time of ``fn()``; on CUDA the device is synchronised before both clock reads, so queued kernels count."""
     if device.startswith("cuda"):
         torch.cuda.synchronize()
     start = time.perf_counter()
@@ -69,28 +101,35 @@ def timed(fn, device: str) -> float:
     return time.perf_counter() - start
 
 
-def measure(model, config: ModelConfig, batch: int, args: argparse.Namespace) -> dict:
-    cond = random_conditions(config, batch, args.device)
-    lengths = torch.full((batch,), args.frames, dtype=torch.long)
+def measure_sampling(model, config: ModelConfig, batch: int, settings: SamplingSettings) -> dict:
+    """Median wall time of ``settings.repeats`` calls of ``mfm.solvers.sample`` for ``batch`` full-window motions
+    with random conditions, after ``settings.warmup`` untimed calls (the first one compiles under ``compile``)."""
+    cond = random_conditions(config, batch, settings.device)
+    lengths = torch.full((batch,), settings.frames, dtype=torch.long)
     nfe = []
 
     def run() -> None:
-        result = sample(model, cond, lengths, num_frames=args.frames, feature_dim=config.feature_dim,
-                        solver=args.solver, steps=args.steps, guidance=args.guidance, seed=0)
+        result = sample(model, cond, lengths, num_frames=settings.frames, feature_dim=config.feature_dim,
+                        solver=settings.solver, steps=settings.steps, guidance=settings.guidance, seed=0)
         nfe.append(result.nfe)
 
-    warmups = [timed(run, args.device) for _ in range(args.warmup)]
-    times = [timed(run, args.device) for _ in range(args.repeats)]
+    warmups = [timed(run, settings.device) for _ in range(settings.warmup)]
+    times = [timed(run, settings.device) for _ in range(settings.repeats)]
     median = statistics.median(times)
+    guided = settings.guidance not in (0.0, 1.0)
     record = {
         "bench": "sampling", "batch_size": batch, "ms_per_motion": round(1000.0 * median / batch, 3),
-        "median_batch_s": round(median, 4), "min_batch_s": round(min(times), 4), "repeats": args.repeats,
-        "warmup": args.warmup, "nfe": nfe[-1], "model_passes_of_2B": nfe[-1] if args.guidance not in (0.0, 1.0) else 0,
-        "steps": args.steps, "solver": args.solver, "guidance": args.guidance, "frames": args.frames,
+        "median_batch_s": round(median, 4), "min_batch_s": round(min(times), 4), "repeats": settings.repeats,
+        "warmup": settings.warmup, "nfe": nfe[-1], "model_passes_of_2B": nfe[-1] if guided else 0,
+        "steps": settings.steps, "solver": settings.solver, "guidance": settings.guidance, "frames": settings.frames,
     }
-    if args.compile and warmups:
+    if settings.compile and warmups:
         record["compile_s"] = round(warmups[0], 3)
     return record
+
+
+def measure(model, config: ModelConfig, batch: int, args: argparse.Namespace) -> dict:
+    return measure_sampling(model, config, batch, SamplingSettings.from_args(args))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -115,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
 
     model, config, source = build_model(args)
     if args.compile:
-        model = torch.compile(model, mode="reduce-overhead" if args.device.startswith("cuda") else "default")
+        model = compiled_for_sampling(model, args.device)
     header = {"bench": "sampling_setup", "model": source, "parameters": count_parameters(model), "device": args.device,
               "device_name": torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else "cpu",
               "threads": torch.get_num_threads(), "compile": args.compile, "torch": torch.__version__}

@@ -42,7 +42,9 @@ SOURCES = ("random", "loader")
 
 
 def random_batches(trainer: Trainer, count: int) -> list[dict[str, Any]]:
-    """``count`` distinct batches of random tensors with the run's shapes, already on the training device."""
+    """``count`` distinct batches of random tensors with the run's shapes, already on the training device, with
+    record ids as the loader gives them (``Trainer.train_step`` weighs each micro-batch by its number of ids).
+    The same ``trainer`` shapes always give the same batches (a fixed seed)."""
     cfg, model_config, device = trainer.cfg, trainer.model_config, trainer.dist.device
     b, window = cfg.data.batch_size, cfg.data.window
     generator = torch.Generator().manual_seed(0)
@@ -54,7 +56,8 @@ def random_batches(trainer: Trainer, count: int) -> list[dict[str, Any]]:
             "text_emb": torch.randn(b, model_config.cond_dim, generator=generator),
             "action": torch.randint(0, max(1, model_config.num_actions), (b,), generator=generator),
         }
-        batches.append({k: v.to(device) for k, v in batch.items()})
+        batches.append({**{k: v.to(device) for k, v in batch.items()},
+                        "ids": [f"random-{len(batches)}-{i}" for i in range(b)]})
     return batches
 
 
