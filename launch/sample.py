@@ -80,7 +80,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--solver", help="flow: euler (default), midpoint, heun, rk4 or a torchdiffeq method such as dopri5; "
                          "diffusion: ddpm (default) or ddim")
     add("--guidance", type=float, help="classifier-free guidance scale (default 2.5; flow edits: the edit "
-                                       "settings' 1.0, as MFM's edit.py)")
+                                       "settings' 1.0, as MFM's edit.py; FLAME-preset diffusion models: 8.0)")
+    add("--smoothing", type=float, help="Gaussian smoothing of the output over time, σ in frames (default: the "
+                                        "diffusion baseline's own, FLAME: 1; else none)")
     add("--seed", type=int, default=0)
     add("--batch-size", type=int, default=64)
     add("--edit", choices=sorted(EDIT_PRESETS), help="edit --source-motion instead of sampling from noise")
@@ -121,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         request = SampleRequest(
             checkpoint=args.checkpoint, out_dir=args.out, texts=texts, actions=args.action, lengths=args.length,
             seconds=args.seconds, num_samples=args.num_samples, steps=args.steps, solver=args.solver,
-            guidance=args.guidance, seed=args.seed, batch_size=args.batch_size, weights=args.model_weights,
+            guidance=args.guidance, smoothing=args.smoothing, seed=args.seed, batch_size=args.batch_size, weights=args.model_weights,
             device=args.device, text_weights=args.text_weights, edit=args.edit, source_motion=args.source_motion,
             keep=dict(args.keep), rewrite_until=args.rewrite_until, edit_settings=args.edit_settings,
             video=not args.no_video,

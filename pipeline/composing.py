@@ -231,7 +231,7 @@ def generate_composition(request: SampleRequest, trained: TrainedModel, integrat
                          segments: Sequence[tuple[str, int]], encoded: EncodedSegments, attention_chunk: int | None,
                          seed: int) -> Composition:
     """One sequence of ``segments`` from the noise of ``seed``: extrapolation when they share one prompt."""
-    settings = dict(solver=integrator.name, steps=integrator.steps, guidance=request.guidance_for(integrator.objective),
+    settings = dict(solver=integrator.name, steps=integrator.steps, guidance=request.guidance_for(trained),
                     switch=HUMANML3D_SWITCH if request.switch is None else request.switch, seed=seed,
                     attention_chunk=attention_chunk, return_trajectory=request.plot_trajectory, **encoded.tokens)
     lengths = [length for _, length in segments]

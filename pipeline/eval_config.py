@@ -74,6 +74,10 @@ class SamplingConfig:
     named with the first of their step counts."""
     guidance: tuple[float, ...] = (2.5,)
     use_ema: bool = True
+    baseline_defaults: bool = True
+    """Diffusion checkpoints of a preset whose authors sampled it their own way run that way
+    (mfm.diffusion_sampling.BASELINE_SAMPLING; FLAME: guidance 8.0 instead of ``guidance``, and the output smoothed
+    over time with σ = 1 frame). false: every checkpoint samples with ``guidance`` and no smoothing."""
     batch_size: int = 64
     """Motions generated per forward batch (per rank)."""
     rtol: float = 1e-5

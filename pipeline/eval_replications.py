@@ -28,7 +28,14 @@ from torch import Tensor
 
 from mfm import metrics
 from mfm.composition import BoundInputs
-from mfm.diffusion_sampling import SAMPLERS, replacement_edit, sample_diffusion
+from mfm.diffusion_sampling import (
+    BASELINE_SAMPLING,
+    SAMPLERS,
+    BaselineSampling,
+    replacement_edit,
+    sample_diffusion,
+    smooth_over_time,
+)
 from mfm.editing import edit, edit_mask
 from mfm.guidance import classifier_free_guidance
 from mfm.features import features_to_joints
@@ -366,12 +373,17 @@ def check_point(trained: TrainedModel, point: SamplingPoint) -> None:
                               "sampler; use an ODE solver (euler, midpoint, heun, rk4, dopri5, ...)")
 
 
-def points_for(trained: TrainedModel, points: Sequence[SamplingPoint]) -> tuple[SamplingPoint, ...]:
+def points_for(trained: TrainedModel, points: Sequence[SamplingPoint], *,
+               baseline_defaults: bool = False) -> tuple[SamplingPoint, ...]:
     """The points of a sweep that fit ``trained``: ODE solvers for a flow model, ddpm/ddim for a diffusion model.
     One sweep may so list both kinds for flow and diffusion checkpoints (MFM's FID-vs-NFE comparison); the others
-    are logged as skipped. None fitting, or a fitting one the model cannot run: :class:`EvaluationError`."""
+    are logged as skipped. None fitting, or a fitting one the model cannot run: :class:`EvaluationError`.
+    ``baseline_defaults``: a diffusion baseline with its authors' own guidance (FLAME: 8.0) runs at that scale."""
     wanted = trained.objective == "diffusion"
     fitting = tuple(point for point in points if (point.solver in SAMPLERS) == wanted)
+    baseline = baseline_sampling(trained, baseline_defaults)
+    if baseline is not None:
+        fitting = tuple(dict.fromkeys(dataclasses.replace(p, guidance=baseline.guidance) for p in fitting))
     for point in fitting or points[:1]:
         check_point(trained, point)
     skipped = [point.name for point in points if point not in fitting]
@@ -379,6 +391,13 @@ def points_for(trained: TrainedModel, points: Sequence[SamplingPoint]) -> tuple[
         logger.info("%s is a %s model: skipping the sweep's points for the other objective: %s", trained.checkpoint,
                     trained.objective, ", ".join(skipped))
     return fitting
+
+
+def baseline_sampling(trained: TrainedModel, enabled: bool) -> BaselineSampling | None:
+    """The diffusion baseline's own sampling settings when ``enabled`` (sampling.baseline_defaults) and it has any."""
+    if not enabled or trained.objective != "diffusion":
+        return None
+    return BASELINE_SAMPLING.get(trained.diffusion_preset or "")
 
 
 @torch.no_grad()
@@ -417,8 +436,11 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
         else:
             result = edit(velocity, known, keep, steps=point.steps, rewrite_until=rewrite_until,
                           solver=point.solver, x0=x0, lengths=lengths)
+    baseline = baseline_sampling(trained, sampling.baseline_defaults)
+    x1 = result.x1.float() if baseline is None else smooth_over_time(result.x1.float(), lengths,
+                                                                       baseline.smoothing_sigma)
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)
-    return trained.denormalize(result.x1.float()) * valid, result.nfe
+    return trained.denormalize(x1) * valid, result.nfe
 
 
 class PointRun:

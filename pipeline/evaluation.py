@@ -60,6 +60,7 @@ from pipeline.eval_replications import (
     PhaseTimer,
     PointRun,
     action_labels,
+    baseline_sampling,
     ground_truth_embeddings,
     ground_truth_plausibility,
     plan_protocol,
@@ -101,6 +102,16 @@ def checkpoint_id(folder: Path) -> str:
     """sha256 of the COMPLETE marker, which lists every file's sha256: a re-saved checkpoint gets a new id (the id
     training lists in checkpoints/saved.jsonl)."""
     return ckpt.checkpoint_id(ckpt.read_marker(folder))
+
+
+def baseline_record(trained: TrainedModel, sampling: Any) -> dict[str, Any]:
+    """What a result says about the output smoothing and whose sampling settings ran (a baseline's own, or ours)."""
+    baseline = baseline_sampling(trained, sampling.baseline_defaults)
+    if baseline is None:
+        return {"smoothing_sigma": 0.0, "baseline_defaults": None}
+    return {"smoothing_sigma": baseline.smoothing_sigma,
+            "baseline_defaults": {"preset": trained.diffusion_preset, "guidance": baseline.guidance,
+                                  "smoothing_sigma": baseline.smoothing_sigma, "source": baseline.source}}
 
 
 def check_compatible(trained: TrainedModel, manifest: Manifest) -> None:
@@ -161,7 +172,8 @@ class CheckpointScorer:
     def context(self, folder: Path, cache_dir: Path, timer: PhaseTimer) -> CheckpointContext:
         with timer.phase("load"):
             trained = load_trained_model(folder, use_ema=self.cfg.sampling.use_ema, device=self.dist.device)
-            points = points_for(trained, self.cfg.sampling.points())
+            points = points_for(trained, self.cfg.sampling.points(),
+                                baseline_defaults=self.cfg.sampling.baseline_defaults)
             manifest = self.manifest_for(trained)
             check_compatible(trained, manifest)
             space = self.space_for(trained, manifest)
@@ -535,7 +547,7 @@ class EvaluationJob:
                      "data_verified": bool(gt.verification.get("verified")), "verification": dict(gt.verification)},
             "protocol": {**ctx.plan.as_dict(), "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(point), "use_ema": self.cfg.sampling.use_ema,
-                         "batch_size": self.cfg.sampling.batch_size},
+                         "batch_size": self.cfg.sampling.batch_size, **baseline_record(trained, self.cfg.sampling)},
             "tasks": to_dict(self.cfg.tasks),
             **computed,
             "world_size": self.dist.world_size,

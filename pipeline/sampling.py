@@ -64,7 +64,7 @@ from tqdm.auto import tqdm
 from mfm import metrics
 from mfm.composition import BoundInputs
 from mfm.diffusion import GaussianDiffusion
-from mfm.diffusion_sampling import SAMPLERS, replacement_edit, sample_diffusion
+from mfm.diffusion_sampling import BASELINE_SAMPLING, SAMPLERS, replacement_edit, sample_diffusion, smooth_over_time
 from mfm.editing import (
     DEFAULT_EDIT_SETTINGS,
     EDIT_SETTINGS,
@@ -172,6 +172,7 @@ class SampleRequest:
     keep: Mapping[str, str] = dataclasses.field(default_factory=dict)  # preset options (KEEP_OPTIONS)
     rewrite_until: float | None = None  # ς; None: the edit settings' value for the preset
     edit_settings: str = DEFAULT_EDIT_SETTINGS  # flow edits: steps, ς and guidance (mfm.editing.EDIT_SETTINGS)
+    smoothing: float | None = None  # output smoothing σ in frames; None: the diffusion baseline's (FLAME: 1), else 0
     video: bool = True
     video_format: str = "auto"  # "auto" (MP4 if ffmpeg is on PATH, else GIF), "mp4" or "gif"
     bvh: bool = True
@@ -195,6 +196,8 @@ class SampleRequest:
             _positive_int(name, getattr(self, name))
         if self.steps is not None:
             _positive_int("steps", self.steps)
+        if self.smoothing is not None and not self.smoothing >= 0:
+            raise SamplingError(f"smoothing must be a σ >= 0 (frames; 0: none), got {self.smoothing}")
         if self.weights not in ("ema", "model"):
             raise SamplingError(f"weights must be 'ema' or 'model', got {self.weights!r}")
         if self.solver is not None and self.solver not in known_solvers() + list(SAMPLERS):
@@ -275,13 +278,23 @@ class SampleRequest:
             return float(self.rewrite_until)
         return self.settings.rewrite_time(EDIT_PRESETS[self.edit] or "joints")
 
-    def guidance_for(self, objective: str) -> float:
-        """The guidance scale: as given, else the edit settings' for a flow edit, else DEFAULT_GUIDANCE."""
+    def guidance_for(self, trained: TrainedModel) -> float:
+        """The guidance scale: as given, else the edit settings' for a flow edit, else the diffusion baseline's own
+        (FLAME: 8.0, mfm.diffusion_sampling.BASELINE_SAMPLING), else DEFAULT_GUIDANCE."""
         if self.guidance is not None:
             return float(self.guidance)
-        if self.edit is not None and objective == "flow":
+        if self.edit is not None and trained.objective == "flow":
             return self.settings.guidance
-        return DEFAULT_GUIDANCE
+        baseline = BASELINE_SAMPLING.get(trained.diffusion_preset or "")
+        return baseline.guidance if baseline is not None else DEFAULT_GUIDANCE
+
+    def smoothing_for(self, trained: TrainedModel) -> float:
+        """σ (frames) of the output's Gaussian smoothing over time: as given, else the diffusion baseline's own
+        (FLAME: 1.0), else 0 (none)."""
+        if self.smoothing is not None:
+            return float(self.smoothing)
+        baseline = BASELINE_SAMPLING.get(trained.diffusion_preset or "")
+        return baseline.smoothing_sigma if baseline is not None else 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -586,7 +599,7 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
         batch_conditions, scale = placeholder_conditions(trained, len(specs)), 0.0
     else:
         batch_conditions = conditions.select(torch.tensor([s.prompt for s in specs]))
-        scale = request.guidance_for(integrator.objective)
+        scale = request.guidance_for(trained)
     model = conditioned_model(trained, batch_conditions)
     cond = batch_conditions.cond
     keep = None
@@ -616,8 +629,9 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
         else:
             result = edit(velocity, known, keep, steps=integrator.steps, rewrite_until=request.rewrite_time,
                           solver=integrator.name, x0=x0, lengths=lengths, return_trajectory=request.plot_trajectory)
+    x1 = smooth_over_time(result.x1.float(), lengths, request.smoothing_for(trained))
     return BatchResult(
-        specs, result.x1.float().cpu(), result.nfe, None if keep is None else keep.cpu(),
+        specs, x1.cpu(), result.nfe, None if keep is None else keep.cpu(),
         None if result.x1_hat is None else result.x1_hat.float().cpu(), result.x1_hat_times,
     )
 
@@ -782,7 +796,8 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
         "mode": mode,
         "conditioning": "text" if request.texts or request.compose_file else "action" if request.actions else "none",
         **integrator.record(trained),
-        "guidance": request.guidance_for(integrator.objective) if conditioned else 0.0,
+        "guidance": request.guidance_for(trained) if conditioned else 0.0,
+        "smoothing_sigma": request.smoothing_for(trained),
         "seed": request.seed,
         "device": str(trained.device),
         "plausibility_thresholds": metrics.plausibility_settings(trained.skeleton),

@@ -19,7 +19,7 @@ from PIL import Image
 import pipeline.sampling as sampling_module
 from conftest import REPO_ROOT
 from mfm.composition import HUMANML3D_SWITCH, BoundInputs, compose, read_prompt_file
-from mfm.diffusion_sampling import sample_diffusion
+from mfm.diffusion_sampling import sample_diffusion, smooth_over_time
 from mfm.export import read_bvh
 from pipeline.inference import load_trained_model
 from pipeline.sampling import sample_seed
@@ -221,7 +221,10 @@ def test_diffusion_checkpoints_sample_with_ddpm_and_ddim(run_fixture, preset, re
 
     ddpm = sample(run, tmp_path / "ddpm", "--text", "a person walks", "--text", "a person jumps", "--length", "20",
                   "--solver", "ddpm", "--steps", "5", "--no-video", "--no-bvh")
-    assert (ddpm["objective"], ddpm["sampler"], ddpm["steps"], ddpm["guidance"]) == ("diffusion", "ddpm", 5, 2.5)
+    # FLAME's checkpoints sample as its authors ran them: guidance 8.0, output smoothed over time with σ = 1
+    guidance, sigma = (8.0, 1.0) if preset == "flame" else (2.5, 0.0)
+    assert (ddpm["objective"], ddpm["sampler"], ddpm["steps"], ddpm["guidance"]) == ("diffusion", "ddpm", 5, guidance)
+    assert ddpm["smoothing_sigma"] == sigma
     assert ddpm["nfe_per_batch"] == [5]  # one guided (batched) denoiser pass per step
     assert ddpm["diffusion"]["preset"] == preset and len(ddpm["diffusion"]["model_steps"]) == 5
     one_by_one = sample(run, tmp_path / "ddpm-b1", "--text", "a person walks", "--text", "a person jumps",
@@ -244,8 +247,18 @@ def test_diffusion_checkpoints_sample_with_ddpm_and_ddim(run_fixture, preset, re
     cond = trained.conditions(texts=["a person walks"])
     generator = torch.Generator().manual_seed(ddim["samples"][0]["noise_seed"])
     expected = sample_diffusion(trained.model, trained.diffusion, cond, [20], num_frames=20, sampler="ddim", steps=5,
-                                guidance=2.5, generator=generator)
-    np.testing.assert_allclose(features, trained.denormalize(expected.x1[0]).numpy(), rtol=0, atol=1e-4)
+                                guidance=guidance, generator=generator)
+    smoothed = smooth_over_time(expected.x1, [20], sigma)
+    scale = max(1.0, float(np.abs(features).max()))
+    np.testing.assert_allclose(features, trained.denormalize(smoothed[0]).numpy(), rtol=0, atol=1e-4 * scale)
+    if sigma:  # the smoothing is FLAME's scipy gaussian_filter1d over time
+        from scipy.ndimage import gaussian_filter1d
+
+        raw = trained.denormalize(expected.x1[0]).numpy()
+        np.testing.assert_allclose(features, gaussian_filter1d(raw, sigma=1.0, axis=0), rtol=0, atol=1e-4 * scale)
+        unsmoothed = sample(run, tmp_path / "raw", *args, "--smoothing", "0")
+        assert unsmoothed["smoothing_sigma"] == 0.0
+        np.testing.assert_allclose(features_file(tmp_path / "raw", unsmoothed), raw, rtol=0, atol=1e-4 * scale)
     other_seed = sample(run, tmp_path / "seed", *args, "--seed", "1")
     assert not np.array_equal(features, features_file(tmp_path / "seed", other_seed))
 
@@ -257,7 +270,7 @@ def test_diffusion_replacement_edit_keeps_the_kept_part(flame_run, tmp_path, cap
     out = tmp_path / "edit"
     results = sample(flame_run, out, "--text", "a person jumps", "--edit", "inbetween", "--source-motion",
                      str(source_file), "--keep", "prefix=0.2", "--solver", "ddpm", "--steps", "5", "--no-video",
-                     "--no-bvh", "--seed", "4")
+                     "--no-bvh", "--seed", "4", "--smoothing", "0")  # FLAME's smoothing would blur the kept part
     assert source["samples"][0]["length"] == 30
     (record,) = results["samples"]
     assert record["edit"]["method"] == "replacement (FLAME)" and record["edit"]["rewrite_until"] is None
@@ -285,7 +298,7 @@ def test_flame_layout_samples_with_its_token_features(flame_layout_run, tmp_path
     trained = load_trained_model(flame_layout_run)
     assert (trained.model_config.conditioning, trained.model_config.length_token) == ("cross_attention", True)
     results = sample(flame_layout_run, tmp_path / "out", "--text", "a person walks", "--length", "20", "--solver",
-                     "ddim", "--steps", "5", "--no-video", "--no-bvh")
+                     "ddim", "--steps", "5", "--guidance", "2.5", "--smoothing", "0", "--no-video", "--no-bvh")
     assert results["nfe_per_batch"] == [5] and results["diffusion"]["preset"] == "flame"
     walk = features_file(tmp_path / "out", results)
     assert walk.shape == (20, 263)

@@ -434,8 +434,13 @@ def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, text_ru
         assert np.isfinite(result["metrics"]["fid"]["mean"]) and set(result["editing"]) == {"prediction", "upper_body"}
         if result["checkpoint"]["objective"] == "diffusion":  # FLAME's replacement, on the point's sampler, no copy
             assert result["editing_settings"] == {"method": "replacement (FLAME)", "sampler": "ddim",
-                                                  "steps": result["sampling"]["steps"], "guidance": 2.5,
+                                                  "steps": result["sampling"]["steps"], "guidance": 8.0,
                                                   "restore_known": False}
+            # sampled as FLAME's authors did: guidance 8.0 (not the sweep's 2.5), output smoothed with σ = 1
+            assert (result["sampling"]["guidance"], result["sampling"]["smoothing_sigma"]) == (8.0, 1.0)
+            assert result["sampling"]["baseline_defaults"]["preset"] == "flame"
+        else:
+            assert (result["sampling"]["guidance"], result["sampling"]["smoothing_sigma"]) == (2.5, 0.0)
     assert (tmp_path / "e" / "plots" / "fid_vs_nfe_all.png").is_file()  # both runs in one plot
 
     # Both methods leave the kept part as their sampler made it (FLAME's rule); copying it back is an option.
@@ -451,8 +456,8 @@ def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, text_ru
         trained = load_trained_model(path)
         cond = torch.zeros(2, trained.model_config.cond_dim)
         for restore in (False, True):
-            raw, _ = generate(trained, cond, {}, lengths, [1, 2], point, SamplingConfig(), known=known, keep=keep,
-                              restore_known=restore)
+            raw, _ = generate(trained, cond, {}, lengths, [1, 2], point, SamplingConfig(baseline_defaults=False),
+                              known=known, keep=keep, restore_known=restore)  # no FLAME smoothing over the copy
             gap = (trained.normalize(raw) - known)[keep].abs().max()
             if restore and trained.objective == "diffusion":
                 assert gap < 1e-5  # copied back
