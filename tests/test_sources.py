@@ -298,6 +298,46 @@ def test_amass_needs_a_body_model(tmp_path: Path) -> None:
     np.savez(bad, v_template=np.zeros((3, 3)))
     with pytest.raises(ValueError, match="missing"):
         load_body_model(bad)
+    one_array = tmp_path / "model.npy"
+    np.save(one_array, np.zeros(3))
+    with pytest.raises(ValueError, match=r"model\.npy: a \.npy file holds one array, not a body model"):
+        load_body_model(one_array)
+
+
+def test_amass_reads_a_pickled_body_model_or_says_what_it_needs(tmp_path: Path) -> None:
+    import pickle
+    import sys
+    import types
+
+    npz = write_body_model(tmp_path / "model.npz")
+    with np.load(npz) as data:
+        arrays = {k: data[k] for k in data.files}
+    as_pickle = tmp_path / "SMPLH_male.pkl"
+    as_pickle.write_bytes(pickle.dumps(arrays))
+    from_pickle, from_npz = load_body_model(as_pickle), load_body_model(npz)
+    np.testing.assert_array_equal(from_pickle.rest_joints, from_npz.rest_joints)
+    np.testing.assert_array_equal(from_pickle.parents, from_npz.parents)
+    # The MANO site's .pkl files hold chumpy objects: without that package, a clear message, not a TypeError
+    fake = types.ModuleType("chumpy")
+
+    class Ch:
+        pass
+
+    Ch.__module__, Ch.__qualname__ = "chumpy", "Ch"
+    fake.Ch = Ch
+    sys.modules["chumpy"] = fake
+    try:
+        needs_chumpy = pickle.dumps({**arrays, "v_template": Ch()})
+    finally:
+        del sys.modules["chumpy"]
+    chumpy_file = tmp_path / "SMPLH_female.pkl"
+    chumpy_file.write_bytes(needs_chumpy)
+    with pytest.raises(ValueError, match=r"SMPLH_female\.pkl: this \.pkl body model needs the 'chumpy' package"):
+        load_body_model(chumpy_file)
+    renamed = tmp_path / "renamed.npz"
+    renamed.write_bytes(pickle.dumps(arrays))  # a pickle under an .npz name
+    with pytest.raises(ValueError, match=r"renamed\.npz: not an SMPL-H model\.npz \(it holds a dict\)"):
+        load_body_model(renamed)
 
 
 def test_amass_zero_pose_is_rest_joints_plus_trans_in_humanml3d_axes(tmp_path: Path) -> None:

@@ -177,6 +177,10 @@ def load_body_model(path: str | Path) -> BodyJointModel:
 
 def _read_model_arrays(path: Path) -> dict[str, np.ndarray]:
     keys = ("v_template", "shapedirs", "J_regressor", "kintree_table")
+    if path.suffix == ".npy":
+        raise ValueError(f"{path}: a .npy file holds one array, not a body model. {BODY_MODEL_HELP}")
+    if path.suffix == ".pkl":
+        return _read_pickled_model(path, keys)
     try:
         with np.load(path, allow_pickle=False) as data:
             missing = [k for k in keys if k not in data.files]
@@ -188,8 +192,45 @@ def _read_model_arrays(path: Path) -> dict[str, np.ndarray]:
             raise
     # Some conversions store J_regressor as a pickled scipy sparse matrix. The file is the user's own
     # licensed model, so it is trusted to be unpickled.
-    with np.load(path, allow_pickle=True) as data:
+    loaded = np.load(path, allow_pickle=True)
+    if not isinstance(loaded, np.lib.npyio.NpzFile):  # a pickle or .npy under another name
+        raise ValueError(f"{path}: not an SMPL-H model.npz (it holds a {type(loaded).__name__}). {BODY_MODEL_HELP}")
+    with loaded as data:
+        missing = [k for k in keys if k not in data.files]
+        if missing:
+            raise ValueError(f"{path}: not an SMPL-H model.npz, missing {missing} (has {sorted(data.files)})")
         arrays = {k: np.asarray(data[k]) for k in keys}
+    return _dense_arrays(arrays)
+
+
+def _read_pickled_model(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    """An SMPL/SMPL-H ``.pkl`` (the user's own licensed file, trusted to unpickle). The MANO site's
+    ``SMPLH_*.pkl`` hold chumpy arrays: without the chumpy package they cannot be read, which is said plainly."""
+    import pickle
+
+    try:
+        with open(path, "rb") as handle:
+            data = pickle.load(handle, encoding="latin1")
+    except ModuleNotFoundError as err:
+        raise ValueError(f"{path}: this .pkl body model needs the {err.name!r} package to unpickle (the MANO site's "
+                         f"SMPL-H .pkl files store chumpy arrays). Install it, or pass the AMASS 'Extended SMPL+H' "
+                         f"model.npz instead. {BODY_MODEL_HELP}") from err
+    except (pickle.UnpicklingError, EOFError, AttributeError) as err:
+        raise ValueError(f"{path}: cannot be read as a pickled body model ({err}). {BODY_MODEL_HELP}") from err
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: expected a pickled dict of model arrays, got {type(data).__name__}. "
+                         f"{BODY_MODEL_HELP}")
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise ValueError(f"{path}: not an SMPL-H model, missing {missing} (has {sorted(map(str, data))})")
+    return _dense_arrays({k: data[k] for k in keys})
+
+
+def _dense_arrays(arrays: dict) -> dict[str, np.ndarray]:
+    """Plain float arrays: scipy sparse matrices (a pickled J_regressor) densified, chumpy-like objects read
+    through ``np.asarray``."""
+    arrays = {k: (v.toarray() if hasattr(v, "toarray") else v) for k, v in arrays.items()}
+    arrays = {k: np.asarray(v) for k, v in arrays.items()}
     for key, value in arrays.items():
         if value.dtype == object:
             value = value.item()
