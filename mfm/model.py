@@ -70,6 +70,7 @@ POSITIONAL_ENCODINGS = ("absolute", "bpe")
 CONDITIONINGS = ("prefix", "pccat", "cross_attention")
 PREDICTIONS = ("velocity", "data", "preconditioned")
 TIME_GRIDS = ("continuous", "floor", "nearest")
+NULL_CONDITIONS = ("zero", "empty_caption")
 POSITIONAL_TABLES = ("computed", "stored")
 CONDITION_SCALINGS = ("none", "rms")
 
@@ -101,7 +102,16 @@ class ModelConfig:
     num_actions: int = 0
     """0: text-conditioned model; > 0: action-class model with a learned embedding per class."""
     cond_drop_prob: float = 0.1
-    """Probability of zeroing a sample's condition in training (classifier-free guidance)."""
+    """Probability of dropping a sample's condition in training (classifier-free guidance); FLAME: 0.25."""
+    null_condition: str = "zero"
+    """What a dropped text condition becomes (one of NULL_CONDITIONS). 'zero' (MDM/MFM's ``mask_cond``): the raw
+    embedding is zeroed, so the null condition is the projection's bias. 'empty_caption' (FLAME, which replaces the
+    caption by "" before encoding it): the text encoder's output for the empty caption, pooled (and token features
+    for cross-attention), held by the model as buffers (``null_text``...) that the trainer fills from the dataset's
+    encoder (:meth:`MotionFlowTransformer.set_null_condition`) and every checkpoint carries."""
+    null_tokens: int = 0
+    """null_condition='empty_caption' with cross-attention: rows of the empty caption's token features (the
+    dataset's max_tokens; the trainer sets it)."""
     length_token: bool = False
     """FLAME option: prepend a learned embedding of the motion's valid length as an extra token."""
     max_frames: int = 196
@@ -234,6 +244,12 @@ class ModelConfig:
                 f"ModelConfig.conditioning={self.conditioning!r} needs a text model; action models (num_actions > 0) "
                 "use 'prefix'"
             )
+        if self.null_condition not in NULL_CONDITIONS:
+            raise ValueError(f"ModelConfig.null_condition must be one of {NULL_CONDITIONS}, got {self.null_condition!r}")
+        if self.null_condition == "empty_caption" and self.is_action_model:
+            raise ValueError("ModelConfig.null_condition='empty_caption' needs a text model (num_actions=0)")
+        if not isinstance(self.null_tokens, int) or self.null_tokens < 0:
+            raise ValueError(f"ModelConfig.null_tokens must be an int >= 0, got {self.null_tokens!r}")
         if self.conditioning == "pccat" and self.length_token:
             raise ValueError(
                 "ModelConfig.length_token is not available with conditioning='pccat' (FlowMDM has no auxiliary tokens)"
@@ -702,6 +718,26 @@ class MotionFlowTransformer(nn.Module):
         if config.conditioning == "cross_attention":
             # FLAME: Linear(768 → 768) of RoBERTa's last hidden states, the cross-attention memory.
             self.text_proj = nn.Linear(config.text_token_dim, d)
+        if config.null_condition == "empty_caption":
+            # Filled by set_null_condition from the dataset's text encoder; saved with the weights.
+            self.register_buffer("null_text", torch.zeros(config.cond_dim))
+            if config.conditioning == "cross_attention":
+                self.register_buffer("null_text_tokens", torch.zeros(config.null_tokens, config.text_token_dim))
+                self.register_buffer("null_text_token_len", torch.zeros((), dtype=torch.long))
+
+    def set_null_condition(self, pooled: Tensor, tokens: Tensor | None = None, token_len: int | None = None) -> None:
+        """Store the text encoder's output for the empty caption (null_condition='empty_caption'): ``pooled``
+        (cond_dim,), and for cross-attention ``tokens`` (null_tokens, token_dim) with ``token_len`` valid rows."""
+        if self.config.null_condition != "empty_caption":
+            raise ValueError("set_null_condition needs ModelConfig.null_condition='empty_caption'")
+        with torch.no_grad():
+            self.null_text.copy_(torch.as_tensor(pooled).reshape(self.null_text.shape))
+            if self.config.conditioning == "cross_attention":
+                if tokens is None or token_len is None:
+                    raise ValueError("a cross_attention model's null condition needs the empty caption's token "
+                                     "features and their count")
+                self.null_text_tokens.copy_(torch.as_tensor(tokens).reshape(self.null_text_tokens.shape))
+                self.null_text_token_len.fill_(int(token_len))
 
     def forward(
         self,
@@ -816,9 +852,18 @@ class MotionFlowTransformer(nn.Module):
         if self.config.is_action_model:
             cond_embedding = self.action_embedding(cond)
             return cond_embedding if keep is None else cond_embedding * keep
+        if self.config.null_condition == "empty_caption":
+            return self.cond_proj(self._scaled_text(self._with_null_text(cond, cond_mask)))
         # Zero the raw embedding before the projection, as MDM's mask_cond: the null condition is the bias.
         cond = self._scaled_text(cond)
         return self.cond_proj(cond if keep is None else cond * keep)
+
+    def _with_null_text(self, text: Tensor, cond_mask: Tensor | None) -> Tensor:
+        """``text`` (B, ..., cond_dim) with the dropped samples' embedding replaced by the empty caption's."""
+        if cond_mask is None:
+            return text
+        dropped = cond_mask.reshape(-1, *([1] * (text.dim() - 1)))
+        return torch.where(dropped, self.null_text.to(text.dtype), text)
 
     def _scaled_text(self, text: Tensor) -> Tensor:
         """A text embedding (..., cond_dim) as the projection sees it (ModelConfig.cond_scaling)."""
@@ -847,20 +892,33 @@ class MotionFlowTransformer(nn.Module):
         """PCCAT's (B, T, latent) per-frame conditions: time embedding + projected text of each frame's segment."""
         if frame_cond is None:
             frame_cond = cond.unsqueeze(1).expand(-1, num_frames, -1)
-        if cond_mask is not None:
+        if self.config.null_condition == "empty_caption":
+            frame_cond = self._with_null_text(frame_cond, cond_mask)
+        elif cond_mask is not None:
             frame_cond = frame_cond * (~cond_mask)[:, None, None].to(frame_cond.dtype)
         return time.unsqueeze(1) + self.cond_proj(self._scaled_text(frame_cond))
 
     def _text_memory(
         self, aux: list[Tensor], text_tokens: Tensor, text_token_len: Tensor, cond_mask: Tensor | None
     ) -> tuple[Tensor, Tensor]:
-        """FLAME's cross-attention memory [aux tokens, Linear(text tokens)] and its (B, 1, 1, M) key mask; a dropped
-        condition hides every text token (only the auxiliary tokens, with the null pooled text, remain)."""
+        """FLAME's cross-attention memory [aux tokens, Linear(text tokens)] and its (B, 1, 1, M) key mask. A dropped
+        condition hides every text token (only the auxiliary tokens, with the null pooled text, remain), or with
+        null_condition='empty_caption' (FLAME's own rule) attends to the empty caption's token features."""
+        num_tokens = text_tokens.shape[1]
+        text_token_len = text_token_len.to(text_tokens.device)
+        empty_caption = self.config.null_condition == "empty_caption"
+        if empty_caption and cond_mask is not None:
+            # FLAME: a dropped caption is the encoding of "", its token features attended like any caption's.
+            null = text_tokens.new_zeros(num_tokens, text_tokens.shape[2])
+            rows = min(num_tokens, self.config.null_tokens)
+            null[:rows] = self.null_text_tokens[:rows].to(text_tokens.dtype)
+            text_tokens = torch.where(cond_mask[:, None, None], null, text_tokens)
+            null_len = self.null_text_token_len.clamp(max=num_tokens).to(text_token_len.dtype)
+            text_token_len = torch.where(cond_mask, null_len, text_token_len)
         projected = self.text_proj(text_tokens)
         memory = torch.cat([torch.stack(aux, dim=1).to(projected.dtype), projected], dim=1)
-        num_tokens = text_tokens.shape[1]
         token_valid = torch.arange(num_tokens, device=projected.device) < text_token_len.to(projected.device)[:, None]
-        if cond_mask is not None:
+        if cond_mask is not None and not empty_caption:
             token_valid = token_valid & ~cond_mask[:, None]
         aux_valid = torch.ones(projected.shape[0], len(aux), dtype=torch.bool, device=projected.device)
         return memory, torch.cat([aux_valid, token_valid], dim=1)[:, None, None, :]

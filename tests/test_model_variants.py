@@ -551,3 +551,44 @@ def test_bf16_autocast_variants_are_finite_and_close_to_fp32(variant):
     assert low.dtype == torch.float32 and torch.isfinite(low).all() and torch.isfinite(low_chunked).all()
     assert (low - reference).norm() / reference.norm() < 0.03
     assert (low_chunked - reference).norm() / reference.norm() < 0.03
+
+
+# ---------------------------------------------------------------------------------------------- FLAME's null condition
+
+
+@pytest.mark.parametrize("conditioning", ["prefix", "pccat", "cross_attention"])
+def test_empty_caption_null_condition_is_the_encoding_of_the_empty_caption(conditioning):
+    """FLAME drops a caption by encoding "" instead: a dropped sample must equal the same sample conditioned on the
+    stored empty-caption encoding, and the buffers must travel with the weights."""
+    num_tokens = 6
+    model = tiny_model(conditioning=conditioning, null_condition="empty_caption", null_tokens=num_tokens,
+                       cond_drop_prob=0.25)
+    generator = torch.Generator().manual_seed(3)
+    empty_pooled = torch.randn(COND, generator=generator)
+    empty_tokens = torch.zeros(num_tokens, TOKEN_DIM)
+    empty_tokens[:2] = torch.randn(2, TOKEN_DIM, generator=generator)  # "" is SOS/EOS: two valid tokens
+    model.set_null_condition(empty_pooled, empty_tokens if conditioning == "cross_attention" else None,
+                             2 if conditioning == "cross_attention" else None)
+    x, t, cond = inputs(3, 10)
+    extras = extra_inputs(model, 3, num_tokens=num_tokens)
+    dropped = torch.tensor([True, False, True])
+    with torch.no_grad():
+        out = model(x, t, cond, cond_mask=dropped, **extras)
+        as_empty = dict(extras)
+        empty_cond = torch.where(dropped[:, None], empty_pooled, cond)
+        if conditioning == "cross_attention":
+            as_empty["text_tokens"] = torch.where(dropped[:, None, None], empty_tokens, extras["text_tokens"])
+            as_empty["text_token_len"] = torch.where(dropped, torch.tensor(2), extras["text_token_len"])
+        expected = model(x, t, empty_cond, **as_empty)
+        torch.testing.assert_close(out, expected)
+        zeroed = tiny_model(conditioning=conditioning, null_condition="zero", cond_drop_prob=0.25)
+        zeroed.load_state_dict({k: v for k, v in model.state_dict().items() if not k.startswith("null_text")})
+        assert not torch.allclose(zeroed(x, t, cond, cond_mask=dropped, **extras)[0], out[0])  # not MDM's zeros
+        assert torch.equal(zeroed(x, t, cond, cond_mask=dropped, **extras)[1], out[1])  # kept samples alike
+    reloaded = tiny_model(seed=5, conditioning=conditioning, null_condition="empty_caption", null_tokens=num_tokens)
+    reloaded.load_state_dict(model.state_dict())  # the empty caption's encoding is saved with the weights
+    assert torch.equal(reloaded.null_text, empty_pooled)
+    with pytest.raises(ValueError, match="needs ModelConfig.null_condition='empty_caption'"):
+        zeroed.set_null_condition(empty_pooled)
+    with pytest.raises(ValueError, match="null_condition must be one of"):
+        tiny_config(null_condition="learned")
