@@ -16,7 +16,14 @@ if __package__ in (None, ""):  # run as a script: import the project, not prepro
 
 from mfm.text import TEXT_ENCODERS
 from preprocess.processing import DEFAULT_MAX_FRAMES, LONG_CLIP_POLICIES
-from preprocess.shards import DEFAULT_SHARD_SIZE, SHARD_FORMATS, BuildConfig, build_dataset, default_out_dir
+from preprocess.shards import (
+    DEFAULT_SHARD_SIZE,
+    NORMALIZATION_MODES,
+    SHARD_FORMATS,
+    BuildConfig,
+    build_dataset,
+    default_out_dir,
+)
 from preprocess.sources import SOURCES
 
 
@@ -55,11 +62,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="motions over --max-frames: skip them (HumanML3D) or cut them into --max-frames windows")
     add("--compat", action=argparse.BooleanOptionalAction, default=True,
         help="reproduce HumanML3D's feature-extraction quirks (default) or use the fixed IK (--no-compat)")
+    add("--normalization", choices=NORMALIZATION_MODES, default="auto",
+        help="Mean/Std: the dataset's official files (HumanML3D's Mean.npy/Std.npy at --root), recomputed over the "
+             "train split, or auto (default): official when the files are there. The manifest says which")
     add("--num-clips", type=int, help="synthetic: number of clips")
     add("--seed", type=int, help="synthetic: random seed")
     add("--body-model", help="amass: SMPL-H body model file (required for AMASS)")
     add("--source-option", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
-        help="any other source option (repeatable)")
+        help="any other source option (repeatable), e.g. humanml3d/kit: features=auto|file|recompute (auto: read "
+             "new_joint_vecs/ when present), verify=all|none|FRACTION (check feature files against new_joints/)")
     add("--strict", action="store_true", help="stop at the first bad input, naming its file and the reason")
     add("--overwrite", action="store_true", help="replace a complete dataset already in --out")
     add("--quiet", action="store_true", help="no progress bars")
@@ -75,7 +86,7 @@ def config_from_args(args: argparse.Namespace) -> BuildConfig:
         text_options=dict(args.text_option), token_features=args.token_features, max_tokens=args.max_tokens,
         shard_size=args.shard_size, formats=tuple(f.strip() for f in args.format.split(",") if f.strip()),
         min_frames=args.min_frames, max_frames=args.max_frames, long_clips=args.long_clips, compat=args.compat,
-        workers=args.workers, strict=args.strict, overwrite=args.overwrite, progress=False if args.quiet else None,
+        normalization=args.normalization, workers=args.workers, strict=args.strict, overwrite=args.overwrite, progress=False if args.quiet else None,
     )
 
 

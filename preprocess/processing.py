@@ -19,9 +19,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from mfm.features import joints_to_features, resample_joints
+from mfm.features import features_to_joints, features_to_joints_fk, joints_to_features, resample_joints
+from mfm.layout import FeatureLayout
 from mfm.skeleton import Skeleton
-from preprocess.clip import Caption, Clip, SkippedInput, check_joints
+from preprocess.clip import BAD_SHAPE, NAN_FRAMES, Caption, Clip, SkippedInput, check_joints
 
 log = logging.getLogger(__name__)
 
@@ -32,6 +33,56 @@ DEFAULT_MAX_FRAMES = 199
 # HumanML3D's dataset code: ``min_motion_len = 40 if dataset_name == 't2m' else 24`` (about 2 s either way).
 MIN_FRAMES_BY_SKELETON = {"humanml3d": 40, "kit": 24}
 LONG_CLIP_POLICIES = ("skip", "window")
+
+# A clip may bring its dataset's own features (HumanML3D's new_joint_vecs/<id>.npy, (T, D) at the skeleton's
+# fps) in ``Clip.meta[FEATURES_KEY]``: the record then keeps them exactly. Its ``joints`` are then None, or the
+# joints of ``Clip.meta[JOINTS_PATH_KEY]`` to check them against (``feature_file_disagreement``); a clip whose two
+# files disagree, or whose joint file cannot be read for the check, is skipped as ``feature_mismatch``.
+# ``Clip.path`` is the feature file.
+FEATURES_KEY = "features"
+JOINTS_PATH_KEY = "joints_path"
+FEATURE_MISMATCH = "feature_mismatch"
+
+# When a clip comes with both its dataset's feature file (new_joint_vecs, T frames) and its joint file, the
+# two must agree (``feature_file_disagreement``); a clip that does not is skipped as ``feature_mismatch``
+# naming both files. Two cases, by the joint file's length:
+#
+# * T frames: HumanML3D's/KIT's ``new_joints``, saved as recover_from_ric(features). Recomputing features
+#   from them cannot reproduce the file: the forward direction is Gaussian-smoothed over the whole clip
+#   (sigma 20 frames) and the joints lack the last raw frame, so the facing of the last ~80 frames moves;
+#   on turning synthetic clips (tests/test_features.py's generator) the mean difference reached 39x the
+#   limits below. The check therefore goes the other way, from the features to joints, where the two files
+#   are the same data: joints recovered from the root + ric groups (recover_from_ric) and by forward
+#   kinematics on the 6D rotations (recover_from_rot), every local velocity's length and height change
+#   against the joints' frame differences, and the foot-contact labels recomputed from the joints. Measured
+#   on the published clip 012314: 2.1e-7 m, 1.6e-6 m, 3.0e-7 m, 0 labels; on 12 synthetic clips (60-199
+#   frames, turning up to 0.2 rad/frame) at most 2.4e-7 m, 2.4e-7 m, 3.7e-7 m, 0.
+RECOVERED_JOINTS_TOLERANCE = {
+    "ric": 1e-4,  # max |recover_from_ric(features) - joints|, m
+    "rot6d": 1e-3,  # max |recover_from_rot(features) - joints|, m (the skeleton's bone lengths are rounded)
+    "local_vel": 1e-4,  # max over joints/frames of | |v| - |dp| | and |v_y - dp_y|, m
+    "contacts": 0.05,  # share of foot-contact labels that differ (velocities at the threshold may flip)
+}
+# * T + 1 frames: the joints the features were computed from (raw_pose_processing's ``joints/``): the features
+#   are recomputed (compat=True: the published files were made with the reference's quirks) and must agree, per
+#   feature group, in the MEAN absolute difference over the frames, in HumanML3D's units (m, rad/frame, 6D
+#   components, contact labels). These are ~20x the differences between this code and the published features
+#   (tests/test_features.py's golden test: means 4.5e-5, 8.6e-6, 9.3e-7, 1.5e-4, 1.0e-4, 6.9e-6, 0). The root
+#   angular velocity is compared in absolute value: the reference flips its sign on the frame where the facing
+#   crosses +-180 deg, this code does not (see mfm/features.py).
+#
+# Length tolerances (m) are multiplied by 1000 for a millimetre skeleton (KIT). A swapped, mirrored or
+# differently extracted file is off by 1e-2..1.
+FEATURE_AGREEMENT = {
+    "root_rot_vel": 1e-3,
+    "root_lin_vel": 2e-4,
+    "root_height": 5e-3,
+    "ric": 3e-3,
+    "rot6d": 2e-3,
+    "local_vel": 2e-4,
+    "contacts": 0.05,
+}
+_LENGTH_GROUPS = ("root_lin_vel", "root_height", "ric", "local_vel")
 _KEY_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
@@ -88,6 +139,21 @@ class ProcessingSettings:
             raise ValueError("long_clips='window' needs max_frames (the window length)")
 
 
+def check_features(features: np.ndarray, dim: int) -> tuple[str, str] | None:
+    """Why ``features`` cannot be a clip's (T, ``dim``) feature array, as ``(reason, detail)``; None if it can."""
+    if features.ndim != 2 or features.shape[1] != dim or features.shape[0] == 0:
+        return BAD_SHAPE, f"expected (T>0, {dim}) features, got shape {features.shape}"
+    if np.issubdtype(features.dtype, np.complexfloating):
+        return BAD_SHAPE, f"complex-valued array (dtype {features.dtype}): features must be real numbers"
+    if not np.issubdtype(features.dtype, np.number):
+        return BAD_SHAPE, f"expected numbers, got dtype {features.dtype}"
+    finite = np.isfinite(features).all(axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        return NAN_FRAMES, f"{bad.size} of {features.shape[0]} feature frames hold NaN/inf (first: frame {bad[0]})"
+    return None
+
+
 def default_min_frames(skeleton_name: str) -> int:
     return MIN_FRAMES_BY_SKELETON.get(skeleton_name, DEFAULT_MIN_FRAMES)
 
@@ -119,6 +185,11 @@ def process_clip(
 
     if clip.skeleton != skeleton.name:
         raise ValueError(f"clip {clip.id!r} is for skeleton {clip.skeleton!r}, processing expects {skeleton.name!r}")
+    if clip.meta.get(FEATURES_KEY) is not None:
+        return _record_from_feature_file(clip, skeleton, min_frames=min_frames, max_frames=max_frames,
+                                         long_clips=long_clips)
+    if clip.joints is None:
+        return skip("bad_shape", "the clip has neither joints nor features")
     joints = np.asarray(clip.joints)
     problem = check_joints(joints, skeleton.num_joints)
     if problem is not None:
@@ -164,6 +235,123 @@ def process_clip(
         path=clip.path,
         dropped_captions=dropped,
     )
+
+
+def _record_from_feature_file(
+    clip: Clip, skeleton: Skeleton, *, min_frames: int, max_frames: int | None, long_clips: str
+) -> Record | SkippedInput:
+    """:func:`process_clip` for a clip that brings its dataset's features: they become the record as they
+    are (float32), after the same checks, filters and caption mapping as computed features; with joints
+    beside them, the two files must first agree (:func:`feature_file_disagreement`)."""
+
+    def skip(reason: str, detail: str) -> SkippedInput:
+        return SkippedInput(id=clip.id, path=clip.path, reason=reason, detail=detail)
+
+    features = np.asarray(clip.meta[FEATURES_KEY])
+    problem = check_features(features, skeleton.feature_dim)
+    if problem is not None:
+        reason, detail = problem
+        return skip(reason, f"{detail} ({skeleton.name} skeleton)")
+    if not (math.isfinite(clip.fps) and math.isclose(clip.fps, skeleton.fps, rel_tol=1e-9)):
+        return skip("bad_fps", f"feature file at {clip.fps!r} fps, the {skeleton.name} skeleton's is {skeleton.fps:g}: "
+                               "features cannot be resampled (recompute them from the joints)")
+    length = len(features)
+    if length < min_frames:
+        return skip("too_short", f"{length} feature frames at {skeleton.fps:g} fps < min_frames {min_frames}")
+    if max_frames is not None and length > max_frames and long_clips == "skip":
+        return skip("too_long", f"{length} feature frames at {skeleton.fps:g} fps > max_frames {max_frames}")
+
+    captions, dropped = captions_to_frames(clip.captions, length=length, fps=skeleton.fps, min_frames=min_frames)
+    for reason, count in clip.dropped_captions.items():
+        dropped[reason] = dropped.get(reason, 0) + count
+    if not captions:
+        why = ", ".join(f"{n} {reason}" for reason, n in sorted(dropped.items())) or "the clip has none"
+        return skip("no_captions", f"no usable caption ({why})")
+
+    if clip.joints is not None:
+        disagreement = feature_file_disagreement(features, clip.joints, skeleton)
+        if disagreement:
+            return skip(FEATURE_MISMATCH, f"disagrees with the joint file {clip.meta.get(JOINTS_PATH_KEY) or '(in memory)'}: "
+                                          f"{disagreement}")
+
+    return Record(
+        id=clip.id,
+        split=clip.split,
+        source=clip.source,
+        skeleton=skeleton.name,
+        fps=float(skeleton.fps),
+        features=np.ascontiguousarray(features, dtype=np.float32),
+        captions=captions,
+        action=clip.action,
+        path=clip.path,
+        dropped_captions=dropped,
+    )
+
+
+def feature_file_disagreement(features: np.ndarray, joints: np.ndarray, skeleton: Skeleton) -> str:
+    """Empty when ``features`` (a dataset's feature file, T frames) agree with ``joints``: a joint file of T
+    frames saved as recover_from_ric of the features (HumanML3D's ``new_joints``), checked against joints
+    recovered from the features (:data:`RECOVERED_JOINTS_TOLERANCE`), or one of T + 1 raw frames, checked
+    against features recomputed from it (:data:`FEATURE_AGREEMENT`). Else what disagrees, group by group."""
+    joints = np.asarray(joints)
+    problem = check_joints(joints, skeleton.num_joints)
+    if problem is not None:
+        return f"the joint file cannot be used ({problem[0]}: {problem[1]})"
+    if len(joints) not in (len(features), len(features) + 1) or len(joints) < 2:
+        return (f"{len(features)} feature frames, but the joint file has {len(joints)} frames "
+                f"(expected {len(features)} for new_joints, or {len(features) + 1} for the joints they were computed from)")
+    scale = 1000.0 if skeleton.unit == "mm" else 1.0
+    ours = np.asarray(features, dtype=np.float64)
+    positions = np.asarray(joints, dtype=np.float64)
+    if len(joints) == len(features):
+        return _recovered_joints_disagreement(ours, positions, skeleton, scale)
+    try:
+        recomputed = np.asarray(joints_to_features(positions, skeleton, compat=True), dtype=np.float64)
+    except Exception as error:  # a degenerate pose: the files cannot be shown to agree
+        return f"feature extraction from the joints failed ({type(error).__name__}: {error})"
+    problems = []
+    for name, group in FeatureLayout(skeleton).slices.items():
+        a, b = ours[:, group], recomputed[:, group]
+        if name == "root_rot_vel":
+            a, b = np.abs(a), np.abs(b)
+        deviation = float(np.abs(a - b).mean())
+        tolerance = FEATURE_AGREEMENT[name] * (scale if name in _LENGTH_GROUPS else 1.0)
+        if not deviation <= tolerance:  # NaN disagrees too
+            unit = f" {skeleton.unit}" if name in _LENGTH_GROUPS else ""
+            problems.append(f"{name}: mean |diff| from recomputed features {deviation:.3g}{unit} > {tolerance:g}{unit}")
+    return "; ".join(problems)
+
+
+def _recovered_joints_disagreement(features: np.ndarray, joints: np.ndarray, skeleton: Skeleton, scale: float) -> str:
+    """:func:`feature_file_disagreement` for a joint file saved as recover_from_ric(features) (same length).
+    Nothing here depends on the facing estimate, so the missing last raw frame does not matter: ~1 ms a clip."""
+    slices = FeatureLayout(skeleton).slices
+    unit = skeleton.unit
+    problems = []
+
+    def check(name: str, deviation: float, what: str) -> None:
+        tolerance = RECOVERED_JOINTS_TOLERANCE[name] * (scale if name != "contacts" else 1.0)
+        if not deviation <= tolerance:
+            limit = f"{tolerance:.0%}" if name == "contacts" else f"{tolerance:g} {unit}"
+            shown = f"{deviation:.1%}" if name == "contacts" else f"{deviation:.3g} {unit}"
+            problems.append(f"{name}: {what} {shown} > {limit}")
+
+    check("ric", float(np.abs(features_to_joints(features, skeleton) - joints).max()),
+          "joints recovered from the root and ric groups differ by up to")
+    check("rot6d", float(np.abs(features_to_joints_fk(features, skeleton, compat=True) - joints).max()),
+          "joints from forward kinematics on the 6D rotations differ by up to")
+    # Frame t's velocities are the steps t -> t + 1 rotated about Y: same lengths, same vertical parts.
+    velocities = features[:-1, slices["local_vel"]].reshape(len(features) - 1, skeleton.num_joints, 3)
+    steps = joints[1:] - joints[:-1]
+    speed = np.abs(np.linalg.norm(velocities, axis=-1) - np.linalg.norm(steps, axis=-1)).max()
+    height = np.abs(velocities[..., 1] - steps[..., 1]).max()
+    check("local_vel", float(max(speed, height)), "joint velocities differ from the joints' frame steps by up to")
+    # HumanML3D's rule (mfm.features): a foot joint touches when its squared step is under the threshold.
+    feet = steps[:, list(skeleton.foot_left + skeleton.foot_right)]
+    labels = ((feet * feet).sum(axis=-1) < skeleton.contact_threshold).astype(np.float64)
+    check("contacts", float((features[:-1, slices["contacts"]] != labels).mean()),
+          "foot-contact labels recomputed from the joints differ on")
+    return "; ".join(problems)
 
 
 def captions_to_frames(

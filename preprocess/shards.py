@@ -65,7 +65,9 @@ MANIFEST_NAME = "manifest.json"
 SPLIT_ORDER = ("train", "val", "test")
 SHARD_FORMATS = ("tar", "parquet")
 SKIP_REASONS = ("unreadable", "missing_file", "bad_shape", "bad_fps", "nan_frames", "too_short", "too_long",
-                "no_captions", "no_body_model", "feature_error", "duplicate_id")
+                "no_captions", "no_body_model", "feature_error", "feature_mismatch", "duplicate_id")
+NORMALIZATION_MODES = ("auto", "official", "recompute")
+RECOMPUTED_RULE = "std averaged within each feature group"
 DEFAULT_SHARD_SIZE = 500
 TAR_PATTERN = "shard-{:05d}.tar"
 PARQUET_PATTERN = "part-{:05d}.parquet"
@@ -555,6 +557,9 @@ class BuildConfig:
     max_frames: int | None = DEFAULT_MAX_FRAMES
     long_clips: str = "skip"
     compat: bool = True
+    # Mean/Std: "official" = the dataset's own files (source.normalization_files(), HumanML3D's Mean.npy/Std.npy),
+    # "recompute" = over the train split's frames, "auto" = official when the files are there.
+    normalization: str = "auto"
     workers: int = 1
     strict: bool = False
     overwrite: bool = False
@@ -570,6 +575,8 @@ class BuildConfig:
             raise ValueError(f"workers must be >= 1, got {self.workers}")
         if self.token_features and self.max_tokens < 1:
             raise ValueError(f"max_tokens must be >= 1, got {self.max_tokens}")
+        if self.normalization not in NORMALIZATION_MODES:
+            raise ValueError(f"normalization must be one of {NORMALIZATION_MODES}, got {self.normalization!r}")
         self.processing_settings()  # validates the length options
 
     def processing_settings(self) -> ProcessingSettings:
@@ -595,6 +602,7 @@ class BuildConfig:
             "max_frames": self.max_frames,
             "long_clips": self.long_clips,
             "compat": self.compat,
+            "normalization": self.normalization,
         }
 
     def command(self) -> list[str]:
@@ -614,7 +622,8 @@ class BuildConfig:
         args += ["--shard-size", str(self.shard_size), "--format", ",".join(self.formats),
                  "--min-frames", str(self.min_frames),
                  "--max-frames", "none" if self.max_frames is None else str(self.max_frames),
-                 "--long-clips", self.long_clips, "--compat" if self.compat else "--no-compat"]
+                 "--long-clips", self.long_clips, "--compat" if self.compat else "--no-compat",
+                 "--normalization", self.normalization]
         return args
 
 
@@ -745,6 +754,66 @@ def _builder_version() -> str:
         return "unknown"
 
 
+def read_statistics_file(path: Path, dim: int, what: str) -> np.ndarray:
+    """A Mean or Std file: a ``.npy`` array of ``dim`` finite real numbers, as float32; a Std's must be
+    positive. ValueError naming the file otherwise."""
+    try:
+        array = np.load(path, allow_pickle=False)
+    except Exception as err:  # not a .npy, pickled, truncated...
+        raise ValueError(f"{path}: cannot be read as a .npy array of the {what} ({type(err).__name__}: {err})") from None
+    if not np.issubdtype(array.dtype, np.number) or np.issubdtype(array.dtype, np.complexfloating):
+        raise ValueError(f"{path}: the {what} must be real numbers, got dtype {array.dtype}")
+    if array.shape != (dim,):
+        raise ValueError(f"{path}: the {what} must have shape ({dim},) (the feature dim), got {array.shape}")
+    if not np.isfinite(array).all():
+        raise ValueError(f"{path}: the {what} holds NaN/inf")
+    if what == "std" and not (array > 0).all():
+        bad = np.flatnonzero(~(array > 0))
+        raise ValueError(f"{path}: standard deviations must be positive; {bad.size} are not (first: dim {bad[0]} = "
+                         f"{array[bad[0]]})")
+    return array.astype(np.float32)
+
+
+def official_normalization(source, skeleton: Skeleton, mode: str, *, root: str | None = None) -> dict[str, Any] | None:
+    """The manifest's ``normalization`` from the dataset's own Mean/Std files (``source.normalization_files()``,
+    HumanML3D's ``Mean.npy``/``Std.npy`` at its root), or None when the statistics are to be recomputed from the
+    train split: ``mode`` "recompute", or "auto" without the files. "official" without them, a half-present
+    pair (auto), or a file of the wrong shape, not finite, or with a Std <= 0 is a ValueError naming the file."""
+    if mode not in NORMALIZATION_MODES:
+        raise ValueError(f"normalization must be one of {NORMALIZATION_MODES}, got {mode!r}")
+    if mode == "recompute":
+        return None
+    files = source.normalization_files() if hasattr(source, "normalization_files") else None
+    if files is None:
+        if mode == "official":
+            raise ValueError(f"--normalization official: source {getattr(source, 'name', source)!r} has no official "
+                             "normalisation files")
+        return None
+    paths = {"mean": Path(files[0]), "std": Path(files[1])}
+    present = {name: path.is_file() for name, path in paths.items()}
+    if not any(present.values()) and mode == "auto":
+        return None
+    missing = [str(path) for name, path in paths.items() if not present[name]]
+    if missing:
+        there = [str(path) for name, path in paths.items() if present[name]]
+        raise ValueError(("--normalization official: " if mode == "official" else "")
+                         + f"{missing[0]}: no such file; " + (f"{there[0]} is there, but " if there else "")
+                         + "the official normalisation needs both Mean and Std "
+                         "(--normalization recompute computes them over the train split)")
+    values = {name: read_statistics_file(path, skeleton.feature_dim, name) for name, path in paths.items()}
+    log.info("normalisation: the official statistics %s, %s", paths["mean"], paths["std"])
+    return {
+        "mean": values["mean"].tolist(),
+        "std": values["std"].tolist(),
+        "split": None,
+        "num_frames": None,
+        "rule": "the dataset's official statistics, used as they are",
+        "source": "official",
+        "files": {name: {"path": _report_path(str(path), root), "sha256": sha256_file(path)}
+                  for name, path in paths.items()},
+    }
+
+
 def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dict[str, Any]:
     """Build the dataset ``config`` describes and return its manifest.
 
@@ -764,6 +833,11 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
     if text_encoder.id != config.text_encoder:
         raise ValueError(f"text encoder {text_encoder.id!r} given, but the config names {config.text_encoder!r}")
     skeleton = resolve_skeleton(source)
+    if not config.compat and getattr(source, "reads_feature_files", False):
+        raise ValueError(f"--no-compat asks for features computed with the fixed IK, but source {config.source!r} "
+                         "reads the dataset's feature files (made with the reference's quirks): pass "
+                         "--source-option features=recompute")
+    official = official_normalization(source, skeleton, config.normalization, root=config.root)  # fails fast
     if config.min_frames is None:
         # A source may know its clips need another floor (DeepMimic's kick); else the skeleton's HumanML3D rule.
         config = replace(config, min_frames=getattr(source, "default_min_frames", default_min_frames(skeleton.name)))
@@ -788,7 +862,7 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
             first = _first_pass(source, items, skeleton, config, spill)
             first.ignored_files = ignored
             spill.finish()
-        if first.train_stats.count == 0:
+        if official is None and first.train_stats.count == 0:
             raise ValueError(f"no motion of source {config.source!r} reached the train split "
                              f"({len(first.skipped)} of {len(items)} items skipped): no normalisation statistics")
         with _timed("text", len(first.captions), "captions"):
@@ -798,7 +872,7 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
         with _timed("shards", sum(len(v) for v in first.spilled.values()), "motions"):
             schema = parquet_schema(skeleton.feature_dim, int(text_encoder.dim), config.token_features)
             splits = _write_splits(out, first, spill, embeddings, schema, config)
-        manifest = _assemble_manifest(config, skeleton, text_encoder, first, embeddings, splits)
+        manifest = _assemble_manifest(config, skeleton, text_encoder, first, embeddings, splits, official)
     finally:
         spill.close()
         shutil.rmtree(work_dir, ignore_errors=True)
@@ -842,8 +916,14 @@ def _write_splits(out: Path, first: _FirstPass, spill: FeatureSpill, embeddings:
 
 
 def _assemble_manifest(config: BuildConfig, skeleton: Skeleton, text_encoder, first: _FirstPass,
-                       embeddings: CaptionEmbeddings, splits: dict[str, Any]) -> dict[str, Any]:
-    mean, std = first.train_stats.mean_std(FeatureLayout(skeleton))
+                       embeddings: CaptionEmbeddings, splits: dict[str, Any],
+                       official: dict[str, Any] | None = None) -> dict[str, Any]:
+    if official is not None:
+        normalization = official
+    else:
+        mean, std = first.train_stats.mean_std(FeatureLayout(skeleton))
+        normalization = {"mean": mean.tolist(), "std": std.tolist(), "split": "train",
+                         "num_frames": first.train_stats.count, "rule": RECOMPUTED_RULE, "source": "recomputed"}
     return {
         "format_version": FORMAT_VERSION,
         "dataset_id": dataset_id(ShardInfo(**e) for e in manifest_files({"splits": splits})),
@@ -853,8 +933,7 @@ def _assemble_manifest(config: BuildConfig, skeleton: Skeleton, text_encoder, fi
             "options": config.content_options(),
         },
         "feature_spec": feature_spec(skeleton, config.compat),
-        "normalization": {"mean": mean.tolist(), "std": std.tolist(), "split": "train",
-                          "num_frames": first.train_stats.count, "rule": "std averaged within each feature group"},
+        "normalization": normalization,
         "text_encoder": {"id": text_encoder.id, "dim": int(text_encoder.dim),
                          "weights_sha256": text_encoder.weights_sha256,
                          "options": dict(getattr(text_encoder, "options", {})),

@@ -5,11 +5,25 @@ every joint array goes through.
 Layout (EricGuo5513/HumanML3D)::
 
     ROOT/
-      new_joints/<id>.npy     (T, 22, 3) float32, metres, Y up, 20 fps (the retargeted joints; or
-      joints/<id>.npy          raw_pose_processing's output, (T, 52, 3) SMPL-H joints of which the first
+      new_joint_vecs/<id>.npy (T, 263) float32: the published features (KIT: (T, 251))
+      new_joints/<id>.npy     (T, 22, 3) float32, metres, Y up, 20 fps (the retargeted joints, saved as
+                               recover_from_ric of the features, so also T frames; or
+      joints/<id>.npy          raw_pose_processing's output, (T + 1, 52, 3) SMPL-H joints of which the first
                                22 are the body, exactly as motion_representation reads them)
       texts/<id>.txt          one caption a line: ``caption#tok1/POS tok2/POS ...#from#to``
       train.txt val.txt test.txt   ids, one a line
+      Mean.npy Std.npy        the official normalisation (used by the build when present, see shards.py)
+
+Features (option ``features``): ``auto`` (default) reads ``new_joint_vecs/<id>.npy`` as they are when that
+folder exists, and computes them from the joint folder otherwise; ``file`` insists on the feature files;
+``recompute`` always computes them from the joints. With feature files, ids come from ``new_joint_vecs/`` and
+the joint folder is optional; when it is there, a share of the clips (option ``verify``: ``all``, ``none`` or
+a fraction, picked by a hash of the id; default all) is checked against its joint file
+(``preprocess.processing.feature_file_disagreement``: for ``new_joints``, joints recovered from the features
+must match them to 0.1 mm, velocities and contacts too; for raw ``joints/``, features recomputed from them
+must match), else the clip is skipped as ``feature_mismatch`` naming both files (``--strict``: an error). Features read from files have the file's
+T frames; recomputed from ``new_joints/`` (T frames) they have T - 1 (the last frame needs a joint frame
+the dataset does not ship); caption spans are mapped onto whichever length the record has.
 
 ``from``/``to`` are seconds into the clip. As in HumanML3D's own loader, ``0.0#0.0`` (or NaN) means the
 whole clip and anything else a sub-clip ``[from, to)``; ``to = 0`` with ``from > 0`` (which HumanML3D's
@@ -50,7 +64,7 @@ from preprocess.clip import (
     SkippedInput,
     check_joints,
 )
-from preprocess.processing import is_valid_key
+from preprocess.processing import FEATURE_MISMATCH, FEATURES_KEY, JOINTS_PATH_KEY, check_features, is_valid_key
 
 log = logging.getLogger(__name__)
 
@@ -101,10 +115,15 @@ def check_splits(splits: Sequence[str], what: str) -> tuple[str, ...]:
     return tuple(splits)
 
 
+def hash_unit(key: str) -> float:
+    """A number in [0, 1) that depends only on ``key`` (sha256, not Python's salted ``hash``)."""
+    return int.from_bytes(hashlib.sha256(key.encode("utf-8")).digest()[:8], "big") / 2**64
+
+
 def hash_split(key: str, val_fraction: float = 0.1, test_fraction: float = 0.1) -> str:
     """A split that depends only on ``key`` (sha256, not Python's salted ``hash``), so it is the same on
     every machine and run: roughly (1 - val - test) train, val, test."""
-    u = int.from_bytes(hashlib.sha256(key.encode("utf-8")).digest()[:8], "big") / 2**64
+    u = hash_unit(key)
     if u < test_fraction:
         return "test"
     if u < test_fraction + val_fraction:
@@ -246,12 +265,33 @@ def read_split_files(folder: Path) -> dict[str, str]:
 # ----------------------------------------------------------------------------------------------------
 
 
-class HumanML3DLayoutSource:
-    """Joint files + caption files + split files in HumanML3D's layout (see the module docstring).
+FEATURE_MODES: tuple[str, ...] = ("auto", "file", "recompute")
 
-    Options: ``joints_dir`` ('new_joints' or 'joints'; default: whichever exists, new_joints first),
-    ``splits`` (which splits to list, default all three), ``default_split`` (the split of an id in no
-    split file, default 'train'). Subclasses set the dataset constants below.
+
+def as_fraction(value: float | int | str) -> float:
+    """The ``verify`` option: ``all`` (1), ``none`` (0) or a fraction in [0, 1]."""
+    if isinstance(value, str):
+        named = {"all": 1.0, "none": 0.0}.get(value.strip().lower())
+        if named is not None:
+            return named
+        try:
+            value = float(value)
+        except ValueError:
+            raise ValueError(f"expected 'all', 'none' or a fraction in [0, 1], got {value!r}") from None
+    if isinstance(value, bool) or not (0.0 <= float(value) <= 1.0):
+        raise ValueError(f"expected 'all', 'none' or a fraction in [0, 1], got {value!r}")
+    return float(value)
+
+
+class HumanML3DLayoutSource:
+    """Feature files, joint files, caption files and split files in HumanML3D's layout (see the module
+    docstring).
+
+    Options: ``features`` ('auto', 'file' or 'recompute', see the module docstring), ``verify`` (the share
+    of clips whose feature file is checked against their joint file: 'all' (default), 'none' or a fraction),
+    ``joints_dir`` ('new_joints' or 'joints'; default: whichever exists, new_joints first), ``splits``
+    (which splits to list, default all three), ``default_split`` (the split of an id in no split file,
+    default 'train'). Subclasses set the dataset constants below.
     """
 
     name: str = "humanml3d"
@@ -262,6 +302,9 @@ class HumanML3DLayoutSource:
     # first" (raw_pose_processing saves all 52 SMPL-H joints and motion_representation keeps [:22]).
     accepted_joint_counts: tuple[int, ...] = (22, 52)
     joints_dir_names: tuple[str, ...] = ("new_joints", "joints")
+    features_dir_name: str = "new_joint_vecs"
+    # The official normalisation files at the root (``normalization_files``).
+    normalization_file_names: tuple[str, str] = ("Mean.npy", "Std.npy")
     # Clips whose frame 0 defines the target skeleton when the skeleton has no built-in bone lengths.
     reference_clip_ids: tuple[str, ...] = ()
 
@@ -269,6 +312,8 @@ class HumanML3DLayoutSource:
         self,
         root: str | Path | None,
         *,
+        features: str = "auto",
+        verify: float | str = "all",
         joints_dir: str | None = None,
         splits: str | Sequence[str] = SPLIT_NAMES,
         default_split: str = "train",
@@ -278,52 +323,90 @@ class HumanML3DLayoutSource:
         self.root = Path(root)
         if not self.root.is_dir():
             raise FileNotFoundError(f"{self.name}: root folder {self.root} does not exist")
-        self.joints_dir = self._find_joints_dir(joints_dir)
+        if features not in FEATURE_MODES:
+            raise ValueError(f"{self.name} option features: expected one of {list(FEATURE_MODES)}, got {features!r}")
+        try:
+            self.verify_fraction = as_fraction(verify)
+        except ValueError as err:
+            raise ValueError(f"{self.name} option verify: {err}") from None
+        self.features_dir = self.root / self.features_dir_name
+        if features == "file" and not self.features_dir.is_dir():
+            raise FileNotFoundError(f"{self.name}: features=file, but there is no feature folder {self.features_dir} "
+                                    f"(HumanML3D's {self.features_dir_name}/<id>.npy)")
+        # Features from the dataset's own files ('auto' when the folder is there), else computed from joints.
+        self.reads_feature_files = features == "file" or (features == "auto" and self.features_dir.is_dir())
+        self.joints_dir = self._find_joints_dir(joints_dir, required=not self.reads_feature_files or joints_dir is not None)
         self.texts_dir = self.root / "texts"
         self.splits = check_splits(as_name_list(splits), f"{self.name} option splits")
         (self.default_split,) = check_splits((default_split,), f"{self.name} option default_split")
         # Read once here (cheap) rather than per item: workers receive it with the pickled source.
         self.split_of = read_split_files(self.root)
+        if self.reads_feature_files:
+            checked = "no joint folder to check them against" if self.joints_dir is None else (
+                f"checking {self.verify_fraction:.0%} of them against {self.joints_dir.name}/")
+            log.info("%s: features read from %s/ (%s)", self.name, self.features_dir_name, checked)
 
-    def _find_joints_dir(self, requested: str | None) -> Path:
+    def _find_joints_dir(self, requested: str | None, *, required: bool = True) -> Path | None:
         candidates = (requested,) if requested else self.joints_dir_names
         for candidate in candidates:
             if (self.root / candidate).is_dir():
                 return self.root / candidate
+        if not required:
+            return None
         raise FileNotFoundError(
             f"{self.name}: no joint folder {' or '.join(candidates)} under {self.root} "
-            f"(expected HumanML3D's layout: <root>/new_joints/<id>.npy, <root>/texts/<id>.txt)"
+            f"(expected HumanML3D's layout: <root>/new_joints/<id>.npy or <root>/{self.features_dir_name}/<id>.npy, "
+            f"<root>/texts/<id>.txt)"
         )
+
+    @property
+    def item_dir(self) -> Path:
+        """The folder whose ``<id>.npy`` files are the items: the feature folder when features are read from
+        files, else the joint folder."""
+        return self.features_dir if self.reads_feature_files else self.joints_dir
 
     # -- protocol ------------------------------------------------------------------------------------
 
     def list_items(self) -> list[str]:
-        """The ids of the joint files in the asked splits, and every id those split files list (an absent
-        joint file is the item's skip, ``missing_file``)."""
-        ids = {i for i in self._scan_joint_folder()[0] if self.split_of.get(i, self.default_split) in self.splits}
+        """The ids of the item files (feature or joint files) in the asked splits, and every id those split
+        files list (an absent file is the item's skip, ``missing_file``)."""
+        ids = {i for i in self._scan_item_folder()[0] if self.split_of.get(i, self.default_split) in self.splits}
         listed = {i for i, split in self.split_of.items() if split in self.splits}
         return sorted(ids | listed)
 
     def ignored_files(self) -> list[str]:
-        """Entries of the joint folder that are not ``<id>.npy`` files, so never read (for the skip report)."""
-        return [str(path) for path in self._scan_joint_folder()[1]]
+        """Entries of the item folder that are not ``<id>.npy`` files, so never read (for the skip report)."""
+        return [str(path) for path in self._scan_item_folder()[1]]
+
+    def normalization_files(self) -> tuple[Path, Path]:
+        """Where the dataset's official Mean/Std would be (``ROOT/Mean.npy``, ``ROOT/Std.npy``); the build
+        uses them when present (``--normalization auto``)."""
+        mean, std = self.normalization_file_names
+        return self.root / mean, self.root / std
 
     def load(self, item: str) -> Clip | SkippedInput:
-        path = self.joints_dir / f"{item}.npy"
+        path = self.item_dir / f"{item}.npy"
         clip_id = motion_id(item)
         if not is_valid_key(item):
             split = self.split_of.get(item)
             return missing_listed_item(item, split, self.root / f"{split}.txt" if split else path,
                                        f"{item!r} is not a file name of the layout (<id>.npy, id in [A-Za-z0-9_-])")
         if not path.is_file():
+            what = "feature" if self.reads_feature_files else "joint"
             return missing_listed_item(item, self.split_of.get(item), path,
-                                       f"there is no joint file {self.joints_dir.name}/{item}.npy")
+                                       f"there is no {what} file {self.item_dir.name}/{item}.npy")
         try:
             raw = np.load(path, allow_pickle=False)
         except Exception as err:  # any failure to read is a skip, never a crash of the worker
             return SkippedInput(clip_id, str(path), UNREADABLE, f"{type(err).__name__}: {err}")
-        joints = self._body_joints(raw)
-        problem = check_joints(joints, self.num_joints)
+        if self.reads_feature_files:
+            features = raw
+            problem = check_features(features, get_skeleton(self.skeleton).feature_dim)
+            joints = None
+        else:
+            features = None
+            joints = self._body_joints(raw)
+            problem = check_joints(joints, self.num_joints)
         if problem is not None:
             return SkippedInput(clip_id, str(path), *problem)
 
@@ -331,9 +414,17 @@ class HumanML3DLayoutSource:
         if isinstance(captions, SkippedInput):
             return captions
 
+        joints_path = ""
+        if self.reads_feature_files and self._checks(item):
+            checked = self._joints_to_check(item, clip_id, path)
+            if isinstance(checked, SkippedInput):
+                return checked
+            if checked is not None:
+                joints_path, joints = checked
+
         return Clip(
             id=clip_id,
-            joints=joints.astype(np.float32, copy=False),
+            joints=None if joints is None else joints.astype(np.float32, copy=False),
             fps=self.fps,
             skeleton=self.skeleton,
             captions=captions.captions,
@@ -341,42 +432,90 @@ class HumanML3DLayoutSource:
             source=self.name,
             path=str(path),
             dropped_captions=dict(captions.dropped),
+            meta={} if features is None else {FEATURES_KEY: features.astype(np.float32, copy=False),
+                                              JOINTS_PATH_KEY: joints_path},
         )
 
     def target_skeleton(self) -> Skeleton:
         """The skeleton every clip is retargeted to: the built-in one when it has bone lengths, else
         measured on frame 0 of the first reference clip present (``reference_clip_ids``), falling back to
         the first listed clip. Files in ``new_joints/`` are already retargeted, so any of them gives the
-        target lengths."""
+        target lengths; without a joint folder, the joints recovered from a feature file do."""
         skeleton = get_skeleton(self.skeleton)
         if skeleton.bone_lengths is not None:
             return skeleton
-        present = [i for i in self.reference_clip_ids if (self.joints_dir / f"{i}.npy").is_file()]
-        on_disk = [i for i in self.list_items() if is_valid_key(i) and (self.joints_dir / f"{i}.npy").is_file()]
+        folder = self.joints_dir if self.joints_dir is not None else self.features_dir
+        present = [i for i in self.reference_clip_ids if (folder / f"{i}.npy").is_file()]
+        on_disk = [i for i in sorted(self._scan(folder)[0]) if self.split_of.get(i, self.default_split) in self.splits]
         for item in present + on_disk[:1]:
-            loaded = self.load(item)
-            if isinstance(loaded, Clip):
-                log.info("%s: target skeleton measured on %s", self.name, loaded.path)
-                return skeleton.with_bone_lengths_from(loaded.joints[0])
+            first = self._first_frame(folder / f"{item}.npy", skeleton)
+            if first is not None:
+                log.info("%s: target skeleton measured on %s", self.name, folder / f"{item}.npy")
+                return skeleton.with_bone_lengths_from(first)
         raise FileNotFoundError(
-            f"{self.name}: no readable clip in {self.joints_dir} to measure the target skeleton on "
+            f"{self.name}: no readable clip in {folder} to measure the target skeleton on "
             f"(the reference code uses {self.reference_clip_ids or 'a reference clip'})"
         )
 
     # -- helpers ---------------------------------------------------------------------------------------
 
-    def _scan_joint_folder(self) -> tuple[list[str], list[Path]]:
-        """``(ids, ignored)``: the sorted ids of the ``<id>.npy`` files in the joint folder, and every other
-        entry there (``000001.bak.npy``, ``.000001.npy``, ``notes.txt``, a subfolder)."""
+    def _checks(self, item: str) -> bool:
+        """Whether clip ``item``'s feature file is checked against its joint file (a fixed share of ids,
+        picked by a hash of the id: the same clips whatever the worker count or the order)."""
+        if self.joints_dir is None or self.verify_fraction <= 0.0:
+            return False
+        return self.verify_fraction >= 1.0 or hash_unit(f"verify:{item}") < self.verify_fraction
+
+    def _joints_to_check(self, item: str, clip_id: str, features_path: Path) -> tuple[str, np.ndarray] | SkippedInput | None:
+        """``(path, joints)`` of the joint file to check the features of ``item`` against; None when the clip
+        has no joint file (nothing to check); a ``feature_mismatch`` skip when it cannot be read."""
+        assert self.joints_dir is not None
+        path = self.joints_dir / f"{item}.npy"
+        if not path.is_file():
+            return None
+        try:
+            joints = self._body_joints(np.load(path, allow_pickle=False))
+        except Exception as err:
+            return SkippedInput(clip_id, str(features_path), FEATURE_MISMATCH,
+                                f"cannot be checked against {path}: {type(err).__name__}: {err}")
+        problem = check_joints(joints, self.num_joints)
+        if problem is not None:
+            return SkippedInput(clip_id, str(features_path), FEATURE_MISMATCH,
+                                f"cannot be checked against {path} ({problem[0]}: {problem[1]})")
+        return str(path), joints
+
+    def _first_frame(self, path: Path, skeleton: Skeleton) -> np.ndarray | None:
+        """Frame 0 of a clip's joints read from a joint file, or recovered from a feature file; None if the
+        file cannot be used."""
+        try:
+            raw = np.load(path, allow_pickle=False)
+        except Exception:
+            return None
+        if path.parent == self.features_dir and self.joints_dir is None:
+            if check_features(raw, skeleton.feature_dim) is not None:
+                return None
+            from mfm.features import features_to_joints
+
+            return np.asarray(features_to_joints(raw[:1].astype(np.float64), skeleton))[0]
+        joints = self._body_joints(raw)
+        return None if check_joints(joints, self.num_joints) is not None else joints[0]
+
+    def _scan_item_folder(self) -> tuple[list[str], list[Path]]:
+        return self._scan(self.item_dir)
+
+    @staticmethod
+    def _scan(folder: Path) -> tuple[list[str], list[Path]]:
+        """``(ids, ignored)``: the sorted ids of the ``<id>.npy`` files in ``folder``, and every other entry
+        there (``000001.bak.npy``, ``.000001.npy``, ``notes.txt``, a subfolder)."""
         ids: list[str] = []
         ignored: list[Path] = []
-        with os.scandir(self.joints_dir) as entries:
+        with os.scandir(folder) as entries:
             for entry in entries:
                 stem = entry.name.removesuffix(".npy")
                 if stem != entry.name and is_valid_key(stem) and entry.is_file():
                     ids.append(stem)
                 else:
-                    ignored.append(self.joints_dir / entry.name)
+                    ignored.append(folder / entry.name)
         return sorted(ids), sorted(ignored)
 
     def _body_joints(self, raw: np.ndarray) -> np.ndarray:
