@@ -105,6 +105,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--no-video", action="store_true")
     add("--video-format", choices=("auto", "mp4", "gif"), default="auto", help="auto: MP4 if ffmpeg is found")
     add("--no-bvh", action="store_true")
+    add("--mdm-results", action="store_true", help="also write MDM's results.npy (for MDM's render_mesh.py / SMPL "
+                                                   "fitting) beside results.json")
     add("--decode", choices=sorted(JOINT_DECODES), default="ric", help="joints.npy and video: ric positions as "
                                                                       "recovered (default) or rigid: fitted onto the "
                                                                       "skeleton's bone lengths (the BVH always is)")
@@ -127,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
             device=args.device, text_weights=args.text_weights, edit=args.edit, source_motion=args.source_motion,
             keep=dict(args.keep), rewrite_until=args.rewrite_until, edit_settings=args.edit_settings,
             video=not args.no_video,
-            video_format=args.video_format, bvh=not args.no_bvh, plot_trajectory=args.plot_trajectory,
+            video_format=args.video_format, bvh=not args.no_bvh, mdm_results=args.mdm_results, plot_trajectory=args.plot_trajectory,
             decode=args.decode, overwrite=args.overwrite, compose_file=args.compose, extrapolate=args.extrapolate,
             num_segments=args.num_segments, switch=args.switch, attention_chunk=args.attention_chunk,
         )

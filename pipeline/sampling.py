@@ -74,7 +74,7 @@ from mfm.editing import (
     joint_frame_mask,
     motion_to_features,
 )
-from mfm.export import plot_x1_trajectory, render_motion, write_bvh
+from mfm.export import plot_x1_trajectory, render_motion, write_bvh, write_mdm_results
 from mfm.export.bvh import JOINT_CHANNELS, ROOT_CHANNELS
 from mfm.export.render import Captions
 from mfm.features import features_to_joints, rigid_joints
@@ -133,6 +133,7 @@ def known_solvers() -> list[str]:
 
 
 DEFAULT_FLOW_SOLVER = "euler"
+MDM_RESULTS_FILES = ("results.npy", "results.txt", "results_len.txt")
 DEFAULT_FLOW_STEPS = 10
 DEFAULT_GUIDANCE = 2.5  # MFM's sampling scale (its generate.py and evaluation)
 DEFAULT_DIFFUSION_SAMPLER = "ddpm"  # FLAME's and FlowMDM's sampler; its default steps are the training steps
@@ -173,6 +174,7 @@ class SampleRequest:
     rewrite_until: float | None = None  # ς; None: the edit settings' value for the preset
     edit_settings: str = DEFAULT_EDIT_SETTINGS  # flow edits: steps, ς and guidance (mfm.editing.EDIT_SETTINGS)
     smoothing: float | None = None  # output smoothing σ in frames; None: the diffusion baseline's (FLAME: 1), else 0
+    mdm_results: bool = False  # also write MDM's results.npy (+ results.txt, results_len.txt) for MDM's scripts
     video: bool = True
     video_format: str = "auto"  # "auto" (MP4 if ffmpeg is on PATH, else GIF), "mp4" or "gif"
     bvh: bool = True
@@ -748,6 +750,17 @@ def _edit_record(request: SampleRequest, integrator: Integrator, source: SourceM
     }
 
 
+def write_mdm_layout(out_dir: Path, samples: Sequence[Mapping[str, Any]], num_samples: int) -> dict[str, Any]:
+    """MDM's ``results.npy`` (and its text files) of the written joints, so MDM's rendering and SMPL-fitting
+    scripts read our samples: our sample i is prompt i // num_samples's repetition i % num_samples."""
+    joints = [np.load(out_dir / next(f["path"] for f in s["files"] if f["kind"] == "joints")) for s in samples]
+    texts = [s["text"] or s["action"] or "" for s in samples]
+    path = write_mdm_results(out_dir / MDM_RESULTS_FILES[0], joints, texts, [s["length"] for s in samples],
+                             num_repetitions=num_samples, order="sample_major")
+    return {"path": path.name, "layout": "MDM sample/generate.py: motion (R·S, J, 3, F), index rep·S + sample, "
+            "padded with the last frame", "num_samples": len(samples) // num_samples, "num_repetitions": num_samples}
+
+
 def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
     """Create ``out_dir``; refuse one with files unless ``overwrite``, which removes an earlier run's outputs
     (results.json and sample_NNN folders) only."""
@@ -757,7 +770,8 @@ def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
         return
     if not overwrite:
         raise SamplingError(f"{out_dir} is not empty: choose a new output folder or pass overwrite")
-    ours = [p for p in existing if p.name == RESULTS_FILE or (p.is_dir() and _SAMPLE_DIR_PATTERN.match(p.name))]
+    ours = [p for p in existing
+            if p.name in (RESULTS_FILE, *MDM_RESULTS_FILES) or (p.is_dir() and _SAMPLE_DIR_PATTERN.match(p.name))]
     others = sorted(p.name for p in set(existing) - set(ours))
     if others:
         raise SamplingError(f"{out_dir} holds files that are not sampling outputs ({others[:5]}): not overwriting")
@@ -865,6 +879,8 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
         },
         "samples": [samples[i] for i in sorted(samples)],
     }
+    if request.mdm_results:
+        results["mdm_results"] = write_mdm_layout(out_dir, results["samples"], request.num_samples)
     write_json_atomically(out_dir / RESULTS_FILE, results)
     logger.info("wrote %d sample(s) to %s (%.1f ms per motion)", len(specs), out_dir,
                 results["timing"]["ms_per_motion"])

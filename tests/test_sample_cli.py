@@ -267,3 +267,23 @@ def test_embedded_deepmimic_action_demo(tmp_path_factory, tmp_path):
     for s in results["samples"]:
         bvh = read_bvh(tmp_path / "out" / file_of(s, "bvh"))
         assert bvh.joints.shape[0] == 30 and bvh.fps == pytest.approx(20.0)
+
+
+def test_mdm_results_npy_holds_the_written_joints_in_mdms_order(text_run, tmp_path):
+    from mfm.export import read_mdm_results
+
+    out = tmp_path / "mdm"
+    results = sample(text_run, out, "--text", "a person walks", "--text", "a person jumps", "--num-samples", "2",
+                     "--length", "12", "--length", "16", "--no-video", "--no-bvh", "--mdm-results")
+    assert results["mdm_results"]["path"] == "results.npy" and (out / "results.txt").is_file()
+    mdm = read_mdm_results(out / "results.npy")
+    assert (mdm.num_samples, mdm.num_repetitions, mdm.motion.shape) == (2, 2, (4, 22, 3, 16))
+    for ours in results["samples"]:  # ours: prompt-major; MDM's: repetition-major
+        prompt, repetition = divmod(ours["index"], 2)
+        entry = mdm.index(prompt, repetition)
+        joints = np.load(out / file_of(ours, "joints"))
+        assert mdm.texts[entry] == ours["text"] and mdm.lengths[entry] == ours["length"]
+        np.testing.assert_array_equal(mdm.motion[entry, :, :, :ours["length"]], joints.transpose(1, 2, 0))
+    again = sample(text_run, out, "--text", "a person walks", "--length", "12", "--no-video", "--no-bvh",
+                   "--overwrite")  # an overwrite without --mdm-results leaves no stale results.npy behind
+    assert "mdm_results" not in again and not (out / "results.npy").exists()
