@@ -429,7 +429,9 @@ def composition_unit(checkpoint_name: str, ids: Mapping[str, str], point: Sampli
     ccfg = {k: v for k, v in to_dict(cfg.composition).items() if k != "switch"}
     settings = {"format": COMPOSITION_FORMAT, "task": "composition", "ids": dict(ids),
                 "point": dataclasses.asdict(point), "switch": switch, "composition": ccfg, "set": cset.key,
-                "protocol": to_dict(cfg.protocol), "split": cfg.data.split,
+                # protocol.redraw_items is text-to-motion's: the composition set is always the fixed one
+                "protocol": {k: v for k, v in to_dict(cfg.protocol).items() if k != "redraw_items"},
+                "split": cfg.data.split,
                 "sampling": {"use_ema": cfg.sampling.use_ema}}
     name = f"compose-{point.name}-switch{switch:.4g}-{cfg.composition.scenario}"
     return Unit(checkpoint_name, name, digest(settings))
@@ -600,7 +602,8 @@ class CompositionRun:
                          "gt_transition_diversity_times": plan.gt_transition_diversity_times,
                          "r_precision_repeated_captions": "FlowMDM: first row of each distinct caption per batch, "
                                                           "hits rescaled", "notes": notes,
-                         "config": to_dict(self.cfg.protocol)},
+                         # the set and its GT are fixed (FlowMDM): protocol.redraw_items does not apply here
+                         "redraw_items": False, "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(self.point), "use_ema": self.cfg.sampling.use_ema,
                          "switch": self.switch},
             "composition": {

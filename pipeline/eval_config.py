@@ -47,6 +47,14 @@ class ProtocolConfig:
     """Longest ground-truth clip in frames (the reference's ``max_motion_length``); longer ones are cropped."""
     unit_length: int = 4
     """Ground-truth clips are cropped to a multiple of this (the reference loader's rule)."""
+    redraw_items: bool = True
+    """Every replication draws its own ground-truth items, as the reference loader does on each pass: each test
+    motion's caption picked at random and its clip randomly cropped (a multiple of ``unit_length``, one unit shorter
+    with probability 1/3, at a random offset), seeded by (``seed``, replication); the replication's generated motions
+    use those captions and lengths, its FID statistics and ground-truth row those clips. The 95 % intervals then
+    include the spread of captions and crops. false: one fixed set (one seeded caption and crop per motion) for
+    every replication, so the intervals hold only the generator's noise and the metrics' draws (the former
+    default, kept for comparison)."""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -170,6 +178,8 @@ class TasksConfig:
         _require(all(0.0 <= v <= 1.0 for v in self.edit_rewrite_until.values()),
                  f"tasks.edit_rewrite_until values must be in [0, 1], got {self.edit_rewrite_until}")
         _require(self.edit_steps >= 0, f"tasks.edit_steps must be >= 0 (0: the settings'), got {self.edit_steps}")
+        _require(self.text_to_motion or self.composition,
+                 "tasks.text_to_motion and tasks.composition are both false: nothing to evaluate")
 
     def edit_setup(self) -> dict[str, Any]:
         """The flow edits' settings as run: name, steps, ς per preset, guidance, and the overridden values."""
@@ -183,8 +193,6 @@ class TasksConfig:
                                 + (["guidance"] if self.edit_guidance is not None else []))
         record["diffusion_restore_known"] = self.edit_restore_known
         return record
-        _require(self.text_to_motion or self.composition,
-                 "tasks.text_to_motion and tasks.composition are both false: nothing to evaluate")
 
 
 SWITCH_NAMES = {"absolute": 1.0, "relative": 0.0, "humanml3d": HUMANML3D_SWITCH, "babel": BABEL_SWITCH}

@@ -46,8 +46,16 @@ def _save(fig, path: Path) -> None:
     os.replace(tmp, path)
 
 
+def _protocol(row: Mapping[str, Any]) -> str:
+    """The protocol's name, and 'fixed items' for a text-to-motion row scored against one fixed ground-truth set
+    (``protocol.redraw_items=false``, or a result from before the setting): its intervals are narrower, so it is
+    never drawn as the same series as a re-drawn one."""
+    fixed = row.get("task", "text_to_motion") == "text_to_motion" and not row.get("redraw_items")
+    return f"{row.get('protocol')}, fixed items" if fixed else str(row.get("protocol"))
+
+
 def _setting(row: Mapping[str, Any]) -> tuple:
-    return (row.get("solver"), row.get("steps"), row.get("guidance"), row.get("evaluator_id"), row.get("protocol"))
+    return (row.get("solver"), row.get("steps"), row.get("guidance"), row.get("evaluator_id"), _protocol(row))
 
 
 def _label(setting: tuple) -> str:
@@ -104,7 +112,7 @@ def plot_fid_vs_nfe(rows: Sequence[Mapping[str, Any]], path: Path, checkpoint_na
     lines: dict[tuple, list] = defaultdict(list)
     for row in generated:
         run = Path(str(row["checkpoint"])).parent.parent.name  # <run>/checkpoints/step-N -> <run>
-        lines[(run, row["checkpoint_name"], row["solver"], row["guidance"], row["protocol"])].append(row)
+        lines[(run, row["checkpoint_name"], row["solver"], row["guidance"], _protocol(row))].append(row)
     for (run, name, solver, guidance, protocol), points in sorted(lines.items(), key=lambda kv: str(kv[0])):
         points.sort(key=lambda p: p["nfe"])
         prefix = "" if checkpoint_name is not None else f"{run}/{name}: "

@@ -4,8 +4,16 @@ joints, and the metrics of each replication with their mean ± 95 % CI.
 Deterministic whatever the world size. Every replication's work is a fixed list of batches (items sorted by
 length, independent of the number of ranks); rank ``r`` runs batches ``r, r + W, ...``; rows are gathered back into
 item order (``Dist.gather_tensor``, uneven counts are fine) and per-batch statistics are combined in batch order.
-Each motion's initial noise comes from its own seed ``(protocol seed, task, replication, item, repetition)``. So 1
-and 2 ranks compute the same numbers (tests/test_evaluation_multirank.py).
+Each motion's initial noise comes from its own seed ``(protocol seed, task, replication, item, repetition)``, and
+each replication's ground-truth items (re-drawn captions and crops, ``protocol.redraw_items``) from seeds
+``(protocol seed, replication, motion, span)``, never from a rank's own generator. So 1 and 2 ranks compute the
+same numbers (tests/test_evaluation_multirank.py).
+
+Ground truth per replication (:class:`GroundTruthDraws`): with ``protocol.redraw_items`` (the default) replication r
+generates for its own draw of the items (their captions as conditions, their lengths), edits its clips, and scores
+against them: FID's μ, Σ, the ground-truth row, R-precision texts, MultiModality texts, FLAME's APE/AVE and MID,
+plausibility references. Its evaluator embeddings cost one pass over the test set per replication (cached on disk
+per set, so later sampling points and checkpoints read them).
 
 Generation uses the sampling code: ``mfm.solvers.solve`` over ``guided_velocity`` with padded frames zeroed (what
 ``mfm.solvers.sample`` does, with per-motion noise), and ``mfm.editing.edit`` for the editing tasks.
@@ -46,7 +54,7 @@ from mfm.solvers import FIXED_STEP_SOLVERS, draw_noise, guided_velocity, seeded_
 from pipeline.data import Manifest
 from pipeline.distributed import Dist
 from pipeline.eval_config import EDIT_PRESETS, EvalConfig, SamplingConfig, SamplingPoint
-from pipeline.eval_spaces import ClassifierSpace, EmbeddingSpace, EvaluationError, GroundTruthSet
+from pipeline.eval_spaces import ClassifierSpace, EmbeddingSpace, EvaluationError, GroundTruthPool, GroundTruthSet
 from pipeline.inference import TrainedModel
 
 logger = logging.getLogger(__name__)
@@ -157,7 +165,7 @@ class PhaseTimer:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Ground-truth embeddings (computed once per evaluator, cached on disk)
+# Ground-truth embeddings (computed once per evaluator and set, cached on disk) and the sets of each replication
 # ---------------------------------------------------------------------------------------------------------------
 
 
@@ -212,14 +220,16 @@ def _read_gt_cache(path: Path, gt: GroundTruthSet) -> GroundTruthEmbeddings:
                                      data["logits"] if "logits" in data else None)
 
 
-def ground_truth_plausibility(gt: GroundTruthSet, skeleton: Skeleton, batch_size: int) -> metrics.PlausibilityFigures:
-    """Plausibility figures of every item in item order, its joints recovered from its features as the generated
-    motions' are; no jerk ratio (each result row picks its reference). Cheap next to the embeddings: not cached."""
+def ground_truth_plausibility(gt: GroundTruthSet, skeleton: Skeleton, batch_size: int,
+                              device: torch.device | str = "cpu") -> metrics.PlausibilityFigures:
+    """Plausibility figures of every item in item order, its joints recovered from its features (on ``device``) as
+    the generated motions' are; no jerk ratio (each result row picks its reference). Cheap next to the embeddings:
+    not cached on disk."""
     parts = []
     for start in range(0, len(gt), batch_size):
-        features, lengths = gt.padded(np.arange(start, min(start + batch_size, len(gt))))
-        joints = features_to_joints(features.double(), skeleton).numpy()
-        parts.append(metrics.plausibility(joints, skeleton, lengths.numpy()))
+        features, lengths = gt.padded(np.arange(start, min(start + batch_size, len(gt))), device)
+        joints = features_to_joints(features.double(), skeleton).cpu().numpy()
+        parts.append(metrics.plausibility(joints, skeleton, lengths.cpu().numpy()))
     return metrics.PlausibilityFigures.concatenate(parts)
 
 
@@ -228,6 +238,59 @@ def plausibility_record(skeleton: Skeleton, jerk_reference: str) -> dict[str, An
     return {**metrics.plausibility_settings(skeleton), "jerk_ratio_reference": jerk_reference,
             "statistic": "median over the clips of a replication, then mean ± 95 % CI over replications",
             "ground_truth": "the same figures of the ground-truth clips the row uses (joints from their features)"}
+
+
+@dataclasses.dataclass
+class ReplicationTruth:
+    """The ground truth one replication scores against: its items (every rank), their evaluator embeddings and
+    plausibility figures (rank 0; None elsewhere)."""
+
+    gt: GroundTruthSet
+    emb: GroundTruthEmbeddings | None
+    from_cache: bool
+    plausibility: metrics.PlausibilityFigures | None
+
+    def record(self) -> dict[str, Any]:
+        return {"replication": self.gt.replication, "gt_key": self.gt.key, "embeddings_from_cache": self.from_cache}
+
+
+class GroundTruthDraws:
+    """The ground-truth sets of one split for the protocol: with ``protocol.redraw_items`` replication r scores
+    against its own draw (:meth:`GroundTruthPool.draw`, seeds ``(protocol.seed, r, ...)``), else every replication
+    against the fixed set. Sets are drawn from the in-memory pool on demand (cheap, identical on every rank); their
+    embeddings are computed by all ranks once per set and cached on disk (:func:`ground_truth_embeddings`, keyed by
+    the set's key), their plausibility figures kept in memory (rank 0). The fixed set is what composition uses."""
+
+    def __init__(self, pool: GroundTruthPool, space: EmbeddingSpace, skeleton: Skeleton, redraw: bool,
+                 batch_size: int) -> None:
+        self.pool, self.space, self.skeleton, self.redraw, self.batch_size = pool, space, skeleton, redraw, batch_size
+        self.fixed = pool.draw(None)
+        self._fixed_truth: ReplicationTruth | None = None
+        self._figures: dict[int, metrics.PlausibilityFigures] = {}
+
+    def fixed_truth(self, dist: Dist, cache_dir: Path) -> ReplicationTruth:
+        """The fixed set with its embeddings and figures (computed on first use: call on every rank)."""
+        if self._fixed_truth is None:
+            self._fixed_truth = self._truth(self.fixed, dist, cache_dir, None)
+        return self._fixed_truth
+
+    def truth(self, replication: int, dist: Dist, cache_dir: Path) -> ReplicationTruth:
+        """Replication ``replication``'s ground truth (call on every rank: the embeddings may be computed)."""
+        if not self.redraw:
+            return self.fixed_truth(dist, cache_dir)
+        gt = self.pool.draw(replication)
+        if gt.ids != self.fixed.ids:  # labels, MultiModality candidates, the plan: all index the items
+            raise RuntimeError(f"replication {replication}'s ground truth lists other items than the fixed set")
+        return self._truth(gt, dist, cache_dir, self._figures.get(replication))
+
+    def _truth(self, gt: GroundTruthSet, dist: Dist, cache_dir: Path,
+               figures: metrics.PlausibilityFigures | None) -> ReplicationTruth:
+        emb, cached = ground_truth_embeddings(gt, self.space, dist, cache_dir, self.batch_size)
+        if dist.is_main and figures is None:  # only rank 0 computes metrics
+            figures = ground_truth_plausibility(gt, self.skeleton, self.batch_size, dist.device)
+            if gt.replication is not None:
+                self._figures[gt.replication] = figures
+        return ReplicationTruth(gt, emb, cached, figures if dist.is_main else None)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -251,6 +314,10 @@ class ProtocolPlan:
     mm_repeats: int
     mm_times: int
     notes: tuple[str, ...]
+    redraw_items: bool = False
+    """Each replication scores against its own draw of the ground-truth items (captions, crops)."""
+    intervals: str = ""
+    """What the 95 % intervals over replications include."""
 
     def as_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
@@ -278,7 +345,23 @@ def plan_protocol(cfg: EvalConfig, num_items: int, mm_candidates: int) -> Protoc
                      f"not {p.mm_num_texts}")
     edit_reps = cfg.tasks.editing_replications or p.replications
     return ProtocolPlan(p.name, p.replications, edit_reps, num_items, num_samples, rp, diversity_times,
-                        p.multimodality, mm_texts, p.mm_repeats, p.mm_times, tuple(notes))
+                        p.multimodality, mm_texts, p.mm_repeats, p.mm_times, tuple(notes), p.redraw_items,
+                        interval_sources(p.redraw_items, num_samples < num_items, p.multimodality))
+
+
+def interval_sources(redraw: bool, subset: bool, multimodality: bool) -> str:
+    """What varies between replications, hence what the 95 % intervals (1.96·std/√R) hold."""
+    sources = ["the generator's noise"]
+    if redraw:
+        sources.append("the ground-truth items re-drawn per replication (each test motion's caption and crop; the "
+                       "generated motions use the drawn captions and lengths, FID statistics and the ground-truth "
+                       "row the drawn clips)")
+    if subset:
+        sources.append("the subset of items generated")
+    sources.append("the metrics' own draws (R-precision batches, Diversity pairs"
+                   + (", MultiModality texts and pairs)" if multimodality else ")"))
+    fixed = "" if redraw else "; the ground-truth items are one fixed set (protocol.redraw_items=false)"
+    return "intervals over replications include " + ", ".join(sources) + fixed
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -315,9 +398,12 @@ class CheckpointContext:
     checkpoint_id: str
     manifest: Manifest
     gt: GroundTruthSet
+    """The fixed set: the items every replication uses (each with its own captions and crops when they are
+    re-drawn), their lengths' bound; composition's ground truth."""
     space: EmbeddingSpace
     gt_emb: GroundTruthEmbeddings | None
-    """Rank 0 only."""
+    """The fixed set's embeddings: rank 0 only, and only when something scores against the fixed set (redraw off,
+    or composition)."""
     gt_from_cache: bool
     plan: ProtocolPlan
     labels: np.ndarray | None
@@ -329,11 +415,21 @@ class CheckpointContext:
     notes: tuple[str, ...] = ()
     """Caveats about this checkpoint's evaluation, copied into every result."""
     gt_plausibility: metrics.PlausibilityFigures | None = None
-    """Every ground-truth item's plausibility figures (:func:`ground_truth_plausibility`); rank 0 only."""
+    """The fixed set's plausibility figures (:func:`ground_truth_plausibility`); rank 0 only, as ``gt_emb``."""
+    draws: GroundTruthDraws | None = None
+    """The ground truth of each replication (:meth:`truth`)."""
+    cache_dir: Path | None = None
+    """Where ground-truth embeddings are cached."""
 
     @property
     def is_action(self) -> bool:
         return self.trained.model_config.is_action_model
+
+    def truth(self, replication: int, dist: Dist) -> ReplicationTruth:
+        """The ground truth replication ``replication`` scores against (call on every rank)."""
+        if self.draws is None:  # a context built by hand around one set
+            return ReplicationTruth(self.gt, self.gt_emb, self.gt_from_cache, self.gt_plausibility)
+        return self.draws.truth(replication, dist, self.cache_dir)
 
 
 def action_labels(trained: TrainedModel, space: EmbeddingSpace, gt: GroundTruthSet,
@@ -450,6 +546,9 @@ class PointRun:
                  timer: PhaseTimer) -> None:
         self.cfg, self.dist, self.ctx, self.point, self.timer = cfg, dist, ctx, point, timer
         self.trained, self.gt, self.space, self.plan = ctx.trained, ctx.gt, ctx.space, ctx.plan
+        self.truth: ReplicationTruth | None = None
+        """The current replication's ground truth; ``self.gt`` is its set."""
+        self.truths: list[dict[str, Any]] = []
         self.skeleton = ctx.trained.skeleton
         self.layout = FeatureLayout(self.skeleton)
         self.flame = cfg.tasks.flame and not ctx.is_action
@@ -469,12 +568,13 @@ class PointRun:
         self.edited: dict[str, list[dict[str, float]]] = defaultdict(list)
         self.nfe: list[tuple[int, int]] = []  # (nfe, rows) per main batch
         self.gen_seconds: list[tuple[float, int]] = []
-        width = ctx.gt_emb.motion.shape[1] if dist.is_main else None
-        self.width: int = dist.broadcast_object(width)
+        self.width: int | None = None  # the evaluator's embedding width, known with the first ground truth
 
     # -- plan ------------------------------------------------------------------------------------------------
 
     def batches(self, replication: int) -> tuple[np.ndarray, np.ndarray, list[Batch]]:
+        """The replication's items, MultiModality texts and batches, on the lengths of its ground truth (set by
+        :meth:`replicate` first)."""
         plan, lengths, size = self.plan, self.gt.lengths, self.cfg.sampling.batch_size
         seed = self.cfg.protocol.seed
         items = np.arange(plan.num_items)
@@ -497,6 +597,12 @@ class PointRun:
     # -- one replication ---------------------------------------------------------------------------------------
 
     def replicate(self, replication: int) -> None:
+        with self.timer.phase("ground_truth"):  # a set and its embeddings per replication when items are re-drawn
+            self.truth = self.ctx.truth(replication, self.dist)
+            self.gt = self.truth.gt
+            if self.width is None:
+                self.width = self.dist.broadcast_object(self.truth.emb.motion.shape[1] if self.dist.is_main else None)
+        self.truths.append(self.truth.record())
         items, mm_items, batches = self.batches(replication)
         parts: dict[str, list] = defaultdict(list)
         stats: list[tuple[int, str, dict]] = []
@@ -587,7 +693,7 @@ class PointRun:
 
     def _metrics(self, replication: int, items: np.ndarray, mm_items: np.ndarray, rows: Mapping[str, np.ndarray],
                  logits: np.ndarray | None, stats: Sequence[tuple[int, str, dict]]) -> None:
-        seed, plan, gt_emb = self.cfg.protocol.seed, self.plan, self.ctx.gt_emb
+        seed, plan, gt_emb = self.cfg.protocol.seed, self.plan, self.truth.emb
         gt_all, gt_motion = gt_emb.motion, gt_emb.motion[items]
 
         def draws(tag: str) -> np.random.Generator:  # the same draws for the generated and the GT row
@@ -597,7 +703,7 @@ class PointRun:
         gen.update(self._plausibility(stats, "main", items))
         boot = draws("bootstrap").integers(0, len(gt_motion), len(gt_motion))
         truth = {"fid": metrics.fid(gt_motion[boot], gt_all), **self._spread(gt_motion, None, draws)}
-        gt_figures = self.ctx.gt_plausibility.select(items)
+        gt_figures = self.truth.plausibility.select(items)
         truth.update(gt_figures.with_jerk_reference(gt_figures.mean_jerk).summary())
         if self.ctx.is_action:
             labels = self.ctx.labels[items]
@@ -640,7 +746,7 @@ class PointRun:
         parts = [s["plausibility"] for _, k, s in stats if k == kind]
         slots = np.concatenate([part[0] for part in parts])
         figures = metrics.PlausibilityFigures.concatenate([part[1] for part in parts]).select(np.argsort(slots))
-        return figures.with_jerk_reference(self.ctx.gt_plausibility.mean_jerk[items]).summary()
+        return figures.with_jerk_reference(self.truth.plausibility.mean_jerk[items]).summary()
 
     def _spread(self, motion: np.ndarray, gt_all: np.ndarray | None,
                 draws: Callable[[str], np.random.Generator]) -> dict[str, float]:
@@ -690,4 +796,5 @@ class PointRun:
             "plausibility": plausibility_record(self.skeleton, "the mean jerk of the ground-truth clip each motion "
                                                                "was generated for (editing: edited from)"),
             "notes": self.notes,
+            "ground_truth_sets": list(self.truths),
         }

@@ -3,8 +3,16 @@
 
 Ground truth. One item per test motion and caption span (HumanML3D's sub-clips), as the reference loader: a caption
 picked at random, the clip cropped to at most ``max_length`` frames and to a multiple of ``unit_length`` (random
-offset). Picks and crops are drawn once from ``(seed, motion id, span)``, so the items, and therefore their
-evaluator embeddings, are the same for every replication, checkpoint and job (computed once, cached per evaluator).
+offset). The split is verified and read once (:class:`GroundTruthPool`, in memory); sets are drawn from it:
+
+* re-drawn per replication (``protocol.redraw_items``, the default): replication r's picks and crops come from
+  ``(seed, r, motion id, span)`` and the crop is one unit shorter with probability 1/3, as the reference loader
+  (MDM/T2M ``Text2MotionDatasetV2``) draws anew on every pass over the shuffled test set. The same items (ids, order)
+  in every replication; their captions, lengths and clips differ.
+* fixed: picks and crops drawn once from ``(seed, motion id, span)``, the same for every replication.
+
+Either way a set is the same for every checkpoint, job and rank, and its evaluator embeddings are cached per
+evaluator and set (:attr:`GroundTruthSet.key`).
 """
 
 from __future__ import annotations
@@ -32,12 +40,17 @@ from mfm.integrity import sha256_file
 from mfm.model import valid_frame_mask
 from pipeline.data import Manifest, ShardVerificationError, open_manifest, verified_split
 from pipeline.eval_config import EvaluatorConfig
-from pipeline.stages import stable_id_hash
+from pipeline.stages import MotionRecord, stable_id_hash
 
 GT_FORMAT = 1
+REDRAW_FORMAT = 1
+"""Version of the per-replication draw (part of a re-drawn set's key)."""
+REDRAW_SHORTEN_PROB = 1.0 / 3.0
+"""The reference loader's 'double' coin: one unit shorter with this probability (``unit_length < 10``)."""
 EVALUATOR_FILE = "contrastive.safetensors"
 CLASSIFIER_FILE = "action_classifier.safetensors"
 _TAG_GT_PICK = 10
+_TAG_GT_REDRAW = 12
 
 
 class EvaluationError(RuntimeError):
@@ -65,7 +78,8 @@ def digest(obj: Any) -> str:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class GroundTruthSet:
-    """The evaluation items of one split: fixed caption and crop per (motion, span); raw features."""
+    """The evaluation items of one split: one caption and crop per (motion, span), fixed or drawn for one
+    replication; raw features."""
 
     dataset_id: str
     split: str
@@ -80,7 +94,8 @@ class GroundTruthSet:
     actions: tuple[str | None, ...]
     dropped: Mapping[str, int]
     key: str
-    """sha256 of (dataset id, split, construction settings): identifies cached embeddings."""
+    """sha256 of (dataset id, split, construction settings; a re-drawn set's replication): identifies cached
+    embeddings."""
     text_tokens: np.ndarray | None = None
     """(N, L, E) token features of each caption (cross-attention models), when asked for."""
     text_token_len: np.ndarray | None = None
@@ -88,6 +103,12 @@ class GroundTruthSet:
     verification: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     """What strict verification checked before the split was read (``VerificationReport.as_dict()``); results
     files carry it next to the dataset id."""
+    replication: int | None = None
+    """None: the fixed set; r: the set re-drawn for replication r (``protocol.redraw_items``)."""
+    offsets: np.ndarray | None = None
+    """(N,) crop start of each item within its caption span."""
+    caption_index: np.ndarray | None = None
+    """(N,) which of its motion's captions each item uses."""
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -101,13 +122,105 @@ class GroundTruthSet:
         return torch.from_numpy(out).to(device), torch.from_numpy(lengths.astype(np.int64)).to(device)
 
 
-def build_ground_truth(manifest: Manifest | str | Path, split: str = "test", *, max_length: int = 196,
-                       unit_length: int = 4, seed: int = 0, backend: str = "webdataset",
-                       require_action: bool = False, token_features: bool = False) -> GroundTruthSet:
-    """The evaluation items of ``split`` (see the module docstring); deterministic in (manifest, settings).
-    ``token_features``: also keep each caption's token features (the manifest must store them). The split is
-    verified strictly first (the training reader's checks): a shard that does not match the manifest raises
-    :class:`UnverifiedGroundTruth` naming the file and the reason, before any item is built."""
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Motion:
+    """A test motion as read, with its usable caption spans: ((start, end), caption indices) in order of
+    appearance."""
+
+    record: MotionRecord
+    spans: tuple[tuple[tuple[int, int], tuple[int, ...]], ...]
+    named_spans: bool
+    """The motion has several caption spans (dropped ones included): its item ids name theirs."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class GroundTruthPool:
+    """Every motion of a split, verified and read once and kept in memory: each ground-truth set of the split (the
+    fixed one, or one per replication) is drawn from it without reading the shards again. The items, their ids and
+    order are the same in every draw (one per motion and caption span at least one unit long); only the caption
+    picks and the crops differ. A set's clips are views into the pool's features (no copy per draw)."""
+
+    dataset_id: str
+    location: str
+    split: str
+    motions: tuple[_Motion, ...]
+    dropped: Mapping[str, int]
+    settings: Mapping[str, Any]
+    """Construction settings (the fixed set's key hashes them)."""
+    token_features: bool
+    verification: Mapping[str, Any]
+
+    @property
+    def unit_length(self) -> int:
+        return int(self.settings["unit_length"])
+
+    @property
+    def max_length(self) -> int:
+        return int(self.settings["max_length"])
+
+    def draw(self, replication: int | None = None) -> GroundTruthSet:
+        """The fixed set (``replication=None``: one caption pick and crop per span from ``(seed, motion id, span)``,
+        the same in every replication, job and checkpoint), or replication ``r``'s re-drawn set: per span a caption
+        picked at random, the crop one unit shorter with probability 1/3 (the reference loader's 'double' coin,
+        when ``unit_length < 10``; never shortened to zero) and a random offset, from ``(seed, r, motion id,
+        span)``. Deterministic: every rank and every job draws the same items for the same seed and replication."""
+        seed, unit, max_length = int(self.settings["seed"]), self.unit_length, self.max_length
+        fields: dict[str, list] = defaultdict(list)
+        for motion in self.motions:
+            record = motion.record
+            for (start, end), captions in motion.spans:
+                span = end - start
+                units = min(span, max_length) // unit
+                if replication is None:
+                    rng = np.random.default_rng(np.random.SeedSequence(
+                        [seed, _TAG_GT_PICK, stable_id_hash(record.id), start, end]))
+                    c = captions[int(rng.integers(len(captions)))]
+                else:
+                    rng = np.random.default_rng(np.random.SeedSequence(
+                        [seed, _TAG_GT_REDRAW, replication, stable_id_hash(record.id), start, end]))
+                    c = captions[int(rng.integers(len(captions)))]
+                    if unit < 10:  # the reference: coin2 = choice(['single', 'single', 'double'])
+                        shorten = rng.random() < REDRAW_SHORTEN_PROB  # drawn always: a stable stream position
+                        units -= int(shorten and units > 1)
+                length = units * unit
+                offset = start + int(rng.integers(0, span - length + 1))
+                fields["ids"].append(f"{record.id}#{start}-{end}" if motion.named_spans else record.id)
+                fields["features"].append(np.ascontiguousarray(record.features[offset:offset + length], np.float32))
+                fields["lengths"].append(length)
+                fields["offsets"].append(offset - start)
+                fields["caption_index"].append(c)
+                fields["captions"].append(record.captions[c])
+                fields["caption_tokens"].append(tuple(record.caption_tokens[c]))
+                fields["text_cond"].append(record.text_emb[c])
+                fields["actions"].append(record.action)
+                if self.token_features:
+                    fields["text_tokens"].append(record.text_tokens[c])
+                    fields["text_token_len"].append(int(record.text_token_len[c]))
+        settings = dict(self.settings)
+        if replication is not None:  # the fixed set's key is the one it always had (its caches stay valid)
+            settings["redraw"] = {"format": REDRAW_FORMAT, "replication": int(replication),
+                                  "shorten_prob": REDRAW_SHORTEN_PROB if unit < 10 else 0.0}
+        tokens = self.token_features
+        return GroundTruthSet(
+            dataset_id=self.dataset_id, split=self.split, ids=tuple(fields["ids"]),
+            features=tuple(fields["features"]), lengths=np.asarray(fields["lengths"], np.int64),
+            captions=tuple(fields["captions"]), caption_tokens=tuple(fields["caption_tokens"]),
+            text_cond=np.stack(fields["text_cond"]).astype(np.float32), actions=tuple(fields["actions"]),
+            dropped=dict(self.dropped), key=digest(settings),
+            text_tokens=np.stack(fields["text_tokens"]).astype(np.float32) if tokens else None,
+            text_token_len=np.asarray(fields["text_token_len"], np.int64) if tokens else None,
+            verification=self.verification, replication=replication,
+            offsets=np.asarray(fields["offsets"], np.int64),
+            caption_index=np.asarray(fields["caption_index"], np.int64))
+
+
+def read_ground_truth_pool(manifest: Manifest | str | Path, split: str = "test", *, max_length: int = 196,
+                           unit_length: int = 4, seed: int = 0, backend: str = "webdataset",
+                           require_action: bool = False, token_features: bool = False) -> GroundTruthPool:
+    """Verify ``split`` strictly (the training reader's checks: a shard that does not match the manifest raises
+    :class:`UnverifiedGroundTruth` naming the file and the reason, before any item is built), then read its motions
+    into a :class:`GroundTruthPool`. ``token_features``: also keep each caption's token features (the manifest must
+    store them)."""
     manifest = open_manifest(manifest)
     if token_features and not manifest.record_spec.token_features:
         raise EvaluationError(f"{manifest.location}: the model needs caption token features, which this dataset "
@@ -117,7 +230,7 @@ def build_ground_truth(manifest: Manifest | str | Path, split: str = "test", *, 
     except ShardVerificationError as exc:
         raise UnverifiedGroundTruth(f"refusing to score against split {split!r} of {manifest.location}, which does "
                                     f"not match its manifest: {exc}") from exc
-    fields: dict[str, list] = defaultdict(list)
+    motions: list[_Motion] = []
     dropped: dict[str, int] = defaultdict(int)
     for record in source.iter_motions():
         if require_action and not record.action:
@@ -126,39 +239,34 @@ def build_ground_truth(manifest: Manifest | str | Path, split: str = "test", *, 
         spans: dict[tuple[int, int], list[int]] = {}
         for c, (start, end) in enumerate(record.spans.tolist()):
             spans.setdefault((int(start), int(end)), []).append(c)
+        usable = []
         for (start, end), captions in spans.items():
-            rng = np.random.default_rng(np.random.SeedSequence(
-                [seed, _TAG_GT_PICK, stable_id_hash(record.id), start, end]))
-            c = captions[int(rng.integers(len(captions)))]
-            span = end - start
-            length = min(span, max_length) // unit_length * unit_length
-            if length < 1:
+            if min(end - start, max_length) // unit_length < 1:  # whatever the draw: the items never change
                 dropped["shorter_than_unit_length"] += 1
                 continue
-            offset = start + int(rng.integers(0, span - length + 1))
-            fields["ids"].append(record.id if len(spans) == 1 else f"{record.id}#{start}-{end}")
-            fields["features"].append(np.ascontiguousarray(record.features[offset:offset + length], np.float32))
-            fields["lengths"].append(length)
-            fields["captions"].append(record.captions[c])
-            fields["caption_tokens"].append(tuple(record.caption_tokens[c]))
-            fields["text_cond"].append(record.text_emb[c])
-            fields["actions"].append(record.action)
-            if token_features:
-                fields["text_tokens"].append(record.text_tokens[c])
-                fields["text_token_len"].append(int(record.text_token_len[c]))
-    if not fields["ids"]:
+            usable.append(((start, end), tuple(captions)))
+        if usable:
+            motions.append(_Motion(record, tuple(usable), len(spans) > 1))
+    if not motions:
         raise EvaluationError(f"{manifest.location}: split {split!r} has no usable evaluation item "
                               f"(dropped: {dict(dropped) or 'none'})")
     settings = {"format": GT_FORMAT, "dataset_id": manifest.dataset_id, "split": split,
                 "max_length": max_length, "unit_length": unit_length, "seed": seed, "require_action": require_action}
-    return GroundTruthSet(
-        dataset_id=manifest.dataset_id, split=split, ids=tuple(fields["ids"]), features=tuple(fields["features"]),
-        lengths=np.asarray(fields["lengths"], np.int64), captions=tuple(fields["captions"]),
-        caption_tokens=tuple(fields["caption_tokens"]), text_cond=np.stack(fields["text_cond"]).astype(np.float32),
-        actions=tuple(fields["actions"]), dropped=dict(dropped), key=digest(settings),
-        text_tokens=np.stack(fields["text_tokens"]).astype(np.float32) if token_features else None,
-        text_token_len=np.asarray(fields["text_token_len"], np.int64) if token_features else None,
-        verification=source.report.as_dict())
+    return GroundTruthPool(manifest.dataset_id, str(manifest.location), split, tuple(motions), dict(dropped),
+                           settings, token_features, source.report.as_dict())
+
+
+def build_ground_truth(manifest: Manifest | str | Path, split: str = "test", *, max_length: int = 196,
+                       unit_length: int = 4, seed: int = 0, backend: str = "webdataset",
+                       require_action: bool = False, token_features: bool = False,
+                       replication: int | None = None) -> GroundTruthSet:
+    """The evaluation items of ``split`` (see the module docstring); deterministic in (manifest, settings,
+    ``replication``): None = the fixed set, r = replication r's re-drawn set (:meth:`GroundTruthPool.draw`). The
+    split is verified strictly first (:func:`read_ground_truth_pool`). Several draws of one split: read the pool
+    once and draw from it."""
+    return read_ground_truth_pool(manifest, split, max_length=max_length, unit_length=unit_length, seed=seed,
+                                  backend=backend, require_action=require_action,
+                                  token_features=token_features).draw(replication)
 
 
 # ---------------------------------------------------------------------------------------------------------------

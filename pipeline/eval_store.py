@@ -9,7 +9,8 @@ Layout of an evaluation folder (default ``<run_dir>/eval``)::
     claims/<key>.claim                                                "someone is evaluating this unit now"
     checkpoints_seen.jsonl                                            every checkpoint a watcher has listed: one
                                                                       deleted before any result is reported
-    cache/gt-<evaluator>-<dataset>-<split>-<gt key>.npz               ground-truth embeddings per evaluator
+    cache/gt-<evaluator>-<dataset>-<split>-<gt key>.npz               ground-truth embeddings per evaluator and
+                                                                      set (re-drawn items: one per replication)
     plots/*.png
 
 Concurrency. Any number of jobs (cron, Slurm array, Kubernetes CronJob, two shells) may watch the same run. A unit

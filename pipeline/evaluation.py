@@ -2,17 +2,23 @@
 
 One *unit* of work is a checkpoint at one sampling point (solver, steps, guidance) with fixed settings::
 
-    claim (eval_store) -> load the model (EMA weights) -> ground-truth items of the test split (eval_spaces)
-      -> evaluator embeddings of the ground truth (computed once, cached on disk per evaluator)
-      -> R replications (eval_replications): generate with the sampling code -> embeddings / joints -> metrics
+    claim (eval_store) -> load the model (EMA weights) -> the test split, verified and read once (eval_spaces)
+      -> R replications (eval_replications), each: its ground-truth items (re-drawn captions and crops, or the
+         fixed set) and their evaluator embeddings (cached on disk per evaluator and set) -> generate for those
+         items with the sampling code -> embeddings / joints -> metrics
       -> mean ± 95 % CI -> result JSON + table rows (eval_store) -> W&B under the training run, plots (eval_plots)
 
 Protocol (text-to-motion, Guo et al. / MDM / MFM): FID against the whole ground-truth set, R-precision top-1/2/3
 among batches of 32, MM-Dist, Diversity (300 pairs), MultiModality (30 generations per text, 10 pairs, 100
-texts), 20 replications (``full``) or 3 (``fast``), mean ± 1.96·std/√R, plus the ground-truth row. A test set too
+texts), 20 replications (``full``) or 3 (``fast``), mean ± 1.96·std/√R, plus the ground-truth row. As the
+reference's shuffled loader, every replication draws its own ground-truth items (``protocol.redraw_items``, the
+default): each test motion's caption and crop, seeded by (protocol seed, replication); the replication generates
+for those captions and lengths and scores against those clips (FID's μ and Σ, the ground-truth row, MultiModality
+texts, edits, FLAME's metrics), so the intervals of both rows include that spread (``protocol.intervals`` says so).
+``redraw_items=false`` keeps one fixed set for every replication (noise-only intervals). A test set too
 small for a constant (32, 300, 100) uses a smaller value, recorded with a note under ``protocol``; never silently.
-The ground-truth row's FID is that of a bootstrap resample of the ground truth against the whole set: the
-sampling-noise floor (the reference's GT FID is likewise nonzero, its crops and captions being re-drawn). Also:
+The ground-truth row's FID is that of a bootstrap resample of the replication's ground truth against the whole of
+it: the sampling-noise floor (the reference's GT FID is likewise nonzero, its crops and captions being re-drawn). Also:
 editing (prediction, in-between, upper body: FID, Diversity, and ADE/FDE on joints in metres, our definition: MFM's
 Table 3 names them but its public code has no formula), FLAME's metrics
 (APE/AVE, mCLIP, MID, per-text joint variance), and for action models FID / accuracy / Diversity /
@@ -20,12 +26,13 @@ MultiModality in the action classifier's feature space. NFE and generation secon
 Plausibility (mfm.metrics.plausibility, on joints recovered from the features): bone-length range and relative
 deviation, floor penetration, foot skating ratio / contact and skating foot speeds, mean jerk and its ratio to the
 paired ground-truth clip's, as medians over the clips of a replication, for generated and edited motions (metric
-names as the PlausibilityFigures fields) and for the ground truth (computed once per test set, rank 0).
+names as the PlausibilityFigures fields) and for the ground truth (per ground-truth set, rank 0).
 With ``tasks.composition=true`` (a bpe + pccat model), FlowMDM's composition protocol adds one unit per sampling
 point and ``composition.switch`` point (pipeline.eval_composition); ``tasks.text_to_motion=false`` runs only those.
 
 Identity. A unit's key hashes the checkpoint id (its COMPLETE marker, which lists every file's sha256), the
-evaluator id, the ground-truth identity (dataset id, split, crops), the protocol, tasks and sampling point; the
+evaluator id, the ground-truth identity (dataset id, split, crops; with the protocol's seed and redraw_items, every
+replication's draw), the protocol, tasks and sampling point; the
 result and every table row carry the evaluator id and the dataset id, so numbers from different evaluators are
 never mixed up. Re-running on the same checkpoint finds the result and skips it.
 """
@@ -57,12 +64,11 @@ from pipeline.eval_composition import (
 from pipeline.eval_config import EvalConfig, SamplingPoint
 from pipeline.eval_replications import (
     CheckpointContext,
+    GroundTruthDraws,
     PhaseTimer,
     PointRun,
     action_labels,
     baseline_sampling,
-    ground_truth_embeddings,
-    ground_truth_plausibility,
     plan_protocol,
     points_for,
 )
@@ -75,8 +81,8 @@ from pipeline.eval_spaces import (
     EvaluationError,
     EvaluatorUnavailable,
     T2MSpace,
-    build_ground_truth,
     digest,
+    read_ground_truth_pool,
     resolve_evaluator_file,
 )
 from pipeline.eval_store import ClaimHolder, ResultsStore, SeenCheckpoint, Unit, log_to_wandb
@@ -183,16 +189,18 @@ class CheckpointScorer:
         key = (manifest.dataset_id, data.split, space.evaluator_id, is_action, tokens)
         if key not in self._gt:
             with timer.phase("ground_truth"):
-                backend = backend_for_format(data.format)
-                gt = build_ground_truth(manifest, data.split, max_length=p.max_length, unit_length=p.unit_length,
-                                        seed=p.seed, backend=backend, require_action=is_action,
-                                        token_features=tokens)
-                emb, cached = ground_truth_embeddings(gt, space, self.dist, cache_dir, self.cfg.sampling.batch_size)
-                figures = None
-                if self.dist.is_main:  # only rank 0 computes metrics
-                    figures = ground_truth_plausibility(gt, trained.skeleton, self.cfg.sampling.batch_size)
-            self._gt[key] = (gt, emb, cached, figures)
-        gt, emb, cached, gt_figures = self._gt[key]
+                pool = read_ground_truth_pool(manifest, data.split, max_length=p.max_length,
+                                              unit_length=p.unit_length, seed=p.seed,
+                                              backend=backend_for_format(data.format), require_action=is_action,
+                                              token_features=tokens)
+            self._gt[key] = GroundTruthDraws(pool, space, trained.skeleton, p.redraw_items,
+                                             self.cfg.sampling.batch_size)
+        draws = self._gt[key]
+        gt, emb, cached, gt_figures = draws.fixed, None, False, None
+        if not p.redraw_items or self.cfg.tasks.composition:  # something scores against the fixed set
+            with timer.phase("ground_truth"):
+                fixed = draws.fixed_truth(self.dist, cache_dir)
+            emb, cached, gt_figures = fixed.emb, fixed.from_cache, fixed.plausibility
         limit = _max_generation_length(trained)
         if int(gt.lengths.max()) > limit:
             raise EvaluationError(f"test clips reach {int(gt.lengths.max())} frames but {trained.checkpoint} "
@@ -207,14 +215,14 @@ class CheckpointScorer:
             labels, candidates = action_labels(trained, space, gt, p.seed)
         plan = plan_protocol(self.cfg, len(gt), len(candidates))
         return CheckpointContext(trained, checkpoint_id(folder), manifest, gt, space, emb, cached, plan, labels,
-                                 candidates, points, tuple(notes), gt_figures)
+                                 candidates, points, tuple(notes), gt_figures, draws, cache_dir)
 
     def unit_for(self, folder: Path, ctx_ids: Mapping[str, str], point: SamplingPoint) -> Unit:
         cfg = self.cfg
         # The task switches are not settings of a text-to-motion unit: turning composition on keeps its key.
         tasks = {k: v for k, v in to_dict(cfg.tasks).items() if k not in ("text_to_motion", "composition")}
         settings = {"format": RESULT_FORMAT, "ids": dict(ctx_ids), "point": dataclasses.asdict(point),
-                    "protocol": to_dict(cfg.protocol), "tasks": tasks, "split": cfg.data.split,
+                    "protocol": protocol_key(cfg.protocol), "tasks": tasks, "split": cfg.data.split,
                     "sampling": {"use_ema": cfg.sampling.use_ema, "rtol": cfg.sampling.rtol,
                                  "atol": cfg.sampling.atol}}
         return Unit(folder.name, point.name, digest(settings))
@@ -259,6 +267,15 @@ class Work:
     switch: float | None = None
 
 
+def protocol_key(protocol: Any) -> dict[str, Any]:
+    """The protocol settings as hashed into a text-to-motion unit's key. ``redraw_items=false`` is left out: the
+    fixed set scores exactly as before the setting existed, so results computed then keep their keys."""
+    out = to_dict(protocol)
+    if not out.get("redraw_items", True):
+        out.pop("redraw_items")
+    return out
+
+
 def _max_generation_length(trained: TrainedModel) -> int:
     config = trained.model_config
     limit = config.max_len - config.num_prefix_tokens
@@ -287,6 +304,8 @@ def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
         "dataset_id": result["data"]["dataset_id"], "checkpoint_dataset_id": result["checkpoint"]["dataset_id"],
         "split": result["data"]["split"], "protocol": result["protocol"]["name"],
         "replications": result["protocol"]["replications"], "num_items": result["protocol"]["num_items"],
+        # Whether the intervals include re-drawn ground-truth items (results before the setting: a fixed set).
+        "redraw_items": bool(result["protocol"].get("redraw_items", False)),
         "solver": result["sampling"]["solver"], "steps": result["sampling"]["steps"],
         "guidance": result["sampling"]["guidance"], "nfe": result["nfe"],
         "model_passes_per_motion": result["model_passes_per_motion"],
@@ -529,6 +548,8 @@ class EvaluationJob:
                 computed: Mapping[str, Any], setup: Mapping[str, float],
                 phases: Mapping[str, float]) -> dict[str, Any]:
         trained, gt = ctx.trained, ctx.gt
+        computed = dict(computed)
+        sets = computed.pop("ground_truth_sets", [])
         return {
             "format": RESULT_FORMAT,
             "task": "text_to_motion",
@@ -542,7 +563,10 @@ class EvaluationJob:
             "evaluator": ctx.space.describe(),
             "data": {"manifest": ctx.manifest.location, "dataset_id": ctx.manifest.dataset_id, "split": gt.split,
                      "num_items": len(gt), "dropped": dict(gt.dropped), "gt_key": gt.key,
-                     "gt_embeddings_from_cache": ctx.gt_from_cache,
+                     # Per replication: the set it scored against (re-drawn: its own key) and whether its
+                     # embeddings came from the cache; gt_key above is the fixed set's (the items' identity).
+                     "redraw_items": ctx.plan.redraw_items, "ground_truth_sets": sets,
+                     "gt_embeddings_from_cache": bool(sets) and all(t["embeddings_from_cache"] for t in sets),
                      # The ground truth was read only after its shards verified (pipeline.data.verify_shards).
                      "data_verified": bool(gt.verification.get("verified")), "verification": dict(gt.verification)},
             "protocol": {**ctx.plan.as_dict(), "config": to_dict(self.cfg.protocol)},

@@ -34,7 +34,7 @@ from mfm.model import valid_frame_mask
 from pipeline.config import ConfigError
 from pipeline.eval_config import load_eval_config, sweep_overrides
 from pipeline.eval_replications import my_batches, plan_protocol, plan_repeats, plan_rows
-from pipeline.eval_spaces import build_ground_truth
+from pipeline.eval_spaces import build_ground_truth, read_ground_truth_pool
 from pipeline.eval_store import ResultsStore, Unit, this_pid_namespace
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -258,6 +258,108 @@ def test_ground_truth_items_are_fixed_unit_multiples(manifest):
     assert features.shape[0] == 2 and int(lengths.max()) == features.shape[1]
 
 
+def test_ground_truth_items_are_redrawn_per_replication_from_seeds(manifest):
+    """protocol.redraw_items: replication r's set is drawn from (seed, r): the same items (ids, order) as the fixed
+    set, other caption picks / crops; the same draw for the same seed and replication, whoever builds it."""
+    pool = read_ground_truth_pool(manifest, "test", seed=0)
+    fixed = pool.draw(None)
+    assert fixed.key == build_ground_truth(manifest, "test", seed=0).key and fixed.replication is None
+    draws = [pool.draw(r) for r in range(4)]
+    assert all(d.ids == fixed.ids and d.replication == r for r, d in enumerate(draws))
+    assert len({fixed.key, *(d.key for d in draws)}) == 5  # one cache entry per set
+    for d in draws:  # reference crops: multiples of unit_length, at most the fixed set's (the coin only shortens)
+        assert np.all(d.lengths % 4 == 0) and np.all(d.lengths >= 4) and np.all(d.lengths <= fixed.lengths)
+        assert all(f.shape[0] == n for f, n in zip(d.features, d.lengths))
+    def items(d):
+        return d.caption_index.tolist(), d.offsets.tolist(), d.lengths.tolist()
+
+    assert all(items(a) != items(b) for i, a in enumerate(draws) for b in draws[i + 1:])
+    assert len({c for d in draws for c in d.caption_index.tolist()}) > 1  # captions do change
+    assert any(not np.array_equal(d.lengths, fixed.lengths) for d in draws)  # so do lengths
+    again = build_ground_truth(manifest, "test", seed=0, replication=2)  # another read, another process's view
+    assert again.key == draws[2].key and items(again) == items(draws[2]) and again.captions == draws[2].captions
+    assert all(np.array_equal(x, y) for x, y in zip(again.features, draws[2].features))
+    assert np.array_equal(again.text_cond, draws[2].text_cond)
+    other_seed = read_ground_truth_pool(manifest, "test", seed=1).draw(2)
+    assert other_seed.key != draws[2].key and items(other_seed) != items(draws[2])
+
+
+def _scored_context(checkpoint: Path, evaluator: Path, out: Path, *overrides: str):
+    """An evaluation job's scorer and the context of ``checkpoint`` under the small protocol (one process)."""
+    from pipeline.distributed import Dist
+    from pipeline.eval_replications import PhaseTimer
+    from pipeline.evaluation import EvaluationJob
+
+    cfg = load_eval_config("fast", overrides=[*SMALL_PROTOCOL, "sampling.steps=[1]", f"evaluator.path={evaluator}",
+                                              f"output.dir={out}", *overrides])
+    dist = Dist(mixed_precision="no", cpu=True)
+    job = EvaluationJob(cfg, dist)
+    ctx = job.scorer.context(checkpoint, job.store_for(checkpoint).cache_dir, PhaseTimer(dist.device))
+    return job, dist, ctx
+
+
+def _items(gt) -> tuple:
+    return gt.key, gt.captions, gt.lengths.tolist(), gt.offsets.tolist()
+
+
+def test_each_replication_generates_edits_and_scores_its_own_draw(text_run, manifest, tmp_path, monkeypatch):
+    """Default protocol: replication r generates for its own items (their captions as conditions, their lengths;
+    MultiModality texts and edits too) and scores against them; the same items when the plan is built again; one
+    fixed set for every replication with protocol.redraw_items=false."""
+    import pipeline.eval_replications as replications
+    from pipeline.eval_replications import PhaseTimer
+
+    evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
+    checkpoint = text_run / "checkpoints" / "step-00000001"
+    job, dist, ctx = _scored_context(checkpoint, evaluator, tmp_path / "a", "protocol.replications=3")
+    assert ctx.plan.redraw_items and "re-drawn" in ctx.plan.intervals
+    truths = [ctx.truth(r, dist) for r in range(3)]
+    assert len({t.gt.key for t in truths} | {ctx.gt.key}) == 4 and all(t.gt.ids == ctx.gt.ids for t in truths)
+    assert len({(t.gt.captions, tuple(t.gt.lengths)) for t in truths}) == 3  # different items per replication
+    assert not any(t.from_cache for t in truths) and all(t.emb.motion.shape[0] == len(ctx.gt) for t in truths)
+    # GT embeddings are those of the drawn clips and captions (FID's μ, Σ and the GT row change with the draw)
+    assert not np.allclose(truths[0].emb.motion, truths[1].emb.motion)
+    # The plan built again (another job, fresh cache): the same items; its embeddings equal those computed here
+    _, dist2, again = _scored_context(checkpoint, evaluator, tmp_path / "b", "protocol.replications=3")
+    for r, truth in enumerate(truths):
+        twin = again.truth(r, dist2)
+        assert _items(twin.gt) == _items(truth.gt) and np.array_equal(twin.emb.motion, truth.emb.motion)
+    assert ctx.truth(1, dist).from_cache  # cached per set: the next point / checkpoint reads it
+    # redraw_items=false: the fixed set in every replication, embedded once
+    _, dist3, fixed = _scored_context(checkpoint, evaluator, tmp_path / "c", "protocol.redraw_items=false")
+    assert not fixed.plan.redraw_items and "fixed set" in fixed.plan.intervals
+    assert {fixed.truth(r, dist3).gt.key for r in range(3)} == {fixed.gt.key} and fixed.gt_emb is not None
+
+    # What each replication generates: record the conditions and lengths handed to the sampler.
+    calls: list[tuple[int, bool, np.ndarray, list[int]]] = []
+    current = {"replication": -1}
+    generate, replicate = replications.generate, replications.PointRun.replicate
+
+    def recording_generate(trained, cond, extras, lengths, *args, known=None, **kwargs):
+        calls.append((current["replication"], known is not None, cond.cpu().numpy(), lengths.tolist()))
+        return generate(trained, cond, extras, lengths, *args, known=known, **kwargs)
+
+    def recording_replicate(self, replication):
+        current["replication"] = replication
+        return replicate(self, replication)
+
+    monkeypatch.setattr(replications, "generate", recording_generate)
+    monkeypatch.setattr(replications.PointRun, "replicate", recording_replicate)
+    result = job.scorer.evaluate_point(ctx, ctx.points[0], PhaseTimer(dist.device))
+    assert [t["gt_key"] for t in result["ground_truth_sets"]] == [t.gt.key for t in truths]
+    main_batches = -(-len(ctx.gt) // job.cfg.sampling.batch_size)
+    for r, truth in enumerate(truths):
+        gt = truth.gt
+        mine = [c for c in calls if c[0] == r]
+        pairs = {(round(float(row[0]), 6), n) for _, _, cond, lengths in mine for row, n in zip(cond, lengths)}
+        drawn = {(round(float(gt.text_cond[i, 0]), 6), int(gt.lengths[i])) for i in range(len(gt))}
+        assert pairs <= drawn, r  # every generation (main, MultiModality, edits) is for one of r's drawn items
+        main_lengths = sorted(n for _, _, _, lengths in mine[:main_batches] for n in lengths)
+        assert main_lengths == sorted(gt.lengths.tolist())
+        assert any(edit for _, edit, _, _ in mine) == (r < job.cfg.tasks.editing_replications)
+    assert calls and {c[0] for c in calls} == {0, 1, 2}
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # end to end
 
@@ -337,6 +439,42 @@ def test_evaluate_checkpoint_with_a_steps_sweep(text_run, trained_evaluator, tmp
     assert evaluate(*args) == 0  # everything is done: nothing re-evaluated, no new rows
     assert "0 result(s) written" in capsys.readouterr().out
     assert {p: p.stat().st_mtime_ns for p in results} == before and len(ResultsStore(out).table_rows()) == 4
+
+
+def test_results_say_whether_intervals_include_item_redraws(text_run, manifest, tmp_path):
+    """results.json: the protocol section records redraw_items and what the intervals include; the data section
+    the set of each replication; the ground-truth row has intervals over the draws. redraw_items=false: the fixed
+    set in every replication (and a GT row whose item-only metrics do not vary), under another key."""
+    evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
+    args = ["--checkpoint", str(text_run / "checkpoints" / "step-00000002"), "--protocol", "fast", *SMALL_PROTOCOL,
+            "sampling.steps=[1]", "protocol.replications=3", "tasks.editing=[]", f"evaluator.path={evaluator}"]
+    results = {}
+    for redraw in (True, False):
+        out = tmp_path / f"eval-{redraw}"
+        assert evaluate(*args, f"protocol.redraw_items={str(redraw).lower()}", f"output.dir={out}") == 0
+        (path,) = (out / "results").rglob("*.json")
+        results[redraw] = json.loads(path.read_text())
+        rows = ResultsStore(out).table_rows()
+        assert [r["redraw_items"] for r in rows] == [redraw, redraw] and "mclip_ci" in rows[1]
+    redrawn, fixed = results[True], results[False]
+    assert redrawn["key"] != fixed["key"]
+    assert redrawn["protocol"]["redraw_items"] is True and redrawn["protocol"]["config"]["redraw_items"] is True
+    assert "ground-truth items re-drawn per replication" in redrawn["protocol"]["intervals"]
+    assert fixed["protocol"]["redraw_items"] is False and "fixed set" in fixed["protocol"]["intervals"]
+    assert redrawn["data"]["redraw_items"] is True and fixed["data"]["redraw_items"] is False
+    sets = redrawn["data"]["ground_truth_sets"]
+    assert [s["replication"] for s in sets] == [0, 1, 2] and len({s["gt_key"] for s in sets}) == 3
+    assert redrawn["data"]["gt_key"] not in {s["gt_key"] for s in sets}  # the fixed set is not scored
+    assert {s["gt_key"] for s in fixed["data"]["ground_truth_sets"]} == {fixed["data"]["gt_key"]}
+    assert redrawn["data"]["num_items"] == fixed["data"]["num_items"] == 10  # the whole test set each time
+    assert "ground_truth" in redrawn["timing_s"]  # the per-replication sets' cost, in the unit's own time
+    # The GT row: means with intervals over replications; metrics of the items alone vary only when re-drawn
+    for name in ("mclip", "mean_jerk", "fid", "r_precision_top1"):
+        assert len(redrawn["ground_truth"][name]["values"]) == 3 and redrawn["ground_truth"][name]["ci"] is not None
+    for name in ("mclip", "mean_jerk"):
+        assert redrawn["ground_truth"][name]["ci"] > 0, name
+        assert len(set(fixed["ground_truth"][name]["values"])) == 1 and fixed["ground_truth"][name]["ci"] == 0
+    assert redrawn["metrics"]["fid"]["ci"] > 0 and redrawn["ground_truth"]["jerk_ratio"]["mean"] == pytest.approx(1.0)
 
 
 def test_watchers_evaluate_each_complete_checkpoint_once(text_run, manifest, tmp_path):

@@ -1,6 +1,7 @@
 """Evaluator invariant (reliability item 7): the metrics of a test set whose size (10) is not a multiple of
 world_size × batch_size (2 × 4) are identical with 1 and 2 gloo ranks (torchrun, CPU), and so is the result key.
-Every task runs: text-to-motion, MultiModality, FLAME metrics, editing (their batches split unevenly over ranks)."""
+Every task runs: text-to-motion, MultiModality, FLAME metrics, editing (their batches split unevenly over ranks), each
+replication on its own draw of the ground-truth items (embedded by both ranks)."""
 
 from __future__ import annotations
 
@@ -40,6 +41,9 @@ def test_metrics_are_identical_on_one_and_two_ranks(tmp_path_factory):
     assert (one["world_size"], two["world_size"]) == (1, 2)
     assert one["data"]["num_items"] == 10 and one["sampling"]["batch_size"] == 4
     assert one["key"] == two["key"]
+    # each replication's ground-truth items are re-drawn (the default), from seeds: the same sets on both
+    assert one["protocol"]["redraw_items"] and one["data"]["ground_truth_sets"] == two["data"]["ground_truth_sets"]
+    assert len({s["gt_key"] for s in one["data"]["ground_truth_sets"]}) == one["protocol"]["replications"] == 2
     for section in ("metrics", "ground_truth", "editing"):
         assert one[section] == two[section], section  # every replication's value, exactly
     assert {"fid", "r_precision_top3", "multimodality", "APE_root", "joint_variance"} <= set(one["metrics"])
