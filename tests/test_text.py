@@ -282,3 +282,30 @@ def test_clip_rejects_a_checkpoint_of_another_model(tmp_path):
     garbage.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="garbage.safetensors: cannot read CLIP weights"):
         build_text_encoder("clip-vit-b-32", weights=garbage)
+
+
+def test_minilm_takes_a_hub_id_found_in_the_hugging_face_cache(minilm, tmp_path, monkeypatch):
+    """A hub id resolves through the Hugging Face cache (offline here: cache only); the same weights give the same
+    encoder hash and embeddings as the shipped folder. A missing one names the cache and what to do."""
+    import shutil
+
+    from huggingface_hub import constants
+
+    from mfm.text import minilm_default_folder
+
+    cache = tmp_path / "hub"
+    repo = cache / "models--sentence-transformers--all-MiniLM-L6-v2"
+    snapshot = repo / "snapshots" / "0123456789abcdef0123456789abcdef01234567"
+    shutil.copytree(minilm_default_folder(), snapshot)
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text("0123456789abcdef0123456789abcdef01234567")
+    monkeypatch.setattr(constants, "HF_HUB_CACHE", str(cache))
+    monkeypatch.setattr(constants, "HF_HUB_OFFLINE", True)
+    for name in ("sentence-transformers/all-MiniLM-L6-v2", "all-MiniLM-L6-v2"):
+        from_hub = build_text_encoder("minilm", weights=name)
+        assert from_hub.weights_sha256 == minilm.weights_sha256
+        np.testing.assert_array_equal(from_hub.encode(["a person waves"]).pooled,
+                                      minilm.encode(["a person waves"]).pooled)
+    with pytest.raises(FileNotFoundError, match=r"'sentence-transformers/paraphrase-MiniLM-L3-v2' are not in the "
+                                                r"Hugging Face cache .*hub.*pass a local folder"):
+        build_text_encoder("minilm", weights="paraphrase-MiniLM-L3-v2")
