@@ -4,7 +4,12 @@ One object owns a run: the model (wrapped for the device by :mod:`pipeline.distr
 linear warm-up, the self-sharded streaming loader (never passed through ``accelerator.prepare``), and one
 versioned resume state saved atomically by :mod:`pipeline.checkpoint`. ``fit`` reads top to bottom:
 
-    resume → write run files → for each optimizer step: stop requested? → train_step → maybe_log → maybe_save
+    resume → write run files → for each optimizer step: stop requested? → train_step → maybe_log (+ maybe_validate)
+    → maybe_save
+
+What rank 0 shows (metrics.jsonl, W&B, TensorBoard, loss.png at the end) is :mod:`pipeline.train_logging`; the
+validation loss every ``train.val_every`` steps (fixed val batches and draws, separate RNG streams, all-reduced
+over ranks) is :mod:`pipeline.validation`.
 
 Nothing is written into the run folder before the resume decision: rank 0 first checks train.out_dir
 (:mod:`pipeline.run_folder`), removes unfinished checkpoint folders of dead processes and resolves train.resume
@@ -69,6 +74,8 @@ from pipeline.data import (
 )
 from pipeline.distributed import Dist
 from pipeline.run_folder import RunFolderError, check_run_folder
+from pipeline.train_logging import MetricsSink, require_tensorboard
+from pipeline.validation import Validator, build_validator, has_val_split
 
 logger = logging.getLogger(__name__)
 
@@ -121,6 +128,8 @@ def model_config_for(manifest: Manifest, requested: ModelConfig, *, learned_vari
     changes: dict[str, Any] = {"feature_dim": int(spec["dim"]), "cond_dim": int(text["dim"])}
     if requested.conditioning == "cross_attention":
         changes["token_dim"] = int(text["dim"])
+        if requested.null_condition == "empty_caption":
+            changes["null_tokens"] = int(text.get("max_tokens") or 0)
     if learned_variance:
         changes["output_dim"] = 2 * int(spec["dim"])
     if requested.num_actions > 0:
@@ -128,6 +137,24 @@ def model_config_for(manifest: Manifest, requested: ModelConfig, *, learned_vari
             raise ValueError(f"model.num_actions > 0 asks for an action model, but {manifest.location} has no action classes")
         changes["num_actions"] = len(manifest.action_classes)
     return dataclasses.replace(requested, **changes)
+
+
+def fill_null_condition(model: MotionFlowTransformer, manifest: Manifest) -> None:
+    """FLAME's null condition (model.null_condition=empty_caption): the dataset's own text encoder applied to "",
+    stored in the model before training (and so in every checkpoint). A CLIP dataset's encoder is rebuilt from the
+    weights its build recorded."""
+    from mfm.text import encode_empty_caption
+
+    entry = manifest.data["text_encoder"]
+    weights = manifest.data.get("builder", {}).get("options", {}).get("text_weights")
+    try:
+        empty = encode_empty_caption(entry, weights=weights)
+    except (ValueError, OSError, RuntimeError) as err:
+        raise ValueError(f"model.null_condition=empty_caption encodes the empty caption with the dataset's text "
+                         f"encoder {entry.get('id')!r}, which could not be rebuilt: {err}") from err
+    tokens = None if empty.tokens is None else torch.from_numpy(empty.tokens[0])
+    token_len = None if empty.token_lengths is None else int(empty.token_lengths[0])
+    model.set_null_condition(torch.from_numpy(empty.pooled[0]), tokens, token_len)
 
 
 class EMA:
@@ -302,17 +329,20 @@ class Trainer:
         self.dist = dist
         self.out_dir = Path(cfg.train.out_dir)
         self.ckpt_root = ckpt.checkpoints_dir(self.out_dir)
-        # Refuse an unusable train.out_dir before the slow part (verifying every shard); fit() checks it again.
-        self._decided_by_main(lambda: check_run_folder(self.out_dir))
+        # Refuse an unusable train.out_dir (or train.tensorboard without its package) before the slow part
+        # (verifying every shard); fit() checks the folder again.
+        self._decided_by_main(self._check_before_start)
 
         self.manifest = open_manifest(cfg.data.manifest)
-        bad_shards = self._verified_bad_shards()
+        bad_shards, self.shard_report = self._verified_bad_shards("train")
         self.objective = build_objective(cfg, self.manifest)
         self.model_config = model_config_for(
             self.manifest, cfg.model, learned_variance=getattr(self.objective, "learn_sigma", False))
 
         seed_everything(cfg.train.seed)  # identical initial weights on every rank
         model = MotionFlowTransformer(self.model_config)
+        if self.model_config.null_condition == "empty_caption":
+            fill_null_condition(model, self.manifest)
         self.num_parameters = count_parameters(model)
         self.ema = EMA(model, cfg.optim.ema_decay)
         fused = dist.device.type == "cuda"
@@ -358,19 +388,26 @@ class Trainer:
         self.empty_steps = 0  # steps with no sample on any rank (tolerant mode): stepped through, no update
         self.stop_signal = StopSignal()
         self._last_saved_step = -1
+        self._validator: Validator | None = None  # built by the first validate() (train.val_every)
+        self._validator_built = False
 
     # -- setup ------------------------------------------------------------------------------------------------
 
-    def _verified_bad_shards(self) -> tuple[str, ...]:
-        """Rank 0 checks every train shard against the manifest (strict: raises naming the shard, before any
-        training); the list of bad shards it found is broadcast so every rank drops the same ones."""
+    def _check_before_start(self) -> None:
+        check_run_folder(self.out_dir)
+        require_tensorboard(self.cfg.train.tensorboard)
+
+    def _verified_bad_shards(self, split: str) -> tuple[tuple[str, ...], dict[str, Any]]:
+        """Rank 0 checks every shard of ``split`` against the manifest (strict: raises naming the shard, before
+        any training); the list of bad shards it found is broadcast so every rank drops the same ones. Returns
+        that list and the report (for shard_report.json)."""
         mode = self.cfg.data.verify
         backend = backend_for_format(self.cfg.data.format)
         report = None
         error: Exception | None = None
         if self.dist.is_main:
             try:
-                report = verify_shards(self.manifest, "train", mode=mode, backend=backend)
+                report = verify_shards(self.manifest, split, mode=mode, backend=backend)
             except Exception as err:  # re-raised on every rank below, so no rank waits forever
                 error = err
         error_text = self.dist.broadcast_object(None if error is None else f"{type(error).__name__}: {error}")
@@ -381,11 +418,10 @@ class Trainer:
         bad = self.dist.broadcast_object(tuple(report.bad_paths) if report is not None else ())
         if bad:
             self.dist.log0(
-                "tolerant shard verification: skipping %d bad shard(s) (%d samples): %s",
-                len(bad), report.samples_lost if report else -1, ", ".join(bad), level=logging.WARNING,
+                "tolerant shard verification: skipping %d bad shard(s) of the %s split (%d samples): %s",
+                len(bad), split, report.samples_lost if report else -1, ", ".join(bad), level=logging.WARNING,
             )
-        self.shard_report = report.as_dict() if report is not None else {"bad": list(bad)}
-        return bad
+        return bad, (report.as_dict() if report is not None else {"bad": list(bad)})
 
     # -- one optimizer step -----------------------------------------------------------------------------------
 
@@ -395,10 +431,11 @@ class Trainer:
         return batch["text_emb"].to(self.dist.device)
 
     def _micro_batch_loss(self, batch: Mapping[str, Any], draws: Draws | None,
-                          generator: torch.Generator | None = None) -> torch.Tensor:
+                          generator: torch.Generator | None = None, model: Callable[..., Any] | None = None
+                          ) -> torch.Tensor:
         """The objective's loss on one micro-batch. Draw order from the per-rank generator (replayed exactly on
         resume; ``generator`` replaces it): dropped conditions, the BPE positional mode (BPE models), then the
-        objective's own draws."""
+        objective's own draws. ``model`` replaces the prepared training model (validation)."""
         device, config = self.dist.device, self.model_config
         generator = self.generator if generator is None else generator
         features = batch["features"].to(device, non_blocking=True)
@@ -421,7 +458,8 @@ class Trainer:
             cond_mask, overrides = draws.cond_mask, {"t": draws.t, "x0": draws.x0}
             if draws.positional_mode is not None:
                 model_kwargs["positional_mode"] = draws.positional_mode
-        loss, _ = self.objective.loss(self.model, features, self._condition(batch), lengths, generator=generator,
+        loss, _ = self.objective.loss(self.model if model is None else model, features, self._condition(batch),
+                                      lengths, generator=generator,
                                       cond_mask=cond_mask, model_kwargs=model_kwargs, **overrides)
         return loss
 
@@ -678,6 +716,8 @@ class Trainer:
         """Train to ``train.max_steps``; returns the process exit code (0, or 128 + signal after a clean stop)."""
         cfg = self.cfg
         self.resume()  # decided (and possibly refused) before anything in the run folder is written
+        if self._validation_ahead():
+            self.validate(read_only=True)  # read the val batches now: a bad val shard is refused before step 1
         self._write_run_files()
         logger_sink = MetricsSink(self.out_dir, cfg, self.dist, self.model_config, self.num_parameters, self.step)
         self.stop_signal.install()
@@ -697,8 +737,11 @@ class Trainer:
                 self._handle_nonfinite(result)
                 window.add(result, cfg.data.batch_size * cfg.optim.grad_accum)
                 progress.update(1)
-                if self.step % cfg.train.log_every == 0 or self.step == cfg.train.max_steps:
-                    logger_sink.log(self._log_record(window, result), progress)
+                log_step = self.step % cfg.train.log_every == 0 or self.step == cfg.train.max_steps
+                record = self._log_record(window, result) if log_step else None
+                validation = self._validate_if_due(window)
+                if record is not None or validation is not None:
+                    logger_sink.log({**(record or {"step": self.step}), **(validation or {})}, progress)
                 if self.step % cfg.train.save_every == 0 or self.step == cfg.train.max_steps:
                     self.save()
                 if result.stop_signal:
@@ -708,6 +751,48 @@ class Trainer:
             progress.close()
             logger_sink.close()
             self.stop_signal.restore()
+
+    # -- validation -------------------------------------------------------------------------------------------
+
+    def _validation_ahead(self) -> bool:
+        """Whether this run reaches a multiple of train.val_every after its current step."""
+        every = self.cfg.train.val_every
+        return every > 0 and self.step // every < self.cfg.train.max_steps // every
+
+    def _validate_if_due(self, window: "WindowStats") -> dict[str, Any] | None:
+        """At a multiple of train.val_every: the validation record; its time is left out of the throughput."""
+        every = self.cfg.train.val_every
+        if every <= 0 or self.step % every:
+            return None
+        start = time.perf_counter()
+        record = self.validate()
+        window.started += time.perf_counter() - start
+        return record
+
+    def validate(self, read_only: bool = False) -> dict[str, Any] | None:
+        """The validation loss of the current weights (:mod:`pipeline.validation`) as the record
+        ``{val_loss, val_samples, val_weights, val_time_s}``; None when the manifest has no usable val split. A
+        collective: every rank calls it at the same step. The first call reads the validation batches (rank 0
+        verifies the val shards first, as data.verify says); ``read_only`` stops there."""
+        if not self._validator_built:
+            state = ckpt.capture_rng_state()  # reading the batches must leave every training stream as it was
+            try:
+                self._validator = self._build_validator()
+            finally:
+                ckpt.restore_rng_state(state)
+            self._validator_built = True
+        if read_only or self._validator is None:
+            return None
+        return self._validator.run()
+
+    def _build_validator(self) -> Validator | None:
+        bad: tuple[str, ...] = ()
+        if has_val_split(self.manifest):
+            bad, _ = self._verified_bad_shards("val")
+        return build_validator(
+            self.cfg, self.manifest, self.dist, exclude_shards=bad,
+            loss_fn=lambda batch, generator, model: self._micro_batch_loss(batch, None, generator, model),
+            model=self.dist.unwrap(self.model), ema_state=lambda: self.ema.shadow)
 
     def _stop_on_signal(self, signum: int) -> int:
         """Some rank saw SIGTERM/SIGINT before this step ended: every rank learnt it from the same all-reduce, so
@@ -786,84 +871,3 @@ class WindowStats:
         }
         self._reset()
         return out
-
-
-class MetricsSink:
-    """Rank 0's outputs: the tqdm postfix, ``metrics.jsonl`` in the run folder, and W&B (offline by default;
-    ``WANDB_MODE`` wins; a W&B failure is logged and never stops training)."""
-
-    def __init__(self, out_dir: Path, cfg: TrainConfig, dist: Dist, model_config: ModelConfig, num_parameters: int,
-                 start_step: int = 0):
-        self.enabled = dist.is_main
-        self.jsonl = None
-        self.wandb_run = None
-        if not self.enabled:
-            return
-        metrics_path = out_dir / "metrics.jsonl"
-        drop_records_after(metrics_path, start_step)
-        self.jsonl = open(metrics_path, "a", encoding="utf-8")
-        dist.log0("model: %.2f M parameters; world size %d; device %s; precision %s",
-                  num_parameters / 1e6, dist.world_size, dist.device, dist.mixed_precision)
-        mode = os.environ.get("WANDB_MODE", cfg.train.wandb)
-        if mode != "disabled":
-            try:
-                import wandb
-
-                os.environ.setdefault("WANDB_DIR", str(out_dir))
-                self.wandb_run = wandb.init(
-                    project=cfg.train.wandb_project, mode=mode, dir=str(out_dir), config=to_dict(cfg),
-                    name=out_dir.name, resume="allow", id=_wandb_run_id(out_dir),
-                )
-            except Exception as err:  # logging must never take the run down
-                logger.warning("W&B disabled for this run: %s", err)
-                self.wandb_run = None
-
-    def log(self, record: dict[str, Any], progress: tqdm) -> None:
-        if not self.enabled:
-            return
-        loss = "skipped" if record["loss"] is None else f"{record['loss']:.4f}"
-        progress.set_postfix(loss=loss, sps=f"{record['samples_per_s']:.0f}", wait=f"{record['data_wait_frac']:.0%}")
-        self.jsonl.write(json.dumps(record) + "\n")
-        self.jsonl.flush()
-        if self.wandb_run is not None:
-            scalars = {f"train/{k}": v for k, v in record.items() if k != "step" and v is not None}
-            self.wandb_run.log(scalars, step=record["step"])
-
-    def close(self) -> None:
-        if self.jsonl is not None:
-            self.jsonl.close()
-        if self.wandb_run is not None:
-            self.wandb_run.finish()
-
-
-def drop_records_after(metrics_path: Path, step: int) -> None:
-    """Keep only the records of steps <= ``step`` (the step a run starts or resumes from): the steps after it are
-    about to be trained (again), and a killed run may have logged some of them, or left a torn last line."""
-    if not metrics_path.exists():
-        return
-    text = metrics_path.read_text(encoding="utf-8")
-    kept = []
-    for line in text.splitlines():
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(record, dict) and isinstance(record.get("step"), int) and record["step"] <= step:
-            kept.append(line + "\n")
-    if "".join(kept) == text:
-        return  # nothing to drop: no rewrite (on a nearly full disk, no temporary copy either)
-    tmp = metrics_path.with_name(metrics_path.name + ".tmp")
-    tmp.write_text("".join(kept), encoding="utf-8")
-    os.replace(tmp, metrics_path)
-
-
-def _wandb_run_id(out_dir: Path) -> str:
-    """A stable W&B id per run folder so a resumed run continues the same W&B run."""
-    id_file = out_dir / "wandb_id.txt"
-    if id_file.exists():
-        return id_file.read_text().strip()
-    import uuid
-
-    run_id = uuid.uuid4().hex[:12]
-    id_file.write_text(run_id)
-    return run_id

@@ -1,6 +1,7 @@
 """The training loop's promises across two real gloo ranks (torchrun and accelerate launch, CPU, tiny model).
 
 * data parallelism is exact: 2 ranks on halves of fixed global batches == 1 process on the whole batches;
+* the validation loss of 2 ranks (each on its share of the val batches, all-reduced) == 1 process's;
 * a NaN on one rank makes every rank skip the same step (or all raise with nonfinite=stop), without a hang;
 * a batch whose every record is bad on one rank (tolerant mode) is an empty step on that rank, not passed over:
   both ranks stay on their planned batches and at the same data position, the other rank's samples train with the
@@ -15,6 +16,7 @@ The launches are module fixtures shared by the tests that read them: starting to
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -72,20 +74,28 @@ def workdir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def misc_launch(dataset, workdir) -> dict[str, Any]:
-    """One torchrun launch: the equivalence steps, a run with a NaN on rank 1 (skip), then one with
-    nonfinite=stop, which raises on every rank and ends the processes with a non-zero code."""
+    """One torchrun launch: the equivalence steps, the validation loss of the initial weights, a run with a NaN on
+    rank 1 (skip), then one with nonfinite=stop, which raises on every rank and ends the processes with a
+    non-zero code."""
     root = workdir / "misc"
     equivalence = {"kind": "equivalence", "out": str(root / "equivalence"), "steps": EQUIVALENCE_STEPS,
                    "overrides": [f"data.manifest={dataset}", f"train.out_dir={root / 'equivalence' / 'run'}",
                                  "model.dropout=0.0"]}
+    validate = {"kind": "validate", "out": str(root / "validate"), "overrides": validation_overrides(dataset, root)}
     skip = fit_scenario(root / "skip", [f"data.manifest={dataset}", f"train.out_dir={root / 'skip' / 'run'}",
                                         "train.log_every=1", "train.max_steps=5"],
                         nan_at=[1, [NAN_STEP]], snapshot_at=[NAN_STEP, 5])
     stop = fit_scenario(root / "stop", [f"data.manifest={dataset}", f"train.out_dir={root / 'stop' / 'run'}",
                                         "train.log_every=1", "train.max_steps=5", "train.nonfinite=stop"],
                         nan_at=[1, [2]])
-    proc = run_worker(TORCHRUN, [equivalence, skip, stop], root, timeout=240)
+    proc = run_worker(TORCHRUN, [equivalence, validate, skip, stop], root, timeout=240)
     return {"root": root, "proc": proc, "dataset": dataset}
+
+
+def validation_overrides(dataset: Path, root: Path) -> list[str]:
+    """Validation batches of one motion: the test dataset's 3 val motions make 3 batches, 2 on rank 0, 1 on rank 1."""
+    return [f"data.manifest={dataset}", f"train.out_dir={root / 'validate' / 'run'}", "data.batch_size=1",
+            "train.val_every=1"]
 
 
 def test_two_ranks_match_one_process_on_the_same_global_batches(misc_launch, tmp_path):
@@ -102,6 +112,18 @@ def test_two_ranks_match_one_process_on_the_same_global_batches(misc_launch, tmp
     with Dist(mixed_precision="no") as dist:
         single = trainer_worker.run_equivalence(Trainer(cfg, dist), batches)
     assert_equivalent(ranks[0], single)
+
+
+def test_two_ranks_give_the_validation_loss_of_one_process(misc_launch, tmp_path):
+    root, dataset = misc_launch["root"], misc_launch["dataset"]
+    assert (root / "validate" / "validate-rank1.json").exists(), output_of(misc_launch["proc"])
+    ranks = [json.loads((root / "validate" / f"validate-rank{r}.json").read_text()) for r in (0, 1)]
+    cfg = load_config(TrainConfig, "tiny", validation_overrides(dataset, tmp_path))
+    with Dist(mixed_precision="no") as dist:
+        single = Trainer(cfg, dist).validate()
+    assert single["val_samples"] == ranks[0]["val_samples"] == ranks[1]["val_samples"] == 3
+    assert ranks[0]["val_loss"] == ranks[1]["val_loss"]  # every rank holds the all-reduced mean
+    assert ranks[0]["val_loss"] == pytest.approx(single["val_loss"], rel=0, abs=1e-6)
 
 
 def test_nan_on_one_rank_is_skipped_by_every_rank_at_the_same_step(misc_launch):

@@ -7,8 +7,9 @@ Started by torchrun / accelerate launch (gloo, CPU) or as a plain process for on
 SPEC.json is a list of scenarios run in order in this process (one launch covers several, because starting
 torch processes is most of the cost). Each scenario is a dict:
 
-    kind          "fit" (Trainer.fit, as launch/train.py runs it) or "equivalence" (Trainer.train_step on this
-                  rank's slice of fixed global batches and draws; see :func:`run_equivalence`)
+    kind          "fit" (Trainer.fit, as launch/train.py runs it), "equivalence" (Trainer.train_step on this
+                  rank's slice of fixed global batches and draws; see :func:`run_equivalence`) or "validate"
+                  (Trainer.validate of the initial weights, the record saved to OUT/validate-rank{r}.json)
     out           folder for this scenario's per-rank records (created)
     overrides     config overrides on top of the ``tiny`` preset (train.out_dir, data.manifest, ...)
     record_ids    fit: append {"step", "ids"} per train_step to OUT/ids-rank{r}.jsonl (sample ids per step)
@@ -216,6 +217,10 @@ def run_scenario(scenario: Mapping[str, Any], dist: Dist) -> int:
             batches = global_batches(cfg, int(scenario["steps"]), cfg.data.batch_size * dist.world_size)
             empty = _steps_for_rank(scenario.get("empty_at"), dist.rank)
             torch.save(run_equivalence(trainer, batches, empty_steps=empty), out / f"equivalence-rank{dist.rank}.pt")
+            code = 0
+        elif scenario["kind"] == "validate":
+            record = Trainer(cfg, dist).validate()
+            (out / f"validate-rank{dist.rank}.json").write_text(json.dumps(record))
             code = 0
         else:
             code = InstrumentedTrainer(cfg, dist, scenario, faults).fit()

@@ -1,0 +1,245 @@
+"""Training people can watch (issue 18, item 6): TensorBoard event files beside metrics.jsonl, the validation loss
+every train.val_every steps (deterministic, all-reduced, without touching the training streams), and loss.png
+when a run ends. Tiny in-process runs (the tiny preset, 6 steps, about a second each); the 2-rank agreement of
+the validation loss is in test_trainer_multirank.py."""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from pathlib import Path
+
+import pytest
+
+import pipeline.train_logging as train_logging
+from conftest import flip_byte, load_launch_script
+from pipeline import checkpoint as ckpt
+from pipeline.config import ConfigError, TrainConfig, load_config
+from pipeline.data import ShardVerificationError
+from pipeline.distributed import Dist
+from pipeline.trainer import Trainer
+from test_trainer import assert_identical, build_dataset_once, metrics_by_step
+from test_trainer_bad_data import copy_dataset
+
+STEPS = 6
+VAL_EVERY = 2
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return build_dataset_once(tmp_path_factory)
+
+
+def fit(dataset: Path, run: Path, *overrides: str) -> Path:
+    cfg = load_config(TrainConfig, "tiny", [f"data.manifest={dataset}", f"train.out_dir={run}", "train.log_every=1",
+                                            f"train.max_steps={STEPS}", f"train.save_every={STEPS}", *overrides])
+    with Dist(mixed_precision="no", cpu=True) as dist:
+        assert Trainer(cfg, dist).fit() == 0
+    return run
+
+
+@pytest.fixture(scope="module")
+def runs(dataset, tmp_path_factory) -> dict[str, Path]:
+    """Two identical runs validating every 2 steps, and the same run without validation."""
+    root = tmp_path_factory.mktemp("train-logging")
+    return {
+        "val": fit(dataset, root / "val", f"train.val_every={VAL_EVERY}"),
+        "val_again": fit(dataset, root / "val_again", f"train.val_every={VAL_EVERY}"),
+        "no_val": fit(dataset, root / "no_val", "train.val_every=0"),
+    }
+
+
+def scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    folder = run / train_logging.TENSORBOARD_SUBDIR
+    assert list(folder.glob("events.out.tfevents.*")), f"no TensorBoard event file in {folder}"
+    accumulator = EventAccumulator(str(folder))
+    accumulator.Reload()
+    return {tag: [(e.step, e.value) for e in accumulator.Scalars(tag)] for tag in accumulator.Tags()["scalars"]}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Validation loss
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_val_loss_is_logged_at_every_multiple_of_val_every(runs):
+    metrics = metrics_by_step(runs["val"])  # one line per step: train and val records of a step are one line
+    assert sorted(metrics) == list(range(1, STEPS + 1))
+    val_steps = [step for step, record in metrics.items() if "val_loss" in record]
+    assert val_steps == list(range(VAL_EVERY, STEPS + 1, VAL_EVERY))
+    for step in val_steps:
+        record = metrics[step]
+        assert record["val_loss"] > 0 and record["val_weights"] == "ema"
+        assert record["val_samples"] == 3  # the whole (3-motion) val split of the test dataset, in one batch
+        assert record["loss"] is not None  # the step's train entries are on the same line
+    assert len({metrics[s]["val_loss"] for s in val_steps}) == len(val_steps)  # the weights change between them
+
+
+def test_val_loss_is_deterministic(runs):
+    a, b = metrics_by_step(runs["val"]), metrics_by_step(runs["val_again"])
+    assert [a[s].get("val_loss") for s in a] == [b[s].get("val_loss") for s in b]
+
+
+def test_validation_does_not_change_training(runs):
+    """Same losses, gradient norms and final weights, EMA, optimizer and RNG state (bit for bit) with and
+    without validation: it draws from streams of its own and leaves the weights and the data order alone."""
+    with_val, without = metrics_by_step(runs["val"]), metrics_by_step(runs["no_val"])
+    for key in ("loss", "grad_norm", "lr", "samples_seen"):
+        assert [with_val[s][key] for s in with_val] == [without[s][key] for s in without], key
+    assert not any("val_loss" in record for record in without.values())
+    final = ckpt.step_dir_name(STEPS)
+    model_a, ema_a, state_a = ckpt.load_checkpoint(ckpt.checkpoints_dir(runs["val"]) / final)
+    model_b, ema_b, state_b = ckpt.load_checkpoint(ckpt.checkpoints_dir(runs["no_val"]) / final)
+    assert_identical(model_a, model_b, "model")
+    assert_identical(ema_a, ema_b, "ema")
+    for key in ("optimizer", "rng", "data"):
+        assert_identical(state_a[key], state_b[key], key)
+
+
+def test_raw_weights_are_validated_on_request(dataset, runs, tmp_path):
+    run = fit(dataset, tmp_path / "raw", f"train.val_every={VAL_EVERY}", "train.val_weights=model")
+    raw, ema = metrics_by_step(run), metrics_by_step(runs["val"])
+    assert [raw[s]["loss"] for s in raw] == [ema[s]["loss"] for s in ema]
+    assert raw[VAL_EVERY]["val_weights"] == "model" and raw[VAL_EVERY]["val_loss"] != ema[VAL_EVERY]["val_loss"]
+
+
+def test_a_manifest_without_val_split_skips_validation_with_one_line(dataset, tmp_path, caplog):
+    manifest = copy_dataset(dataset, tmp_path / "data")
+    data = json.loads(manifest.read_text())
+    del data["splits"]["val"]
+    manifest.write_text(json.dumps(data))
+    with caplog.at_level(logging.INFO):
+        run = fit(manifest, tmp_path / "run", f"train.val_every={VAL_EVERY}")
+    lines = [r.getMessage() for r in caplog.records if "validation off" in r.getMessage()]
+    assert len(lines) == 1 and "no 'val' split" in lines[0]
+    metrics = metrics_by_step(run)
+    assert sorted(metrics) == list(range(1, STEPS + 1)) and not any("val_loss" in r for r in metrics.values())
+
+
+def corrupt_val_shard(dataset: Path, to: Path) -> tuple[Path, str]:
+    manifest = copy_dataset(dataset, to)
+    shard = json.loads(manifest.read_text())["splits"]["val"]["shards"][0]
+    shard_path = shard if isinstance(shard, str) else shard["path"]
+    flip_byte(manifest.parent / shard_path, 600)
+    return manifest, shard_path
+
+
+def test_a_bad_val_shard_is_refused_before_step_1_in_strict_mode(dataset, tmp_path):
+    manifest, shard = corrupt_val_shard(dataset, tmp_path / "data")
+    with pytest.raises(ShardVerificationError, match=shard):
+        fit(manifest, tmp_path / "run", f"train.val_every={VAL_EVERY}")
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()
+
+
+def test_a_bad_val_shard_is_left_out_in_tolerant_mode(dataset, tmp_path, caplog):
+    manifest, _ = corrupt_val_shard(dataset, tmp_path / "data")
+    with caplog.at_level(logging.INFO):
+        run = fit(manifest, tmp_path / "run", f"train.val_every={VAL_EVERY}", "data.verify=tolerant")
+    assert "validation off" in caplog.text and "no usable motion" in caplog.text  # its only shard was bad
+    assert sorted(metrics_by_step(run)) == list(range(1, STEPS + 1))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# TensorBoard
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_tensorboard_holds_the_scalars_of_metrics_jsonl(runs):
+    metrics = metrics_by_step(runs["val"])
+    events = scalars(runs["val"])
+    for key in ("loss", "grad_norm", "lr", "samples_per_s", "samples_seen"):
+        logged = events[f"train/{key}"]
+        assert [step for step, _ in logged] == list(range(1, STEPS + 1)), key
+        assert [value for _, value in logged] == pytest.approx([metrics[s][key] for s in metrics], rel=1e-6), key
+    val = events["val/loss"]
+    assert [step for step, _ in val] == list(range(VAL_EVERY, STEPS + 1, VAL_EVERY))
+    assert [value for _, value in val] == pytest.approx([metrics[s]["val_loss"] for s, _ in val], rel=1e-6)
+    assert "val/loss" not in scalars(runs["no_val"])
+
+
+def test_tensorboard_can_be_turned_off(dataset, tmp_path):
+    run = fit(dataset, tmp_path / "run", "train.tensorboard=false")
+    assert not (run / train_logging.TENSORBOARD_SUBDIR).exists()
+
+
+def test_tensorboard_without_its_package_is_refused_before_training(dataset, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(train_logging, "tensorboard_available", lambda: False)
+    train_entry = load_launch_script("train")
+    run = tmp_path / "run"
+    code = train_entry.main(["--config", "tiny", f"data.manifest={dataset}", f"train.out_dir={run}"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "train.tensorboard=false" in err[0] and "pip install tensorboard" in err[0]
+    assert not run.exists()
+
+
+def test_scalar_tags():
+    record = {"step": 4, "loss": 1.5, "grad_norm": None, "epoch": 0, "val_loss": 2.0, "val_weights": "ema",
+              "val_samples": 3, "nan": float("nan"), "flag": True}
+    assert train_logging.scalar_tags(record) == {"train/loss": 1.5, "train/epoch": 0.0, "val/loss": 2.0,
+                                                 "val/samples": 3.0}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# loss.png
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR", f"{path} is not a PNG"
+    return struct.unpack(">II", data[16:24])
+
+
+def test_loss_png_is_written_when_the_run_ends(runs):
+    for name in ("val", "no_val"):
+        png = runs[name] / train_logging.LOSS_PLOT
+        width, height = png_size(png)
+        assert width >= 400 and height >= 300 and png.stat().st_size > 10_000
+
+
+def test_loss_plot_reads_the_whole_metrics_file(tmp_path):
+    """Many points over decades (log scale, a smoothed line), val points, a torn last line; nothing to plot yet
+    gives no file."""
+    metrics = tmp_path / "metrics.jsonl"
+    lines = [json.dumps({"step": s, "loss": 10.0 / s, **({"val_loss": 12.0 / s} if s % 20 == 0 else {})})
+             for s in range(1, 201)]
+    metrics.write_text("\n".join(lines) + '\n{"step": 201, "lo')
+    png = train_logging.write_loss_plot(metrics, tmp_path / "loss.png")
+    assert png == tmp_path / "loss.png" and png_size(png)[0] >= 400
+    assert not list(tmp_path.glob(".*.png"))  # written atomically, no temporary file left
+    metrics.write_text(json.dumps({"step": 1, "loss": None}) + "\n")
+    assert train_logging.write_loss_plot(metrics, tmp_path / "none.png") is None
+    assert not (tmp_path / "none.png").exists()
+
+
+def test_a_plotting_failure_is_logged_and_never_fatal(dataset, tmp_path, monkeypatch, caplog):
+    def broken(*args, **kwargs):
+        raise RuntimeError("no fonts")
+
+    monkeypatch.setattr(train_logging, "write_loss_plot", broken)
+    with caplog.at_level(logging.WARNING):
+        run = fit(dataset, tmp_path / "run")
+    assert "could not draw" in caplog.text and "no fonts" in caplog.text
+    assert sorted(metrics_by_step(run)) == list(range(1, STEPS + 1))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Settings
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def test_settings_are_typed_and_checked():
+    cfg = load_config(TrainConfig, "tiny", ["train.val_every=100", "train.val_batches=4", "train.val_weights=model",
+                                            "train.tensorboard=false"])
+    assert (cfg.train.val_every, cfg.train.val_batches, cfg.train.val_weights, cfg.train.tensorboard) == (
+        100, 4, "model", False)
+    defaults = TrainConfig().train
+    assert (defaults.val_every, defaults.val_batches, defaults.val_weights, defaults.tensorboard) == (
+        500, 16, "ema", True)
+    for bad in ("train.val_every=-1", "train.val_batches=0", "train.val_weights=raw", "train.tensorboard=1"):
+        with pytest.raises(ConfigError):
+            load_config(TrainConfig, "tiny", [bad])
