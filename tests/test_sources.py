@@ -4,6 +4,7 @@ DeepMimic clips, the synthetic generator, and the registry."""
 from __future__ import annotations
 
 import json
+import sys
 import math
 import pickle
 from pathlib import Path
@@ -759,3 +760,11 @@ def test_deepmimic_options_and_bad_files(tmp_path: Path) -> None:
     source = build_source("deepmimic", str(motions), held_out=False)
     reasons = {item: getattr(source.load(item), "reason", None) for item in source.list_items()}
     assert reasons == {"broken": "unreadable", "moonwalk": "no_captions", "nan": "nan_frames", "short": "bad_shape", "walk": None}
+
+
+def test_the_embedded_dataset_without_pybullet_says_how_to_get_it(monkeypatch) -> None:
+    from preprocess.sources.deepmimic import default_motions_dir
+
+    monkeypatch.setitem(sys.modules, "pybullet_data", None)  # as on a platform where pybullet did not install
+    with pytest.raises(ModuleNotFoundError, match=r"pip install 'motion-flow-matching\[embedded\]'"):
+        default_motions_dir()

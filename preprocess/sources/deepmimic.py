@@ -203,15 +203,25 @@ CAPTIONS: dict[str, tuple[str, ...]] = {
 
 
 def default_motions_dir() -> Path:
-    import pybullet_data  # imported here: the other sources must not need pybullet
-
+    pybullet_data = _import_pybullet_data()  # here: the other sources must not need pybullet
     return Path(pybullet_data.getDataPath()) / "data" / "motions"
 
 
 def default_urdf_path() -> Path:
-    import pybullet_data
-
+    pybullet_data = _import_pybullet_data()
     return Path(pybullet_data.getDataPath()) / "humanoid" / "humanoid.urdf"
+
+
+def _import_pybullet_data():
+    """pybullet's data package, which ships the clips; an optional dependency (no wheel for every platform)."""
+    try:
+        import pybullet_data
+    except ModuleNotFoundError as err:
+        raise ModuleNotFoundError(
+            "the embedded DeepMimic dataset comes with pybullet (pybullet_data), which is not installed: "
+            "pip install 'motion-flow-matching[embedded]' (or pip install pybullet==3.2.7; Linux x86-64 has a "
+            "wheel, other platforms build it from source), or build shards from your own data with --source") from err
+    return pybullet_data
 
 
 # ----------------------------------------------------------------------------------------------------
