@@ -818,6 +818,37 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
     }
 
 
+def sample_record(request: SampleRequest, trained: TrainedModel, integrator: Integrator, spec: SampleSpec,
+                  chunk: Sequence[SampleSpec], nfe: int) -> dict[str, Any]:
+    """What results.json says about one sample besides its files."""
+    return {
+        "index": spec.index,
+        "text": request.texts[spec.prompt] if request.texts and spec.prompt is not None else None,
+        "action": request.actions[spec.prompt] if request.actions and spec.prompt is not None else None,
+        "length": spec.length,
+        "seconds": round(spec.length / trained.fps, 6),
+        # Diffusion samplers seed one generator per batch (module docstring).
+        "noise_seed": chunk[0].seed if integrator.objective == "diffusion" else spec.seed,
+        "nfe": nfe,
+    }
+
+
+def generated_batches(request: SampleRequest, trained: TrainedModel, integrator: Integrator,
+                      specs: Sequence[SampleSpec], conditions: PromptConditions | None, source: SourceMotion | None,
+                      options: Mapping[str, Any]) -> Iterator[tuple[list[SampleSpec], BatchResult, np.ndarray, float]]:
+    """Generate ``specs`` batch by batch: ``(specs of the batch, its BatchResult, its un-normalised features
+    (B, T, D) as numpy, generation seconds)``. Shared by the command line (which writes each batch as it comes) and
+    the Python API (:class:`pipeline.pretrained.MotionPipeline`)."""
+    for chunk in batches(specs, request.batch_size):
+        synchronize(trained.device)
+        tick = time.perf_counter()
+        batch = generate_batch(request, trained, integrator, chunk, conditions, source, options)
+        synchronize(trained.device)
+        seconds = time.perf_counter() - tick
+        features = trained.denormalize(batch.features.to(trained.device)).cpu().numpy()
+        yield chunk, batch, features, seconds
+
+
 def run_sampling(request: SampleRequest) -> dict[str, Any]:
     """Generate every sample of ``request``, write the files and ``results.json``; returns the results dict.
     Composition requests go to :func:`pipeline.composing.run_composition`."""
@@ -839,14 +870,10 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
     samples: dict[int, dict[str, Any]] = {}
     nfe_per_batch: list[int] = []
     with tqdm(total=len(specs), desc="sampling", unit="motion", disable=disable) as bar:
-        for chunk in batches(specs, request.batch_size):
-            synchronize(trained.device)
-            tick = time.perf_counter()
-            batch = generate_batch(request, trained, integrator, chunk, conditions, source, options)
-            synchronize(trained.device)
-            generation_s += time.perf_counter() - tick
+        for chunk, batch, features, seconds in generated_batches(request, trained, integrator, specs, conditions,
+                                                                 source, options):
+            generation_s += seconds
             nfe_per_batch.append(batch.nfe)
-            features = trained.denormalize(batch.features.to(trained.device)).cpu().numpy()
             for row, spec in enumerate(chunk):
                 keep = None if batch.keep is None else batch.keep[row, :spec.length].numpy()
                 x1_hat = None if batch.x1_hat is None else batch.x1_hat[:, row, :spec.length].numpy()
@@ -854,14 +881,7 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
                 sample_features = np.ascontiguousarray(features[row, :spec.length], dtype=np.float32)
                 written = writer.write(spec.index, sample_features, caption(request, spec), keep, x1_hat, times)
                 samples[spec.index] = {
-                    "index": spec.index,
-                    "text": request.texts[spec.prompt] if request.texts and spec.prompt is not None else None,
-                    "action": request.actions[spec.prompt] if request.actions and spec.prompt is not None else None,
-                    "length": spec.length,
-                    "seconds": round(spec.length / trained.fps, 6),
-                    # Diffusion samplers seed one generator per batch (module docstring).
-                    "noise_seed": chunk[0].seed if integrator.objective == "diffusion" else spec.seed,
-                    "nfe": batch.nfe,
+                    **sample_record(request, trained, integrator, spec, chunk, batch.nfe),
                     **written,
                     **({"edit": _edit_record(request, integrator, source, options, keep)} if keep is not None else {}),
                 }

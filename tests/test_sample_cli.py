@@ -287,3 +287,37 @@ def test_mdm_results_npy_holds_the_written_joints_in_mdms_order(text_run, tmp_pa
     again = sample(text_run, out, "--text", "a person walks", "--length", "12", "--no-video", "--no-bvh",
                    "--overwrite")  # an overwrite without --mdm-results leaves no stale results.npy behind
     assert "mdm_results" not in again and not (out / "results.npy").exists()
+
+
+def test_export_then_from_pretrained_generates_what_sampling_the_checkpoint_does(text_run, tmp_path, capsys):
+    from pipeline.pretrained import MotionPipeline
+
+    export = load_launch_script("export").main
+    exported = tmp_path / "exported"
+    assert export([str(text_run), "--out", str(exported)]) == 0
+    names = {p.name for p in exported.iterdir()}
+    assert names == {"config.json", "model.safetensors", "normalization.safetensors", "README.md"}
+    card = (exported / "README.md").read_text()
+    assert "## Data" in card and "dataset id" in card and "No evaluator results" in card
+    assert export([str(text_run), "--out", str(exported)]) == 2  # never over an earlier export
+    assert "not an empty folder" in capsys.readouterr().err
+
+    pipe = MotionPipeline.from_pretrained(exported, device="cpu")
+    out = pipe(["a person walks", "a person jumps"], lengths=[20, 24], num_samples=2, seed=3)
+    assert len(out) == 4 and out.lengths == [20, 20, 24, 24] and out.texts[2] == "a person jumps"
+    assert out.joints[2].shape == (24, 22, 3) and out.fps == load_trained_model(text_run).fps
+    # The same request through the command line on the checkpoint itself gives the same motions.
+    cli = sample(text_run, tmp_path / "cli", "--text", "a person walks", "--text", "a person jumps", "--length", "20",
+                 "--length", "24", "--num-samples", "2", "--seed", "3", "--no-video", "--no-bvh")
+    for index, features in enumerate(out.features):
+        cli_features = np.load(tmp_path / "cli" / file_of(cli["samples"][index], "features"))
+        np.testing.assert_allclose(features, cli_features, rtol=0, atol=1e-5)
+    saved = out.save(tmp_path / "api", video=False, bvh=False, mdm_results=True)
+    results = json.loads((saved / "results.json").read_text())
+    assert [s["length"] for s in results["samples"]] == [20, 20, 24, 24] and (saved / "results.npy").is_file()
+    np.testing.assert_allclose(np.load(saved / file_of(results["samples"][1], "joints")), out.joints[1], atol=1e-6)
+    # launch/sample.py takes the exported folder as it takes a checkpoint
+    from_export = sample(exported, tmp_path / "cli-export", "--text", "a person walks", "--length", "20",
+                         "--seed", "3", "--no-video", "--no-bvh")
+    exported_features = np.load(tmp_path / "cli-export" / file_of(from_export["samples"][0], "features"))
+    np.testing.assert_allclose(exported_features, out.features[0], atol=1e-5)
