@@ -25,7 +25,7 @@ if __package__ in (None, ""):  # run as a script: make the project importable fr
 
 from pipeline.checkpoint import CheckpointError, ResumeConflictError
 from pipeline.config import ConfigError, TrainConfig, available_presets, load_config
-from pipeline.distributed import Dist
+from pipeline.distributed import Dist, MixedPrecisionError
 from pipeline.trainer import CheckpointSaveError, Trainer
 from preprocess.shards import BuildConfig, ManifestError, build_dataset, default_out_dir
 
@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
         given = sys.argv[1:] if argv is None else argv
         again = shlex.join(["python", "launch/train.py", *given, exc.continue_override])
         return fail(f"{exc}. The command that continues: {again}", 2)
-    except (ConfigError, ManifestError, CheckpointError, FileNotFoundError) as exc:  # refused before training
+    except (ConfigError, ManifestError, CheckpointError, FileNotFoundError, MixedPrecisionError) as exc:
+        # refused before training
         return fail(str(exc), 2)
     except CheckpointSaveError as exc:
         return fail(str(exc), 1)

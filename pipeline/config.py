@@ -147,7 +147,9 @@ class TrainLoopConfig:
     """Run folder: resolved config, checkpoints/, logs. A new or empty folder, or an existing run folder; never
     the filesystem root, a file, or a non-empty folder that is not a run (checked before anything is written)."""
     mixed_precision: Literal["no", "bf16", "auto"] = "auto"
-    """auto: bf16 autocast on a GPU that supports it, full fp32 otherwise."""
+    """auto: ``accelerate launch --mixed_precision bf16`` when given, else bf16 autocast on a GPU that supports it,
+    full fp32 otherwise. An explicit setting that the launcher's bf16 contradicts is refused (the launcher's "no"
+    is also its default, so it never overrides); fp16 is refused (no loss scaling yet)."""
     seed: int = 0
     """Seed of model initialisation and of the noise / time draws of training."""
     nonfinite: Literal["skip", "stop"] = "skip"

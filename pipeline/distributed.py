@@ -81,12 +81,37 @@ def check_world_size(num_processes: int, environ: Mapping[str, str]) -> None:
         )
 
 
-def resolve_mixed_precision(setting: str) -> str:
-    """``"auto"`` -> ``"bf16"`` on a CUDA device that supports it, else ``"no"``; other settings pass through."""
+class MixedPrecisionError(ValueError):
+    """``accelerate launch --mixed_precision`` and ``train.mixed_precision`` disagree, or ask for what is not
+    supported; the message says which setting to change."""
+
+
+def resolve_mixed_precision(setting: str, launcher: str | None = None) -> str:
+    """The autocast this run uses, from the config's ``train.mixed_precision`` and the launcher's
+    ``ACCELERATE_MIXED_PRECISION`` (``accelerate launch --mixed_precision``).
+
+    ``accelerate launch`` sets ``no`` when nothing is given, so ``no`` from the launcher is not a choice and never
+    overrides the config. A launcher's ``bf16`` is: with ``auto`` it is honoured, against an explicit different
+    setting it is refused. ``auto`` otherwise: bf16 on a CUDA device that supports it, else no autocast. fp16 (loss
+    scaling for GPUs without bf16) is refused: its scaler's skipped steps would interleave with the trainer's own
+    non-finite step skipping, which is untested without a GPU.
+    """
     if setting not in ("no", "bf16", "auto"):
-        raise ValueError(f"mixed precision must be 'no', 'bf16' or 'auto', got {setting!r}")
+        raise MixedPrecisionError(f"train.mixed_precision must be 'no', 'bf16' or 'auto', got {setting!r}")
+    if launcher == "fp16":
+        raise MixedPrecisionError(
+            "accelerate launch --mixed_precision fp16 is not supported: fp16 loss scaling is not implemented yet. "
+            "Use --mixed_precision bf16 (GPUs since Ampere) or no")
+    if launcher not in (None, "no", "bf16"):
+        raise MixedPrecisionError(f"accelerate launch --mixed_precision {launcher}: expected no, bf16 (or fp16)")
+    if launcher == "bf16" and setting == "no":
+        raise MixedPrecisionError(
+            "accelerate launch --mixed_precision bf16 disagrees with train.mixed_precision=no: pass "
+            "train.mixed_precision=bf16 (or auto, which follows the launcher), or launch without --mixed_precision")
     if setting != "auto":
         return setting
+    if launcher == "bf16":
+        return "bf16"
     return "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"
 
 
@@ -94,8 +119,9 @@ class Dist:
     """This process's place in the run, collectives, and the accelerate hooks of a training step.
 
     Build one per process, before the model. ``cpu=None`` picks CPU (gloo between ranks) when no GPU is visible
-    or ACCELERATE_USE_CPU is set. ``mixed_precision`` is the config's ``train.mixed_precision`` ("auto" resolves
-    here); it wins over ``accelerate launch --mixed_precision``.
+    or ACCELERATE_USE_CPU is set. ``mixed_precision`` is the config's ``train.mixed_precision``, resolved with
+    ``accelerate launch --mixed_precision`` by :func:`resolve_mixed_precision` (honoured, or refused when they
+    disagree).
     """
 
     def __init__(
@@ -111,14 +137,11 @@ class Dist:
         check_launch_environment(environ)
         if cpu is None:
             cpu = _flag(environ.get("ACCELERATE_USE_CPU")) or not torch.cuda.is_available()
-        self._mixed_precision = resolve_mixed_precision(mixed_precision)
         launcher_precision = environ.get("ACCELERATE_MIXED_PRECISION")
-        if launcher_precision not in (None, self._mixed_precision):
-            logger.info(
-                "ignoring the launcher's mixed_precision=%s: the training config asks for %s",
-                launcher_precision,
-                self._mixed_precision,
-            )
+        self._mixed_precision = resolve_mixed_precision(mixed_precision, launcher_precision)
+        if launcher_precision == "no" and self._mixed_precision != "no":
+            logger.info("accelerate's --mixed_precision no is also its default, so it does not turn bf16 off: "
+                        "train.mixed_precision=no does")
         handlers: list[Any] = [DistributedDataParallelKwargs(find_unused_parameters=find_unused_parameters)]
         if collective_timeout_s is not None:
             handlers.append(InitProcessGroupKwargs(timeout=timedelta(seconds=collective_timeout_s)))

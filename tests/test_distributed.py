@@ -6,9 +6,17 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import load_launch_script
 from torch import nn
 
-from pipeline.distributed import Dist, LaunchError, check_launch_environment, check_world_size, resolve_mixed_precision
+from pipeline.distributed import (
+    Dist,
+    LaunchError,
+    MixedPrecisionError,
+    check_launch_environment,
+    check_world_size,
+    resolve_mixed_precision,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 WORKER = REPO_ROOT / "tests" / "dist_collectives_worker.py"
@@ -82,6 +90,24 @@ def test_resolve_mixed_precision():
     assert resolve_mixed_precision("auto") == expected_auto
     with pytest.raises(ValueError, match="fp16"):
         resolve_mixed_precision("fp16")
+    # accelerate launch --mixed_precision: bf16 is honoured by auto and refused against an explicit "no"; "no" is
+    # also accelerate's default, so it never turns a configured bf16 off; fp16 is refused with what to use instead
+    assert resolve_mixed_precision("auto", "bf16") == "bf16"
+    assert resolve_mixed_precision("bf16", "no") == "bf16" and resolve_mixed_precision("auto", "no") == expected_auto
+    with pytest.raises(MixedPrecisionError, match="--mixed_precision bf16 disagrees with train.mixed_precision=no"):
+        resolve_mixed_precision("no", "bf16")
+    with pytest.raises(MixedPrecisionError, match="fp16 loss scaling is not implemented.*bf16"):
+        resolve_mixed_precision("auto", "fp16")
+
+
+def test_the_launchers_bf16_reaches_the_run_and_a_conflict_is_one_line_exit_2(monkeypatch, tmp_path, capsys):
+    monkeypatch.setenv("ACCELERATE_MIXED_PRECISION", "bf16")
+    with Dist(mixed_precision="auto", cpu=True) as dist:
+        assert dist.mixed_precision == "bf16"
+    train = load_launch_script("train").main
+    assert train(["--config", "tiny", "train.mixed_precision=no", f"train.out_dir={tmp_path / 'run'}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "train.mixed_precision=no" in err and "Traceback" not in err
 
 
 # Environments as the launchers set them (captured from accelerate 1.15 and torch 2.14 on this machine).
