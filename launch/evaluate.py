@@ -48,7 +48,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.config import ConfigError
+from pipeline.config import ConfigError, describe_config
 from pipeline.distributed import Dist
 from pipeline.eval_config import load_eval_config, sweep_overrides
 from pipeline.eval_spaces import EvaluationError, EvaluatorUnavailable
@@ -57,7 +57,7 @@ from pipeline.evaluation import EvaluationJob, JobSummary, result_label, summary
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    target = parser.add_mutually_exclusive_group(required=True)
+    target = parser.add_mutually_exclusive_group()
     target.add_argument("--checkpoint", action="append", help="a step-XXXXXXXX folder (or a run folder: its newest "
                                                                 "complete one); repeat it to sweep several in one job")
     target.add_argument("--watch", metavar="RUN_DIR", help="evaluate every complete checkpoint of a run, once each")
@@ -68,15 +68,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", action="append", help="comma list, e.g. 5,10,20; again as SOLVER=5,10 for one "
                                                          "solver's own counts")
     parser.add_argument("--guidance", help="comma list, e.g. 1,2.5")
+    parser.add_argument("--out", help="the results folder (the same as output.dir=...)")
+    parser.add_argument("--print-config", action="store_true", help="print every key with its value, default and "
+                        "meaning, then exit")
     parser.add_argument("overrides", nargs="*", metavar="key.sub=value", help="config overrides")
     args = parser.parse_intermixed_args(argv)
+    if not (args.checkpoint or args.watch or args.print_config):
+        parser.error("one of the arguments --checkpoint --watch is required")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
+        overrides = [*args.overrides, *([f"output.dir={args.out}"] if args.out else [])]
         cfg = load_eval_config(args.protocol, args.config,
-                               sweep_overrides(args.solver, args.steps, args.guidance) + args.overrides)
+                               sweep_overrides(args.solver, args.steps, args.guidance) + overrides)
     except (ConfigError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if args.print_config:
+        print("\n".join(describe_config(cfg)))
+        return 0
     # SIGTERM (Slurm preemption, a CronJob's deadline) unwinds like an exception: claims are released on the way out.
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
     with Dist(mixed_precision="no") as dist:

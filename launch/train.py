@@ -24,7 +24,13 @@ if __package__ in (None, ""):  # run as a script: make the project importable fr
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.checkpoint import CheckpointError, ResumeConflictError
-from pipeline.config import ConfigError, TrainConfig, available_presets, load_config
+from pipeline.config import (
+    ConfigError,
+    TrainConfig,
+    available_presets,
+    describe_config,
+    load_config,
+)
 from pipeline.distributed import Dist, MixedPrecisionError
 from pipeline.trainer import CheckpointSaveError, Trainer
 from preprocess.shards import BuildConfig, ManifestError, build_dataset, default_out_dir
@@ -45,12 +51,20 @@ def ensure_embedded_dataset(manifest: str, dist: Dist) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", default="default", help=f"preset name ({', '.join(available_presets())}) or YAML path")
+    parser.add_argument("--config", default="default",
+                        help=f"preset name ({', '.join(available_presets(TrainConfig))}) or YAML path")
+    parser.add_argument("--out", help="the run folder (the same as train.out_dir=...)")
+    parser.add_argument("--print-config", action="store_true", help="print every key with its value, default and "
+                        "meaning, then exit")
     parser.add_argument("overrides", nargs="*", metavar="key.sub=value", help="config overrides")
     args = parser.parse_intermixed_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        cfg = load_config(TrainConfig, args.config, args.overrides)
+        overrides = [*args.overrides, *([f"train.out_dir={args.out}"] if args.out else [])]
+        cfg = load_config(TrainConfig, args.config, overrides)
+        if args.print_config:
+            print("\n".join(describe_config(cfg)))
+            return 0
         with Dist(mixed_precision=cfg.train.mixed_precision) as dist:
             ensure_embedded_dataset(cfg.data.manifest, dist)
             return Trainer(cfg, dist).fit()

@@ -20,9 +20,10 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.config import ConfigError, load_config
+from pipeline.config import ConfigError, describe_config, load_config
 from pipeline.distributed import Dist
 from pipeline.evaluator_training import EvaluatorTrainConfig, train_evaluator
+from preprocess.shards import ManifestError
 
 
 def format_report(report: dict) -> str:
@@ -39,18 +40,29 @@ def format_report(report: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", help="YAML preset (configs/NAME.yaml or a path)")
+    parser.add_argument("--config", help="a YAML file of settings (defaults: pipeline/evaluator_training.py)")
+    parser.add_argument("--out", help="the output folder (the same as out_dir=...)")
+    parser.add_argument("--print-config", action="store_true", help="print every key with its value, default and "
+                        "meaning, then exit")
     parser.add_argument("overrides", nargs="*", metavar="key.sub=value", help="config overrides")
     args = parser.parse_intermixed_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        cfg = load_config(EvaluatorTrainConfig, args.config, args.overrides)
+        overrides = [*args.overrides, *([f"out_dir={args.out}"] if args.out else [])]
+        cfg = load_config(EvaluatorTrainConfig, args.config, overrides)
     except (ConfigError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    with Dist(mixed_precision=cfg.mixed_precision) as dist:
-        report = train_evaluator(cfg, dist)
-        dist.print0(format_report(report))
+    if args.print_config:
+        print("\n".join(describe_config(cfg)))
+        return 0
+    try:
+        with Dist(mixed_precision=cfg.mixed_precision) as dist:
+            report = train_evaluator(cfg, dist)
+            dist.print0(format_report(report))
+    except (ManifestError, FileNotFoundError) as exc:  # a missing or unreadable dataset: the settings' to fix
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

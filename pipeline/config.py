@@ -447,9 +447,74 @@ def parse_yaml(text: str, source: str = "<string>") -> Any:
         raise ConfigError(f"{source}: invalid YAML: {err}") from err
 
 
-def available_presets() -> list[str]:
-    """Preset names in configs/ (``tiny``, ``default``, ...)."""
-    return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+def available_presets(cls: type | None = None) -> list[str]:
+    """Preset names in configs/ (``tiny``, ``default``, ...); with ``cls``, only those that load as ``cls`` (the
+    training presets for TrainConfig, not the evaluation protocols), so a ``--help`` lists what runs."""
+    names = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+    if cls is None:
+        return names
+    fitting = []
+    for name in names:
+        try:
+            load_config(cls, name)
+        except (ConfigError, FileNotFoundError):
+            continue
+        fitting.append(name)
+    return fitting
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """The first line of the string literal under each field of dataclass ``cls`` (the attribute docstrings this
+    project writes), read from the class source; {} when the source is not available."""
+    import ast
+    import inspect
+    import textwrap
+
+    try:
+        tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    except (OSError, TypeError, SyntaxError):
+        return {}
+    body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+    docs: dict[str, str] = {}
+    for field, after in zip(body, body[1:]):
+        if (isinstance(field, ast.AnnAssign) and isinstance(field.target, ast.Name) and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant) and isinstance(after.value.value, str)):
+            docs[field.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def describe_config(cfg: Any, prefix: str = "") -> list[str]:
+    """Every key of a resolved config, one line each: ``key = value  (default: d)  # doc``, nested sections dotted;
+    what ``--print-config`` prints."""
+    lines: list[str] = []
+    docs = field_docs(type(cfg))
+    defaults = _defaults_of(type(cfg))
+    for field in dataclasses.fields(cfg):
+        value = getattr(cfg, field.name)
+        key = f"{prefix}{field.name}"
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            lines.append(f"[{key}]" + (f"  # {docs[field.name]}" if field.name in docs else ""))
+            lines += describe_config(value, f"{key}.")
+            continue
+        default = defaults.get(field.name, dataclasses.MISSING)
+        shown = yaml.safe_dump(_plain(value), default_flow_style=True, width=10**6).strip().removesuffix("...").strip()
+        line = f"{key} = {shown}"
+        if default is not dataclasses.MISSING and _plain(default) != _plain(value):
+            line += f"  (default: {yaml.safe_dump(_plain(default), default_flow_style=True).strip().removesuffix('...').strip()})"
+        if field.name in docs:
+            line += f"  # {docs[field.name]}"
+        lines.append(line)
+    return lines
+
+
+def _defaults_of(cls: type) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for field in dataclasses.fields(cls):
+        if field.default is not dataclasses.MISSING:
+            out[field.name] = field.default
+        elif field.default_factory is not dataclasses.MISSING:
+            out[field.name] = field.default_factory()
+    return out
 
 
 def resolve_preset(preset: str | Path) -> Path:

@@ -20,6 +20,7 @@ from preprocess.shards import (
     DEFAULT_SHARD_SIZE,
     NORMALIZATION_MODES,
     SHARD_FORMATS,
+    BadInputError,
     BuildConfig,
     build_dataset,
     default_out_dir,
@@ -96,9 +97,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = config_from_args(args)
         manifest = build_dataset(config)
-    except (OSError, ValueError, KeyError, RuntimeError) as error:  # bad input/config: one line, no traceback
+    except BadInputError as error:  # --strict and a bad item of the data: one line naming it
         print(f"build_shards: error: {error}", file=sys.stderr)
         return 1
+    except (OSError, ValueError, KeyError, RuntimeError) as error:  # settings refused (a missing root, an
+        # unknown source or option, an existing dataset without --overwrite): one line, exit 2 as every entry point
+        print(f"build_shards: error: {error}", file=sys.stderr)
+        return 2
     splits = ", ".join(f"{name} {s['num_motions']}" for name, s in manifest["splits"].items())
     report = manifest["skip_report"]
     ignored = report.get("ignored_files", {}).get("count", 0)  # files of the source folder never read
