@@ -74,6 +74,12 @@ class DataConfig:
     plans later epochs without it (logged as a warning). off: no checks before training."""
     caption_policy: Literal["random", "first"] = "random"
     """Which of a motion's captions a visit uses: a random one (training) or always the first (debugging)."""
+    retries: int = 3
+    """Retries of a manifest or shard read after a transient error (connection reset, timeout, HTTP 5xx/429), each
+    logged; a shard read resumes where it failed without repeating or dropping a record. Permanent errors (404,
+    permission) are not retried. 0: fail at the first error."""
+    retry_backoff_s: float = 1.0
+    """Seconds before the first retry, doubled for each further one (at most 60 s)."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)
@@ -84,6 +90,9 @@ class DataConfig:
         _require(self.num_workers >= 0, f"data.num_workers must be >= 0, got {self.num_workers}")
         _require(self.shuffle_buffer >= 0, f"data.shuffle_buffer must be >= 0, got {self.shuffle_buffer}")
         _require(self.seed >= 0, f"data.seed must be >= 0, got {self.seed}")
+        _require(self.retries >= 0, f"data.retries must be >= 0, got {self.retries}")
+        _require(0.0 <= self.retry_backoff_s < float("inf"),
+                 f"data.retry_backoff_s must be a finite number >= 0, got {self.retry_backoff_s}")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

@@ -44,7 +44,17 @@ Verification. Every reader of shards (training, the evaluator's ground truth, ev
 checks them first with :func:`verify_shards`: the split's totals against its shard counts and lengths, and
 every shard's size, sha256, real record count and record ids (unique in the split), in one read per shard.
 ``strict`` refuses a bad shard or an inconsistent manifest naming the file and the reason; ``tolerant``
-leaves bad shards out (``exclude_shards``) and counts everything it found in the report.
+leaves bad shards out (``exclude_shards``) and counts everything it found in the report. A shard read and
+found good is remembered in a small cache (``pipeline.shard_cache``: manifest entry, record ids, and the file's
+size + mtime/ctime/inode, or ETag/generation/Last-Modified for a URL); a later start takes an unchanged shard's
+verdict from it without reading it (``VerificationReport.num_from_cache``).
+
+Where data lives. Shard and manifest locations are local paths or any fsspec URL (``s3://``, ``gs://``,
+``https://``, ``memory://``, ...; ``pipeline.locations``; the cloud packages are the ``remote`` extra). Shard paths
+in the manifest are relative to the manifest's own location. Transient errors (connection reset, timeout, HTTP
+5xx/429) are retried with exponential back-off (``LoaderOptions.retries``/``retry_backoff_s``); a shard read that
+fails half way is re-opened and the records already yielded are passed over (:func:`read_shard`), so the stream,
+and exact resume, are the same as without the failure.
 
 Tolerant mode at run time (``LoaderOptions.tolerate_bad_data``). A record that fails to decode or validate
 (e.g. non-finite features) is left out of its batch, counted and logged; it keeps its place in the stream
@@ -71,6 +81,7 @@ The trainer moves batches to its device itself.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import heapq
@@ -79,15 +90,14 @@ import json
 import logging
 import os
 import tarfile
+import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any, BinaryIO, Callable, Iterable, Iterator, Mapping, Sequence
-from urllib.parse import urlparse
 
 import numpy as np
 import webdataset as wds
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
-from webdataset.gopen import gopen, gopen_schemes
 from webdataset.tariterators import group_by_keys, tar_file_expander
 
 from pipeline.stages import (
@@ -106,6 +116,25 @@ from pipeline.stages import (
     SkippedRecord,
     shuffle_buffer_order,
 )
+from pipeline.locations import (  # noqa: F401  (is_url, resolve_location, open_binary: part of this module's API)
+    DEFAULT_RETRY,
+    RemoteSupportMissing,
+    RetriesExhausted,
+    RetryPolicy,
+    call_with_retries,
+    describe,
+    fingerprint,
+    http_status,
+    is_transient,
+    is_url,
+    local_path,
+    open_binary,
+    open_seekable,
+    require_support,
+    resolve_location,
+    wait_before_retry,
+)
+from pipeline.shard_cache import RACY_S, VerificationCache
 from preprocess.shards import FORMAT_VERSION, MANIFEST_NAME, ManifestError, load_manifest
 
 logger = logging.getLogger(__name__)
@@ -124,46 +153,8 @@ _TAG_SAMPLE_SHUFFLE = 12
 STATE_VERSION = 1
 
 
-# ----------------------------------------------------------------------------------------------------------
-# Locations: local paths and URLs
-# ----------------------------------------------------------------------------------------------------------
-
-
-def is_url(location: str) -> bool:
-    """True for ``scheme://...`` (a one-letter scheme is a Windows drive, not a URL)."""
-    return len(urlparse(str(location)).scheme) > 1
-
-
-def resolve_location(manifest_location: str, relative: str) -> str:
-    """A shard path from the manifest, resolved against the manifest's own location (path or URL)."""
-    if is_url(relative) or os.path.isabs(relative):
-        return relative
-    if is_url(manifest_location):
-        return manifest_location.rsplit("/", 1)[0] + "/" + relative
-    return os.path.join(os.path.dirname(os.path.abspath(manifest_location)), relative)
-
-
-def open_binary(location: str) -> BinaryIO:
-    """Open a local path or URL for reading: webdataset's ``gopen`` for what it knows (file, pipe:, http(s),
-    gs, hf, ais, ...), fsspec for any other scheme (s3://, az://, ...)."""
-    scheme = urlparse(location).scheme
-    if not is_url(location) or scheme in gopen_schemes or scheme == "file":
-        return gopen(location, "rb")
-    import fsspec  # only needed for schemes webdataset does not handle
-
-    return fsspec.open(location, "rb").open()
-
-
-def _open_seekable(location: str):
-    """Parquet needs random access: a local path as is, anything else through fsspec."""
-    scheme = urlparse(location).scheme
-    if not is_url(location):
-        return location
-    if scheme == "file":
-        return urlparse(location).path
-    import fsspec
-
-    return fsspec.open(location, "rb").open()
+# Locations (local paths and fsspec URLs: is_url, resolve_location, open_binary, ...), retries (RetryPolicy) and
+# file fingerprints live in pipeline.locations, imported above; the verification cache in pipeline.shard_cache.
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -260,9 +251,10 @@ def _check_remote_manifest(data: Any, location: str) -> None:
         raise ManifestError(f"{location}: missing keys {missing}")
 
 
-def open_manifest(location: str | os.PathLike | Manifest) -> Manifest:
-    """Read ``manifest.json`` from a local path (or its dataset folder) with the builder's
-    ``load_manifest``, or from a URL. Files are not checked here: see :func:`verify_shards`."""
+def open_manifest(location: str | os.PathLike | Manifest, *, retry: RetryPolicy | None = None) -> Manifest:
+    """Read ``manifest.json`` from a local path (or its dataset folder) with the builder's ``load_manifest``, or
+    from a URL (``https://host/ds/manifest.json``, ``s3://bucket/ds/manifest.json``, or the folder URL ending in
+    ``/``), retrying transient errors (``retry``). Files are not checked here: see :func:`verify_shards`."""
     if isinstance(location, Manifest):
         return location
     location = os.fspath(location)
@@ -270,10 +262,17 @@ def open_manifest(location: str | os.PathLike | Manifest) -> Manifest:
         path = os.path.join(location, MANIFEST_NAME) if os.path.isdir(location) else location
         manifest = Manifest(data=load_manifest(path, verify="none"), location=os.path.abspath(path))
     else:
+        if location.endswith("/"):
+            location += MANIFEST_NAME
         try:
-            with open_binary(location) as stream:
-                data = json.loads(stream.read())
-        except (OSError, ValueError) as exc:
+            require_support(location)
+
+            def read() -> Any:
+                with open_binary(location) as stream:
+                    return json.loads(stream.read())
+
+            data = call_with_retries(read, location, "reading the manifest", retry)
+        except (OSError, ValueError, RetriesExhausted, RemoteSupportMissing) as exc:
             raise ManifestError(f"{location}: cannot read manifest: {exc}") from exc
         _check_remote_manifest(data, location)
         manifest = Manifest(data=data, location=location)
@@ -437,6 +436,9 @@ class VerificationReport:
     manifest_problems: tuple[str, ...] = ()
     """Disagreements of the split's totals with its shard counts and lengths (tolerant mode goes on with the
     shard counts, which verification has checked against the shards themselves)."""
+    num_from_cache: int = 0
+    """Shards of ``num_checked`` whose verdict came from the verification cache: hashed by an earlier check, and
+    unchanged since by their size and fingerprint (``pipeline.shard_cache``)."""
 
     @property
     def bad_paths(self) -> tuple[str, ...]:
@@ -456,7 +458,8 @@ class VerificationReport:
         """For run folders and results files: what was checked, and what was found."""
         return {"split": self.split, "backend": self.backend, "mode": self.mode, "verified": self.verified,
                 "checks": list(VERIFICATION_CHECKS) if self.mode != "off" else [],
-                "num_checked": self.num_checked, "samples_lost": self.samples_lost,
+                "num_checked": self.num_checked, "num_from_cache": self.num_from_cache,
+                "samples_lost": self.samples_lost,
                 "bad": [{"path": b.path, "reason": b.reason, "num_motions": b.num_motions} for b in self.bad],
                 "manifest_problems": list(self.manifest_problems)}
 
@@ -522,6 +525,8 @@ def _read_tar_content(shard: ShardInfo) -> ShardContent:
         try:
             keys = [str(raw["__key__"]) for raw in _tar_records(reader, shard.url)]
         except _TAR_ERRORS as exc:
+            if is_transient(exc):  # the connection, not the shard: read it again (check_shard retries)
+                raise
             error = f"{type(exc).__name__}: {exc}"
         reader.drain()
     return ShardContent(bytes=reader.size, sha256=reader.sha256, record_ids=None if error else tuple(keys),
@@ -537,9 +542,12 @@ def _read_parquet_content(shard: ShardInfo) -> ShardContent:
     if size != shard.bytes or sha != shard.sha256:
         return ShardContent(bytes=size, sha256=sha, record_ids=None, listing_error="not read (bytes differ)")
     try:
-        with pq.ParquetFile(_open_seekable(shard.url)) as part:
+        source = open_seekable(shard.url)
+        with contextlib.nullcontext() if isinstance(source, str) else source, pq.ParquetFile(source) as part:
             ids = part.read(columns=["id"]).column("id").to_pylist()
     except (OSError, ValueError, KeyError) as exc:
+        if is_transient(exc):
+            raise
         return ShardContent(bytes=size, sha256=sha, record_ids=None, listing_error=f"{type(exc).__name__}: {exc}")
     return ShardContent(bytes=size, sha256=sha, record_ids=tuple(str(i) for i in ids))
 
@@ -556,27 +564,87 @@ class ShardCheck:
 
     reason: str | None
     record_ids: tuple[str, ...] = ()
+    from_cache: bool = False
+    """The verdict (good) and the ids came from the verification cache: the file was not read."""
 
 
-def check_shard(shard: ShardInfo, backend: str = "webdataset") -> ShardCheck:
+def _size_problem(size: int, expected: int) -> str | None:
+    if size < expected:
+        return f"truncated: {size} bytes, manifest says {expected}"
+    if size != expected:
+        return f"size mismatch: {size} bytes, manifest says {expected}"
+    return None
+
+
+def check_shard(shard: ShardInfo, backend: str = "webdataset", *, retry: RetryPolicy | None = None,
+                cache: VerificationCache | None = None) -> ShardCheck:
     """Check one shard against its manifest entry: missing / truncated / size / sha256 / records that cannot
     be listed / record count / an id twice. The count is checked even when the sha256 matches: a count
-    lowered or raised in the manifest leaves the shard's bytes (and so its hash) unchanged."""
-    if not is_url(shard.url):
-        if not os.path.exists(shard.url):
-            return ShardCheck("missing")
-        size = os.path.getsize(shard.url)
-        if size < shard.bytes:
-            return ShardCheck(f"truncated: {size} bytes, manifest says {shard.bytes}")
-        if size != shard.bytes:
-            return ShardCheck(f"size mismatch: {size} bytes, manifest says {shard.bytes}")
+    lowered or raised in the manifest leaves the shard's bytes (and so its hash) unchanged.
+
+    With a ``cache``, a shard hashed by an earlier check whose manifest entry and fingerprint (size and mtime,
+    ctime, inode; ETag / generation / Last-Modified for URLs) are unchanged is taken as verified without reading
+    it; a shard that is read and passes is remembered, when its fingerprint can be trusted. Transient errors
+    (connection reset, timeout, HTTP 5xx/429) are retried per ``retry``; one that outlasts the retries raises
+    :class:`~pipeline.locations.RetriesExhausted` (it says nothing about the shard). 404 / missing is
+    ``missing``, 403 / permission ``unreadable``."""
+    started = time.time()
     try:
-        content = _CONTENT_READERS[backend](shard)
-    except (OSError, ValueError) as exc:  # cannot be opened (gopen/fsspec raise ValueError for bad locations)
-        return ShardCheck(f"unreadable: {exc}")
-    if content.bytes != shard.bytes:
-        kind = "truncated" if content.bytes < shard.bytes else "size mismatch"
-        return ShardCheck(f"{kind}: {content.bytes} bytes, manifest says {shard.bytes}")
+        before = fingerprint(shard.url, retry)
+    except (ImportError, RetriesExhausted):
+        raise
+    except (FileNotFoundError, PermissionError) as exc:
+        return ShardCheck(_unreadable_reason(exc))
+    except Exception as exc:  # noqa: BLE001  a permanent error of some filesystem: read the file to know more
+        if local_path(shard.url) is not None:
+            return ShardCheck(_unreadable_reason(exc))
+        logger.debug("%s: no metadata (%s); reading it", shard.url, exc)  # e.g. a server that answers no HEAD
+        before = None
+    if before is not None and before.size is not None:
+        problem = _size_problem(before.size, shard.bytes)
+        if problem:
+            return ShardCheck(problem)
+    if cache is not None and before is not None:
+        ids = cache.lookup(shard.url, backend, shard.bytes, shard.sha256, shard.num_motions, before)
+        if ids is not None:
+            return ShardCheck(None, ids, from_cache=True)
+    try:
+        content = call_with_retries(lambda: _CONTENT_READERS[backend](shard), shard.url, "verifying the shard", retry)
+    except (ImportError, RetriesExhausted):
+        raise
+    except Exception as exc:  # noqa: BLE001  permanent (not retried): cannot be opened or read
+        return ShardCheck(_unreadable_reason(exc))
+    check = _content_verdict(shard, content)
+    if cache is not None:
+        if check.reason is not None:
+            cache.forget(shard.url)
+        elif before is not None and before.trusted(started, RACY_S):
+            try:
+                after = fingerprint(shard.url, retry)
+            except (OSError, ValueError, RetriesExhausted):
+                after = None
+            if after == before:  # unchanged while it was read: the bytes hashed are the ones fingerprinted
+                cache.remember(shard.url, backend, shard.bytes, shard.sha256, shard.num_motions, before,
+                               check.record_ids)
+    return check
+
+
+def _unreadable_reason(exc: BaseException) -> str:
+    """The verdict on a shard that cannot be read: ``missing`` (no such file, HTTP 404), else ``unreadable``
+    with the error (a permission error, HTTP 403, ...)."""
+    cause = exc.__cause__
+    status = http_status(exc) or (http_status(cause) if cause is not None else None)
+    if isinstance(exc, FileNotFoundError) and status in (None, 404):
+        return "missing"
+    if isinstance(exc, FileNotFoundError) and cause is not None:
+        exc = cause  # fsspec's HTTP info(): FileNotFoundError(url) from the HTTP error that says what happened
+    return f"unreadable: {describe(exc)}"
+
+
+def _content_verdict(shard: ShardInfo, content: ShardContent) -> ShardCheck:
+    problem = _size_problem(content.bytes, shard.bytes)
+    if problem:
+        return ShardCheck(problem)
     if content.sha256 != shard.sha256:
         return ShardCheck(f"corrupted: sha256 {content.sha256[:16]}…, manifest says {shard.sha256[:16]}…")
     if content.record_ids is None:
@@ -591,7 +659,8 @@ def check_shard(shard: ShardInfo, backend: str = "webdataset") -> ShardCheck:
 
 
 def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str = "strict",
-                  backend: str = "webdataset") -> VerificationReport:
+                  backend: str = "webdataset", *, retry: RetryPolicy | None = None,
+                  cache: str | os.PathLike | bool | None = None) -> VerificationReport:
     """Check a split against its manifest before any of it is used: every shard (:func:`check_shard`), record
     ids unique across the split, and the split's totals against its shard counts and lengths.
 
@@ -600,32 +669,51 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
     ``exclude_shards``; every rank must exclude the same list, so verify on every rank (deterministic) or
     broadcast rank 0's list) and the manifest's inconsistencies; ``off`` checks nothing. A shard whose ids
     repeat ids of an earlier good shard is bad: sample ids seed every random draw and name evaluation items.
+
+    ``cache``: where verdicts are remembered so that an unchanged shard is not hashed again on the next start
+    (``pipeline.shard_cache``): None → ``$MFM_VERIFY_CACHE`` or the user's cache folder, False → no cache (hash
+    everything), a folder. ``retry``: transient errors (network) are retried; one that outlasts the retries raises
+    :class:`~pipeline.locations.RetriesExhausted` naming the URL, in both modes (an unreachable shard is not a bad
+    one, and tolerant mode must not drop data for a network outage).
     """
     if mode not in VERIFY_MODES:
         raise ValueError(f"verify mode must be one of {VERIFY_MODES}, got {mode!r}")
-    manifest = open_manifest(manifest)
+    manifest = open_manifest(manifest, retry=retry)
     if mode == "off":
         return VerificationReport(split=split, backend=backend, mode=mode, num_checked=0)
     bad = []
     holder: dict[str, str] = {}  # record id -> the good shard that holds it
     shards = split_shards(manifest, split, backend)
-    for shard in shards:
-        check = check_shard(shard, backend)
-        reason = check.reason
-        if reason is None:
-            again = [i for i in check.record_ids if i in holder]
-            if again:
-                reason = (f"duplicate record ids: {again[0]!r} is also in {holder[again[0]]} "
-                          f"({len(again)} such ids)")
-        if reason is None:
-            holder.update(dict.fromkeys(check.record_ids, shard.path))
-            continue
-        if mode == "strict":
-            raise ShardVerificationError(
-                f"{shard.url}: bad shard ({reason}); split {split!r} of {manifest.location}. Rebuild the dataset, "
-                "or leave the shard out with tolerant verification (training: data.verify=tolerant).")
-        logger.warning("bad shard %s: %s (%d motions skipped)", shard.path, reason, shard.num_motions)
-        bad.append(BadShard(path=shard.path, reason=reason, num_motions=shard.num_motions))
+    for url in dict.fromkeys(s.url for s in shards):
+        require_support(url)
+    remembered = VerificationCache.for_manifest(manifest.location, cache)
+    started = time.perf_counter()
+    from_cache = 0
+    try:
+        for shard in shards:
+            check = check_shard(shard, backend, retry=retry, cache=remembered)
+            from_cache += check.from_cache
+            reason = check.reason
+            if reason is None:
+                again = [i for i in check.record_ids if i in holder]
+                if again:
+                    reason = (f"duplicate record ids: {again[0]!r} is also in {holder[again[0]]} "
+                              f"({len(again)} such ids)")
+            if reason is None:
+                holder.update(dict.fromkeys(check.record_ids, shard.path))
+                continue
+            if mode == "strict":
+                raise ShardVerificationError(
+                    f"{shard.url}: bad shard ({reason}); split {split!r} of {manifest.location}. Rebuild the "
+                    "dataset, or leave the shard out with tolerant verification (training: data.verify=tolerant).")
+            logger.warning("bad shard %s: %s (%d motions skipped)", shard.path, reason, shard.num_motions)
+            bad.append(BadShard(path=shard.path, reason=reason, num_motions=shard.num_motions))
+    finally:
+        if remembered is not None:
+            remembered.save(known_urls=_all_listed_urls(manifest))
+    logger.info("verified %d %s shards of split %r in %.2f s (%d unchanged since an earlier check, not read again%s)",
+                len(shards), backend, split, time.perf_counter() - started, from_cache,
+                f"; cache {remembered.path}" if remembered is not None else "; no cache")
     problems = manifest.consistency_problems(split, (backend,))
     if problems and mode == "strict":
         raise ShardVerificationError(
@@ -633,7 +721,7 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
             "totals are what is wrong: rebuild the dataset (or verify in tolerant mode, which trusts the "
             "verified shard counts).")
     report = VerificationReport(split=split, backend=backend, mode=mode, num_checked=len(shards), bad=tuple(bad),
-                                manifest_problems=tuple(problems))
+                                manifest_problems=tuple(problems), num_from_cache=from_cache)
     if bad:
         logger.warning("%d of %d %s shards of split %r are bad; %d motions will be skipped every epoch",
                        len(bad), len(shards), backend, split, report.samples_lost)
@@ -641,6 +729,17 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
         logger.warning("%s: inconsistent manifest (tolerant: going on with the verified shard counts): %s",
                        manifest.location, problem)
     return report
+
+
+def _all_listed_urls(manifest: Manifest) -> set[str]:
+    """Every file any split of the manifest lists (both backends): the cache keeps entries for these only."""
+    urls = set()
+    for entry in (manifest.data.get("splits") or {}).values():
+        for key in _MANIFEST_LIST_KEY.values():
+            for item in (entry.get(key) or []) if isinstance(entry, Mapping) else []:
+                if isinstance(item, Mapping) and "path" in item:
+                    urls.add(resolve_location(manifest.location, str(item["path"])))
+    return urls
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -677,7 +776,7 @@ def read_tar_shard(shard: ShardInfo, wanted: np.ndarray) -> Iterator[tuple[int, 
                 if position < shard.num_motions and wanted[position]:
                     yield position, raw
     except _TAR_ERRORS as exc:
-        raise ShardReadError(f"{shard.url}: cannot read shard: {exc}") from exc
+        raise ShardReadError(f"{shard.url}: cannot read shard: {type(exc).__name__}: {exc}") from exc
     if count != shard.num_motions:
         raise ShardReadError(f"{shard.url}: holds {count} records where the manifest says {shard.num_motions} "
                              "(truncated or replaced shard, or a wrong count in the manifest?)")
@@ -687,11 +786,15 @@ def read_parquet_part(shard: ShardInfo, wanted: np.ndarray) -> Iterator[tuple[in
     """Yield ``(position, ParquetRow)`` for the wanted rows, reading only row groups that hold one."""
     import pyarrow.parquet as pq
 
+    source = None
     try:
-        part = pq.ParquetFile(_open_seekable(shard.url))
+        source = open_seekable(shard.url)
+        part = pq.ParquetFile(source)
     except (OSError, ValueError) as exc:
-        raise ShardReadError(f"{shard.url}: cannot read Parquet part: {exc}") from exc
-    with part:
+        if source is not None and not isinstance(source, str):
+            source.close()
+        raise ShardReadError(f"{shard.url}: cannot read Parquet part: {type(exc).__name__}: {exc}") from exc
+    with part, (contextlib.nullcontext() if isinstance(source, str) else source):
         if part.metadata.num_rows != shard.num_motions:
             raise ShardReadError(f"{shard.url}: holds {part.metadata.num_rows} rows where the manifest says "
                                  f"{shard.num_motions}")
@@ -713,6 +816,54 @@ _READERS: dict[str, Callable[[ShardInfo, np.ndarray], Iterator[tuple[int, Any]]]
     "webdataset": read_tar_shard,
     "parquet": read_parquet_part,
 }
+# Readers that can start a re-read at the first wanted position (Parquet reads only the row groups it needs); a
+# tar is re-read from its start anyway (it is counted to its end), so it is given the whole mask again.
+_RESTART_WITH_REMAINING = {"webdataset": False, "parquet": True}
+
+
+def read_shard(shard: ShardInfo, wanted: np.ndarray, backend: str = "webdataset",
+               retry: RetryPolicy | None = None) -> Iterator[tuple[int, Any]]:
+    """Stage 5's reader: ``(position, raw record)`` for the wanted positions of one shard, in order, riding out
+    transient errors (connection reset, timeout, HTTP 5xx/429).
+
+    A read that fails with a transient error is retried at the shard level: the shard is opened again after a
+    back-off and read from its start, and the records already yielded (positions up to the last one yielded)
+    are passed over, so no record is duplicated or dropped and the order is the one an uninterrupted read
+    gives: the exact-resume guarantee holds, and batches are bit-identical to an uninterrupted run. At most
+    ``retry.retries`` consecutive failed attempts are made (the count starts again once an attempt has yielded a
+    record), each logged as a warning; then :class:`ShardReadError` naming the URL. A permanent error (missing
+    / 404, permission / 403, a damaged shard, a wrong record count) is raised at once, as a
+    :class:`ShardReadError` naming the URL."""
+    read, policy = _READERS[backend], retry or DEFAULT_RETRY
+    last = -1  # the last position yielded
+    failures = 0
+    while True:
+        mask = wanted
+        if last >= 0 and _RESTART_WITH_REMAINING[backend]:
+            mask = wanted.copy()
+            mask[:last + 1] = False
+        records = read(shard, mask)
+        try:
+            with contextlib.closing(records):  # closes the file when the consumer stops early, too
+                for position, raw in records:
+                    if position <= last:
+                        continue
+                    yield position, raw
+                    last, failures = position, 0
+            return
+        except ImportError:
+            raise
+        except Exception as exc:
+            if not is_transient(exc):
+                if isinstance(exc, ShardReadError):
+                    raise
+                raise ShardReadError(f"{shard.url}: cannot read shard: {type(exc).__name__}: {exc}") from exc
+            if failures >= policy.retries:
+                raise ShardReadError(f"{shard.url}: cannot read shard: still failing after {policy.retries} "
+                                     f"retries: {type(exc).__name__}: {exc}") from exc
+            failures += 1
+            wait_before_retry(shard.url, "reading the shard" + (f" (resuming after record {last})" if last >= 0
+                                                                 else ""), exc, failures, policy)
 _DECODERS = {"webdataset": DecodeTarRecord, "parquet": DecodeParquetRow}
 
 
@@ -768,6 +919,8 @@ class VerifiedSplit:
     report: VerificationReport
     records_skipped: int = 0
     """Records the last :meth:`iter_motions` left out (tolerant mode only)."""
+    retry: RetryPolicy = DEFAULT_RETRY
+    """How reads ride out transient errors (:func:`read_shard`)."""
 
     @property
     def shards(self) -> list[ShardInfo]:
@@ -780,10 +933,9 @@ class VerifiedSplit:
         decode = _DECODERS[self.backend](self.manifest.record_spec)
         if self.report.mode == "tolerant":
             decode = SkipBadRecords(decode)
-        read = _READERS[self.backend]
         self.records_skipped = 0
         for shard in self.shards:
-            for _, raw in read(shard, np.ones(shard.num_motions, dtype=bool)):
+            for _, raw in read_shard(shard, np.ones(shard.num_motions, dtype=bool), self.backend, self.retry):
                 record = decode(raw)
                 if isinstance(record, SkippedRecord):
                     self.records_skipped += 1
@@ -793,18 +945,21 @@ class VerifiedSplit:
 
 
 def verified_split(manifest: Manifest | str | os.PathLike, split: str, backend: str = "webdataset",
-                   mode: str = "strict") -> VerifiedSplit:
-    """Verify a split (:func:`verify_shards`, ``mode``) and return it for reading."""
-    manifest = open_manifest(manifest)
-    return VerifiedSplit(manifest, split, backend, verify_shards(manifest, split, mode=mode, backend=backend))
+                   mode: str = "strict", *, retry: RetryPolicy | None = None,
+                   cache: str | os.PathLike | bool | None = None) -> VerifiedSplit:
+    """Verify a split (:func:`verify_shards`, ``mode``, ``cache``) and return it for reading."""
+    retry = retry or DEFAULT_RETRY
+    manifest = open_manifest(manifest, retry=retry)
+    report = verify_shards(manifest, split, mode=mode, backend=backend, retry=retry, cache=cache)
+    return VerifiedSplit(manifest, split, backend, report, retry=retry)
 
 
 def iter_motions(manifest: Manifest | str | os.PathLike, split: str, backend: str = "webdataset", *,
-                 verify: str = "strict") -> Iterator[MotionRecord]:
+                 verify: str = "strict", retry: RetryPolicy | None = None) -> Iterator[MotionRecord]:
     """Every record of a split once, in manifest order, decoded and not cropped (for evaluators/tools); the
     split is verified first (``verify``: strict by default, so a tampered shard is refused before any record
     of the split is read)."""
-    return verified_split(manifest, split, backend, mode=verify).iter_motions()
+    return verified_split(manifest, split, backend, mode=verify, retry=retry).iter_motions()
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -815,8 +970,8 @@ def iter_motions(manifest: Manifest | str | os.PathLike, split: str, backend: st
 @dataclass(frozen=True, kw_only=True)
 class LoaderOptions:
     """How the stream is cut, shuffled and batched. Everything here except ``backend``, ``tolerate_bad_data``,
-    ``prefetch_factor``, ``pin_memory`` and ``multiprocessing_context`` is part of the resume state and must
-    not change on resume."""
+    ``prefetch_factor``, ``pin_memory``, ``multiprocessing_context``, ``retries`` and ``retry_backoff_s`` is part
+    of the resume state and must not change on resume."""
 
     batch_size: int
     """Samples per batch on each rank."""
@@ -845,6 +1000,10 @@ class LoaderOptions:
     prefetch_factor: int = 2
     pin_memory: bool = False
     multiprocessing_context: str | None = None
+    retries: int = DEFAULT_RETRY.retries
+    """Retries of a shard read after a transient error (training's ``data.retries``; see :func:`read_shard`)."""
+    retry_backoff_s: float = DEFAULT_RETRY.backoff_s
+    """Seconds before the first retry, doubled for each further one (training's ``data.retry_backoff_s``)."""
 
     def __post_init__(self):
         if self.batch_size < 1:
@@ -860,6 +1019,11 @@ class LoaderOptions:
                              f"shorten_prob={self.shorten_prob}")
         if self.shuffle_buffer < 0:
             raise ValueError(f"shuffle_buffer must be >= 0, got {self.shuffle_buffer}")
+        RetryPolicy(retries=self.retries, backoff_s=float(self.retry_backoff_s))  # validates both
+
+    @property
+    def retry_policy(self) -> RetryPolicy:
+        return RetryPolicy(retries=self.retries, backoff_s=float(self.retry_backoff_s))
 
     @property
     def readers_per_rank(self) -> int:
@@ -966,7 +1130,9 @@ class _RankStream(IterableDataset):
         if opts.tolerate_bad_data:
             sample_stages = [SkipBadRecords(stage) for stage in sample_stages]
         pipeline = wds.DataPipeline(
-            functools.partial(ordered_records, shards, emission, _READERS[opts.backend], spec.left_out(epoch)),
+            functools.partial(ordered_records, shards, emission,
+                              functools.partial(read_shard, backend=opts.backend, retry=opts.retry_policy),
+                              spec.left_out(epoch)),
             *[wds.map(stage) for stage in sample_stages],
             wds.batched(batch_size, collation_fn=Collate(opts.window, spec.action_classes, spec.record_spec),
                         partial=False),
@@ -1007,9 +1173,11 @@ class MotionLoader:
                  rank: int = 0, world_size: int = 1, exclude_shards: Iterable[str] = ()):
         if world_size < 1 or not 0 <= rank < world_size:
             raise ValueError(f"rank {rank} is not in a world of size {world_size}")
-        self.manifest = open_manifest(manifest)
+        self.manifest = open_manifest(manifest, retry=options.retry_policy)
         self.split, self.options, self.rank, self.world_size = split, options, rank, world_size
         self._split_shards = tuple(split_shards(self.manifest, split, options.backend))
+        for url in dict.fromkeys(s.url for s in self._split_shards):
+            require_support(url)  # a missing cloud package fails here, naming the extra, not in a worker
         self.excluded_shards = tuple(sorted(set(exclude_shards)))
         self._spec = _StreamSpec(shards=self._usable_shards(self.excluded_shards, "exclude_shards"),
                                  record_spec=self.manifest.record_spec, mean=self.manifest.mean,

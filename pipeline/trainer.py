@@ -59,7 +59,13 @@ from tqdm.auto import tqdm
 
 from mfm.diffusion import diffusion_from_preset
 from mfm.flow import FlowMatchingObjective, MotionGeometry
-from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters, draw_cond_drop_mask, draw_positional_mode
+from mfm.model import (
+    ModelConfig,
+    MotionFlowTransformer,
+    count_parameters,
+    draw_cond_drop_mask,
+    draw_positional_mode,
+)
 from mfm.skeleton import get_skeleton
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
@@ -73,6 +79,7 @@ from pipeline.data import (
     verify_shards,
 )
 from pipeline.distributed import Dist
+from pipeline.locations import RetryPolicy
 from pipeline.run_folder import RunFolderError, check_run_folder
 from pipeline.train_logging import MetricsSink, require_tensorboard
 from pipeline.validation import Validator, build_validator, has_val_split
@@ -333,7 +340,8 @@ class Trainer:
         # (verifying every shard); fit() checks the folder again.
         self._decided_by_main(self._check_before_start)
 
-        self.manifest = open_manifest(cfg.data.manifest)
+        self.retry = RetryPolicy(cfg.data.retries, cfg.data.retry_backoff_s)  # transient errors of remote data
+        self.manifest = open_manifest(cfg.data.manifest, retry=self.retry)
         bad_shards, self.shard_report = self._verified_bad_shards("train")
         self.objective = build_objective(cfg, self.manifest)
         self.model_config = model_config_for(
@@ -374,6 +382,8 @@ class Trainer:
                 # tolerant: skip (count, log) records that fail to decode, and on a resume whose excluded shards
                 # changed finish the checkpoint's epoch with its plan (pipeline.data, "Tolerant mode at run time")
                 tolerate_bad_data=cfg.data.verify == "tolerant",
+                retries=cfg.data.retries,
+                retry_backoff_s=cfg.data.retry_backoff_s,
             ),
             rank=dist.rank,
             world_size=dist.world_size,
@@ -407,7 +417,7 @@ class Trainer:
         error: Exception | None = None
         if self.dist.is_main:
             try:
-                report = verify_shards(self.manifest, split, mode=mode, backend=backend)
+                report = verify_shards(self.manifest, split, mode=mode, backend=backend, retry=self.retry)
             except Exception as err:  # re-raised on every rank below, so no rank waits forever
                 error = err
         error_text = self.dist.broadcast_object(None if error is None else f"{type(error).__name__}: {error}")
