@@ -309,4 +309,9 @@ def run_composition(request: SampleRequest) -> dict[str, Any]:
     write_json_atomically(out_dir / RESULTS_FILE, results)
     logger.info("wrote %d composed sequence(s) of %d frames (%d segments) to %s", request.num_samples, total,
                 len(segments), out_dir)
+    try:  # index.html to browse the sequences (pipeline/browse.py): a failure is logged, never fatal
+        from pipeline.browse import write_sample_index
+        write_sample_index(out_dir)
+    except Exception as exc:
+        logger.warning("index.html not written: %s", exc)
     return results

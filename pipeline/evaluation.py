@@ -602,6 +602,11 @@ class EvaluationJob:
                 plot_composition_switch(rows, store.plots_dir / "composition_switch.png")
             except Exception as exc:  # a plotting problem must not lose an evaluation
                 logger.warning("plots not updated: %s", exc)
+        try:  # index.html: the table and plots to browse (pipeline/browse.py); a failure is logged, never fatal
+            from pipeline.browse import write_eval_index
+            write_eval_index(store.root)
+        except Exception as exc:
+            logger.warning("index.html not written: %s", exc)
 
 
 def _known_id(folder: Path) -> str | None:

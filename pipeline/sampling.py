@@ -4,6 +4,8 @@
 A :class:`SampleRequest` says what to generate; :func:`run_sampling` loads the checkpoint, generates every sample
 in batches of ``batch_size`` and writes, into ``out_dir``::
 
+    index.html                   the motions to browse: animated stick figures, captions, lengths, plausibility
+                                 (pipeline/browse.py; self-contained, opens from disk)
     results.json                 describes every file below (and nothing else) plus the settings and timings, and
                                  each sample's plausibility figures (mfm.metrics.plausibility of its joints:
                                  bone-length range / deviation, floor penetration, foot skating, mean jerk)
@@ -97,6 +99,7 @@ from pipeline.inference import TrainedModel, load_trained_model
 logger = logging.getLogger(__name__)
 
 RESULTS_FILE = "results.json"
+BROWSE_PAGE = "index.html"  # pipeline/browse.py's page of the outputs, written last
 RESULTS_VERSION = 1
 SAMPLE_DIR = "sample_{:03d}"
 TIME_CONVENTIONS = {"flow": "flow time t, 1 = data", "diffusion": "diffusion t_model = step / train steps, 0 = data"}
@@ -763,15 +766,15 @@ def write_mdm_layout(out_dir: Path, samples: Sequence[Mapping[str, Any]], num_sa
 
 def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
     """Create ``out_dir``; refuse one with files unless ``overwrite``, which removes an earlier run's outputs
-    (results.json and sample_NNN folders) only."""
+    (results.json, index.html and sample_NNN folders) only."""
     out_dir.mkdir(parents=True, exist_ok=True)
     existing = [p for p in out_dir.iterdir()]
     if not existing:
         return
     if not overwrite:
         raise SamplingError(f"{out_dir} is not empty: choose a new output folder or pass overwrite")
-    ours = [p for p in existing
-            if p.name in (RESULTS_FILE, *MDM_RESULTS_FILES) or (p.is_dir() and _SAMPLE_DIR_PATTERN.match(p.name))]
+    ours = [p for p in existing if p.name in (RESULTS_FILE, *MDM_RESULTS_FILES, BROWSE_PAGE)
+            or (p.is_dir() and _SAMPLE_DIR_PATTERN.match(p.name))]
     others = sorted(p.name for p in set(existing) - set(ours))
     if others:
         raise SamplingError(f"{out_dir} holds files that are not sampling outputs ({others[:5]}): not overwriting")
@@ -904,4 +907,9 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
     write_json_atomically(out_dir / RESULTS_FILE, results)
     logger.info("wrote %d sample(s) to %s (%.1f ms per motion)", len(specs), out_dir,
                 results["timing"]["ms_per_motion"])
+    try:  # index.html to browse the motions (pipeline/browse.py): a failure is logged, never fatal
+        from pipeline.browse import write_sample_index
+        write_sample_index(out_dir)
+    except Exception as exc:
+        logger.warning("index.html not written: %s", exc)
     return results

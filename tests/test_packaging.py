@@ -13,7 +13,7 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = {"mfm-build-shards", "mfm-train", "mfm-sample", "mfm-evaluate", "mfm-train-evaluator", "mfm-contact-sheet",
-           "mfm-convert-checkpoint", "mfm-export"}
+           "mfm-convert-checkpoint", "mfm-export", "mfm-browse"}
 
 
 @pytest.mark.slow

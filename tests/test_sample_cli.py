@@ -61,7 +61,8 @@ def sample(run: Path, out: Path, *args: str) -> dict:
 
 
 def files_on_disk(out: Path) -> set[str]:
-    return {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and p.name != "results.json"}
+    return {p.relative_to(out).as_posix() for p in out.rglob("*")
+            if p.is_file() and p.relative_to(out).as_posix() not in ("results.json", "index.html")}
 
 
 def files_described(results: dict) -> set[str]:
