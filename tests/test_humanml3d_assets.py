@@ -266,7 +266,7 @@ def test_cli_options_and_error(tmp_path, published, capsys):
     root = write_humanml3d(tmp_path / "HumanML3D", published)
     np.save(root / "Mean.npy", np.zeros((263, 1), np.float32))
     base = ["--source", "humanml3d", "--root", str(root), "--quiet"]
-    assert main([*base, "--out", str(tmp_path / "bad")]) == 1
+    assert main([*base, "--out", str(tmp_path / "bad")]) == 2  # a refused setting, as every entry point
     assert f"build_shards: error: {root / 'Mean.npy'}: the mean must have shape (263,)" in capsys.readouterr().err
     assert main([*base, "--out", str(tmp_path / "ds"), "--normalization", "recompute",
                  "--source-option", "features=recompute"]) == 0
