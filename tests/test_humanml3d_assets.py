@@ -274,7 +274,7 @@ def test_cli_options_and_error(tmp_path, published, capsys):
     assert manifest["normalization"]["source"] == "recomputed" and manifest["splits"]["train"]["lengths"] == [169]
     assert "--source-option features=recompute" in manifest["builder"]["command"]
     assert "--normalization recompute" in manifest["builder"]["command"]
-    assert main([*base, "--out", str(tmp_path / "nc"), "--no-compat"]) == 1
+    assert main([*base, "--out", str(tmp_path / "nc"), "--no-compat"]) == 2
     assert "features=recompute" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--help"])
