@@ -42,6 +42,7 @@ from mfm.export.stick import (
     equal_scale_limits,
 )
 from mfm.skeleton import Skeleton, get_skeleton
+from pipeline.checkpoint import run_dir_of
 
 logger = logging.getLogger(__name__)
 
@@ -632,7 +633,7 @@ def _mean_ci(row: Mapping[str, Any], name: str) -> str:
 def _checkpoint_label(row: Mapping[str, Any]) -> str:
     """``run · step`` (``<run>/checkpoints/step-N``): one evaluation folder may hold several runs."""
     path = Path(str(row.get("checkpoint") or row.get("checkpoint_name") or "?"))
-    run = path.parent.parent.name if path.parent.name == "checkpoints" else path.parent.name
+    run = run_dir_of(path).name
     return f"{run} · {row.get('step')}" if run else str(row.get("step"))
 
 

@@ -132,6 +132,13 @@ def checkpoints_dir(out_dir: str | Path) -> Path:
     return Path(out_dir) / CHECKPOINTS_SUBDIR
 
 
+def run_dir_of(folder: str | Path) -> Path:
+    """The run folder of a checkpoint folder (``<run>/checkpoints/step-N`` -> ``<run>``); a step folder kept
+    elsewhere counts its parent as its run."""
+    parent = Path(folder).parent
+    return parent.parent if parent.name == CHECKPOINTS_SUBDIR else parent
+
+
 def step_dir_name(step: int) -> str:
     if not isinstance(step, int) or isinstance(step, bool) or not 0 <= step < 10**8:
         raise ValueError(f"checkpoint step must be an int in [0, 1e8), got {step!r}")

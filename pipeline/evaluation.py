@@ -287,11 +287,6 @@ def _max_generation_length(trained: TrainedModel) -> int:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def run_dir_of(folder: Path) -> Path:
-    """The run folder of a checkpoint (``<run>/checkpoints/step-N`` -> ``<run>``)."""
-    parent = folder.parent
-    return parent.parent if parent.name == ckpt.CHECKPOINTS_SUBDIR else parent
-
 
 def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
     """The result's rows for the results table: the generated row and the ground-truth row, metrics flattened
@@ -411,7 +406,7 @@ class EvaluationJob:
         """Checkpoints listed once and deleted before any result, in the order found (rank 0)."""
 
     def store_for(self, folder: Path) -> ResultsStore:
-        return self.store_for_run(run_dir_of(folder))
+        return self.store_for_run(ckpt.run_dir_of(folder))
 
     def store_for_run(self, run_dir: Path) -> ResultsStore:
         root = Path(self.cfg.output.dir) if self.cfg.output.dir else run_dir / "eval"
@@ -581,7 +576,7 @@ class EvaluationJob:
 
     def _publish(self, store: ResultsStore, folder: Path, result: Mapping[str, Any]) -> None:
         """W&B (under the training run) and the plots; failures are logged, never fatal."""
-        run_dir = run_dir_of(folder)
+        run_dir = ckpt.run_dir_of(folder)
         mode, project = _training_wandb(run_dir)
         if self.cfg.output.wandb != "auto":
             mode = self.cfg.output.wandb

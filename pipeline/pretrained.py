@@ -139,8 +139,7 @@ def model_card(trained: TrainedModel, config: dict[str, Any], train_config: dict
 
 def evaluation_lines(folder: Path, checkpoint_id: str) -> list[str]:
     """The evaluator's rows for this checkpoint (``<run>/eval/results.jsonl``), as a Markdown table."""
-    run = folder.parent.parent if folder.parent.name == ckpt.CHECKPOINTS_SUBDIR else folder.parent
-    table = run / "eval" / "results.jsonl"
+    table = ckpt.run_dir_of(folder) / "eval" / "results.jsonl"
     rows = []
     if table.is_file():
         for line in table.read_text().splitlines():
