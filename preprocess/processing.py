@@ -201,17 +201,11 @@ def process_clip(
     if not math.isclose(clip.fps, skeleton.fps, rel_tol=1e-9):
         joints = resample_joints(joints, clip.fps, skeleton.fps)
     length = len(joints) - 1  # features are per frame transition
-    if length < min_frames:
-        return skip("too_short", f"{length} feature frames at {skeleton.fps:g} fps < min_frames {min_frames}")
-    if max_frames is not None and length > max_frames and long_clips == "skip":
-        return skip("too_long", f"{length} feature frames at {skeleton.fps:g} fps > max_frames {max_frames}")
-
-    captions, dropped = captions_to_frames(clip.captions, length=length, fps=skeleton.fps, min_frames=min_frames)
-    for reason, count in clip.dropped_captions.items():  # lines the source could not read at all
-        dropped[reason] = dropped.get(reason, 0) + count
-    if not captions:
-        why = ", ".join(f"{n} {reason}" for reason, n in sorted(dropped.items())) or "the clip has none"
-        return skip("no_captions", f"no usable caption ({why})")
+    framed = _length_and_captions(clip, skeleton, length, min_frames=min_frames, max_frames=max_frames,
+                                  long_clips=long_clips)
+    if isinstance(framed, SkippedInput):
+        return framed
+    captions, dropped = framed
 
     try:
         features = joints_to_features(joints, skeleton, compat=compat)
@@ -222,14 +216,40 @@ def process_clip(
         return skip("feature_error", f"features have shape {features.shape}, expected ({length}, {skeleton.feature_dim})")
     if not np.isfinite(features).all():
         return skip("feature_error", "feature extraction produced NaN/inf (degenerate pose?)")
+    return _record(clip, skeleton, features, captions, dropped)
 
+
+def _length_and_captions(
+    clip: Clip, skeleton: Skeleton, length: int, *, min_frames: int, max_frames: int | None, long_clips: str
+) -> tuple[list[RecordCaption], dict[str, int]] | SkippedInput:
+    """The length filters and the captions mapped onto ``length`` feature frames (with the source's own dropped
+    lines counted), or why the clip is skipped: shared by computed features and a dataset's feature file."""
+
+    def skip(reason: str, detail: str) -> SkippedInput:
+        return SkippedInput(id=clip.id, path=clip.path, reason=reason, detail=detail)
+
+    if length < min_frames:
+        return skip("too_short", f"{length} feature frames at {skeleton.fps:g} fps < min_frames {min_frames}")
+    if max_frames is not None and length > max_frames and long_clips == "skip":
+        return skip("too_long", f"{length} feature frames at {skeleton.fps:g} fps > max_frames {max_frames}")
+    captions, dropped = captions_to_frames(clip.captions, length=length, fps=skeleton.fps, min_frames=min_frames)
+    for reason, count in clip.dropped_captions.items():  # lines the source could not read at all
+        dropped[reason] = dropped.get(reason, 0) + count
+    if not captions:
+        why = ", ".join(f"{n} {reason}" for reason, n in sorted(dropped.items())) or "the clip has none"
+        return skip("no_captions", f"no usable caption ({why})")
+    return captions, dropped
+
+
+def _record(clip: Clip, skeleton: Skeleton, features: np.ndarray, captions: list[RecordCaption],
+            dropped: dict[str, int]) -> Record:
     return Record(
         id=clip.id,
         split=clip.split,
         source=clip.source,
         skeleton=skeleton.name,
         fps=float(skeleton.fps),
-        features=features,
+        features=np.ascontiguousarray(features, dtype=np.float32),
         captions=captions,
         action=clip.action,
         path=clip.path,
@@ -255,37 +275,18 @@ def _record_from_feature_file(
     if not (math.isfinite(clip.fps) and math.isclose(clip.fps, skeleton.fps, rel_tol=1e-9)):
         return skip("bad_fps", f"feature file at {clip.fps!r} fps, the {skeleton.name} skeleton's is {skeleton.fps:g}: "
                                "features cannot be resampled (recompute them from the joints)")
-    length = len(features)
-    if length < min_frames:
-        return skip("too_short", f"{length} feature frames at {skeleton.fps:g} fps < min_frames {min_frames}")
-    if max_frames is not None and length > max_frames and long_clips == "skip":
-        return skip("too_long", f"{length} feature frames at {skeleton.fps:g} fps > max_frames {max_frames}")
-
-    captions, dropped = captions_to_frames(clip.captions, length=length, fps=skeleton.fps, min_frames=min_frames)
-    for reason, count in clip.dropped_captions.items():
-        dropped[reason] = dropped.get(reason, 0) + count
-    if not captions:
-        why = ", ".join(f"{n} {reason}" for reason, n in sorted(dropped.items())) or "the clip has none"
-        return skip("no_captions", f"no usable caption ({why})")
+    framed = _length_and_captions(clip, skeleton, len(features), min_frames=min_frames, max_frames=max_frames,
+                                  long_clips=long_clips)
+    if isinstance(framed, SkippedInput):
+        return framed
+    captions, dropped = framed
 
     if clip.joints is not None:
         disagreement = feature_file_disagreement(features, clip.joints, skeleton)
         if disagreement:
             return skip(FEATURE_MISMATCH, f"disagrees with the joint file {clip.meta.get(JOINTS_PATH_KEY) or '(in memory)'}: "
                                           f"{disagreement}")
-
-    return Record(
-        id=clip.id,
-        split=clip.split,
-        source=clip.source,
-        skeleton=skeleton.name,
-        fps=float(skeleton.fps),
-        features=np.ascontiguousarray(features, dtype=np.float32),
-        captions=captions,
-        action=clip.action,
-        path=clip.path,
-        dropped_captions=dropped,
-    )
+    return _record(clip, skeleton, features, captions, dropped)
 
 
 def feature_file_disagreement(features: np.ndarray, joints: np.ndarray, skeleton: Skeleton) -> str:
