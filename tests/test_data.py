@@ -437,6 +437,24 @@ def position_after(loader: MotionLoader, num_batches: int) -> tuple[int, int]:
     return epoch, num_batches
 
 
+def read_in_resumed_segments(make_loader, cuts: list[int], probe: MotionLoader,
+                             before_segment=lambda: None) -> tuple[list, dict]:
+    """Read up to each cut in ``cuts`` with a fresh loader from ``make_loader()`` resumed from the previous
+    segment's state; check every saved position against ``probe``. Returns the batches read and the last state.
+    ``before_segment``: called before each segment's loader is made (to inject failures)."""
+    got, state, done = [], None, 0
+    for cut in cuts:
+        before_segment()
+        loader = make_loader()
+        if state is not None:
+            loader.load_state_dict(state)
+        got += take(loader.iter_batches(), cut - done)
+        done = cut
+        state = loader.state_dict()
+        assert (state["epoch"], state["batches_in_epoch"]) == position_after(probe, cut)
+    return got, state
+
+
 @pytest.mark.parametrize("num_workers", [0, 2])
 def test_resume_mid_epoch_twice_and_at_epoch_boundary(dataset, num_workers):
     kw = dict(num_workers=num_workers)
@@ -447,15 +465,8 @@ def test_resume_mid_epoch_twice_and_at_epoch_boundary(dataset, num_workers):
     expected = reference_stream(dataset, total, **kw)
     # Stop/resume points: mid-epoch, again in the same epoch, exactly at the epoch boundary, mid next epoch.
     cuts = [1, 3, first, first + 2, total]
-    got, state, done = [], None, 0
-    for cut in cuts:
-        loader = MotionLoader(dataset, "train", opts(**kw), rank=1, world_size=2)
-        if state is not None:
-            loader.load_state_dict(state)
-        got += take(loader.iter_batches(), cut - done)
-        done = cut
-        state = loader.state_dict()
-        assert (state["epoch"], state["batches_in_epoch"]) == position_after(probe, cut)
+    got, _ = read_in_resumed_segments(lambda: MotionLoader(dataset, "train", opts(**kw), rank=1, world_size=2),
+                                      cuts, probe)
     assert_batches_equal(got, expected)
 
 

@@ -30,7 +30,7 @@ from test_data import (
     edit_manifest,
     flip_byte,
     opts,
-    position_after,
+    read_in_resumed_segments,
     take,
     write_fixture_dataset,
 )
@@ -426,18 +426,15 @@ def test_resume_mid_epoch_over_a_remote_source_with_failures_is_exact(dataset, m
     total = first + second + 3
     expected = take(MotionLoader(dataset, "train", opts(**kw), rank=1, world_size=2).iter_batches(), total)
     cuts = [1, 3, first, first + 2, total]
-    got, state, done = [], None, 0
-    for cut in cuts:
-        for index, size in enumerate(UNEVEN):  # every shard fails once, half way, in this segment
+
+    def fail_every_shard_once() -> None:  # every shard fails once, half way, in each segment
+        for index, _ in enumerate(UNEVEN):
             name = f"train/shard-{index:05d}.tar"
             arm(name, shard_size(dataset, name) // 2)
-        loader = MotionLoader(url, "train", opts(**kw, **FAST), rank=1, world_size=2)
-        if state is not None:
-            loader.load_state_dict(state)
-        got += take(loader.iter_batches(), cut - done)
-        done = cut
-        state = loader.state_dict()
-        assert (state["epoch"], state["batches_in_epoch"]) == position_after(probe, cut)
+
+    got, state = read_in_resumed_segments(
+        lambda: MotionLoader(url, "train", opts(**kw, **FAST), rank=1, world_size=2), cuts, probe,
+        before_segment=fail_every_shard_once)
     assert_batches_equal(got, expected)
     assert state == MotionLoader(dataset, "train", opts(**kw), rank=1, world_size=2).state_dict() | {
         "epoch": state["epoch"], "batches_in_epoch": state["batches_in_epoch"]}
