@@ -506,14 +506,18 @@ def describe_config(cfg: Any, prefix: str = "") -> list[str]:
             lines += describe_config(value, f"{key}.")
             continue
         default = defaults.get(field.name, dataclasses.MISSING)
-        shown = yaml.safe_dump(_plain(value), default_flow_style=True, width=10**6).strip().removesuffix("...").strip()
-        line = f"{key} = {shown}"
+        line = f"{key} = {_inline_yaml(value)}"
         if default is not dataclasses.MISSING and _plain(default) != _plain(value):
-            line += f"  (default: {yaml.safe_dump(_plain(default), default_flow_style=True).strip().removesuffix('...').strip()})"
+            line += f"  (default: {_inline_yaml(default)})"
         if field.name in docs:
             line += f"  # {docs[field.name]}"
         lines.append(line)
     return lines
+
+
+def _inline_yaml(value: Any) -> str:
+    """A value as it would be written in a preset or an override, on one line."""
+    return yaml.safe_dump(_plain(value), default_flow_style=True, width=10**6).strip().removesuffix("...").strip()
 
 
 def _defaults_of(cls: type) -> dict[str, Any]:
