@@ -37,7 +37,6 @@ from torch import Tensor
 from mfm import metrics
 from mfm.composition import BoundInputs
 from mfm.diffusion_sampling import (
-    BASELINE_SAMPLING,
     SAMPLERS,
     BaselineSampling,
     replacement_edit,
@@ -491,9 +490,7 @@ def points_for(trained: TrainedModel, points: Sequence[SamplingPoint], *,
 
 def baseline_sampling(trained: TrainedModel, enabled: bool) -> BaselineSampling | None:
     """The diffusion baseline's own sampling settings when ``enabled`` (sampling.baseline_defaults) and it has any."""
-    if not enabled or trained.objective != "diffusion":
-        return None
-    return BASELINE_SAMPLING.get(trained.diffusion_preset or "")
+    return trained.baseline_sampling if enabled else None
 
 
 @torch.no_grad()

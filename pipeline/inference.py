@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from mfm.diffusion import GaussianDiffusion, diffusion_from_preset
+from mfm.diffusion_sampling import BASELINE_SAMPLING, BaselineSampling
 from mfm.model import ModelConfig, MotionFlowTransformer
 from mfm.skeleton import Skeleton, get_skeleton
 from pipeline import checkpoint as ckpt
@@ -97,6 +98,14 @@ class TrainedModel:
     @property
     def dataset_id(self) -> str:
         return self.data["dataset_id"]
+
+    @property
+    def baseline_sampling(self) -> BaselineSampling | None:
+        """How the authors of this model's diffusion preset sampled it (FLAME: guidance 8.0, σ = 1 smoothing);
+        None for flow models and presets without such settings."""
+        if self.objective != "diffusion":
+            return None
+        return BASELINE_SAMPLING.get(self.diffusion_preset or "")
 
     def normalize(self, features: torch.Tensor) -> torch.Tensor:
         return (features - self.mean) / self.std

@@ -66,7 +66,7 @@ from tqdm.auto import tqdm
 from mfm import metrics
 from mfm.composition import BoundInputs
 from mfm.diffusion import GaussianDiffusion
-from mfm.diffusion_sampling import BASELINE_SAMPLING, SAMPLERS, replacement_edit, sample_diffusion, smooth_over_time
+from mfm.diffusion_sampling import SAMPLERS, replacement_edit, sample_diffusion, smooth_over_time
 from mfm.editing import (
     DEFAULT_EDIT_SETTINGS,
     EDIT_SETTINGS,
@@ -290,7 +290,7 @@ class SampleRequest:
             return float(self.guidance)
         if self.edit is not None and trained.objective == "flow":
             return self.settings.guidance
-        baseline = BASELINE_SAMPLING.get(trained.diffusion_preset or "")
+        baseline = trained.baseline_sampling
         return baseline.guidance if baseline is not None else DEFAULT_GUIDANCE
 
     def smoothing_for(self, trained: TrainedModel) -> float:
@@ -298,7 +298,7 @@ class SampleRequest:
         (FLAME: 1.0), else 0 (none)."""
         if self.smoothing is not None:
             return float(self.smoothing)
-        baseline = BASELINE_SAMPLING.get(trained.diffusion_preset or "")
+        baseline = trained.baseline_sampling
         return baseline.smoothing_sigma if baseline is not None else 0.0
 
 
