@@ -50,6 +50,14 @@ Positional encoding (``ModelConfig.positional``):
   invariance). With ``attention_chunk`` the frame attention is computed blockwise over a band (memory linear in the
   number of frames, FlowMDM's ``--use_chunked_att``), giving the same result as the dense mask.
 
+FlowMDM's backbone (the x-transformers ``Encoder`` of its ``model/FlowMDM.py``; ``configs/flowmdm.yaml``) differs
+from MDM's beyond BPE and PCCAT; each difference is an option whose default is MDM/MFM's: attention heads of 64
+channels whatever the width (``head_dim``), bias-free attention projections (``attention_bias``), pre-norm with a
+final norm (``norm_first``), dropout on the embeddings only (``attention_dropout``, ``ff_dropout``,
+``residual_dropout``), stochastic skipping of whole residual blocks in training (``layer_dropout``), learned-scale
+concatenated sinusoidal positions (``absolute_positions``) and an extra Linear either side of the encoder
+(``wrapper_projections``).
+
 All attention runs through ``F.scaled_dot_product_attention`` with boolean masks (True = may attend), which is safe
 under bf16 autocast; no softmax row is ever empty.
 """
@@ -57,6 +65,7 @@ under bf16 autocast; no softmax row is ever empty.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
@@ -73,6 +82,7 @@ TIME_GRIDS = ("continuous", "floor", "nearest")
 NULL_CONDITIONS = ("zero", "empty_caption")
 POSITIONAL_TABLES = ("computed", "stored")
 CONDITION_SCALINGS = ("none", "rms")
+ABSOLUTE_POSITIONS = ("sinusoidal", "scaled_sinusoidal")
 
 # MFM feeds the sinusoidal table with t*1000 (its diffusion-step scale); keep the scale so the embedding matches.
 TIME_SCALE = 1000.0
@@ -93,7 +103,9 @@ class ModelConfig:
     num_layers: int = 8
     num_heads: int = 4
     dropout: float = 0.1
-    """Dropout on embeddings, attention probabilities and residual branches (as nn.TransformerEncoderLayer)."""
+    """Dropout on embeddings, attention probabilities, the feed-forward hidden layer and residual branches (as
+    nn.TransformerEncoderLayer); ``attention_dropout``, ``ff_dropout`` and ``residual_dropout`` set the last three
+    apart."""
     activation: str = "gelu"
     """Feed-forward activation: one of ACTIVATIONS."""
     cond_dim: int = 512
@@ -177,6 +189,41 @@ class ModelConfig:
     x_t instead of redrawing every detail of the motion through its width. Not MFM's choice: our presets say where
     they use either."""
 
+    # -- FlowMDM's architecture (x-transformers); each default is MDM/MFM's, configs/flowmdm.yaml sets FlowMDM's --
+    head_dim: int = 0
+    """Channels per attention head; 0 = latent_dim / num_heads (MDM/MFM). FlowMDM inherits x-transformers'
+    ``dim_head`` = 64 whatever the width, so its 4 heads over 512 channels attend in 4 × 64 = 256: queries, keys and
+    values are ``num_heads · head_dim`` wide and the output projection maps them back to latent_dim."""
+    attention_bias: bool = True
+    """Biases on the attention's query, key, value and output projections (nn.MultiheadAttention, MDM/MFM). False:
+    x-transformers' bias-free ``to_q/to_k/to_v/to_out`` (FlowMDM). PCCAT's query-conditioning Linear keeps its
+    bias either way (FlowMDM's is a plain nn.Linear)."""
+    attention_dropout: float | None = None
+    """Dropout on the attention probabilities; None = ``dropout``. FlowMDM: 0 (x-transformers' ``attn_dropout``)."""
+    ff_dropout: float | None = None
+    """Dropout on the feed-forward hidden layer; None = ``dropout``. FlowMDM: 0 (x-transformers' ``ff_dropout``)."""
+    residual_dropout: float | None = None
+    """Dropout on each residual branch's output (attention, cross-attention, feed-forward); None = ``dropout``.
+    FlowMDM: 0 (x-transformers has no dropout there)."""
+    layer_dropout: float = 0.0
+    """Training only: probability of skipping each residual block (attention, cross-attention, feed-forward) of
+    every layer, drawn independently per block and once per batch, without rescaling; a skipped block passes its
+    input through unchanged (post-norm: its LayerNorm is skipped too). x-transformers' ``layer_dropout``, which
+    counts the attention and feed-forward blocks as separate layers; FlowMDM: 0.1. The skipped block is still
+    computed and its result discarded, so every parameter stays in the autograd graph (DDP without
+    ``find_unused_parameters``). Drawn from ``generator`` after the condition-dropout and BPE-mode draws, or
+    given as ``block_drop_mask``."""
+    absolute_positions: str = "sinusoidal"
+    """The absolute positional embedding added to the tokens (one of ABSOLUTE_POSITIONS; positional='absolute',
+    and bpe's absolute mode). 'sinusoidal' (MDM/MFM): the interleaved sin/cos table, unscaled. 'scaled_sinusoidal'
+    (FlowMDM, x-transformers' ``ScaledSinusoidalEmbedding``): ``cat(sin(p·ω), cos(p·ω)) · s`` with the same
+    frequencies ``ω_i = 10000^(-i/(latent_dim/2))`` and one learned scalar ``s`` initialised to
+    ``latent_dim ** -0.5``. The time embedding keeps MDM's table either way (FlowMDM's does too)."""
+    wrapper_projections: bool = False
+    """FlowMDM (x-transformers' ``ContinuousTransformerWrapper`` with ``dim_in = dim_out = latent_dim``): an extra
+    Linear(latent, latent) after the input projection (before positions are added) and one after the final norm,
+    before the output projection."""
+
     def __post_init__(self) -> None:
         positive = {
             "feature_dim": self.feature_dim,
@@ -194,9 +241,13 @@ class ModelConfig:
         for name, value in positive.items():
             if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
                 raise ValueError(f"ModelConfig.{name} must be a positive int, got {value!r}")
-        if self.latent_dim % self.num_heads != 0:
+        if not isinstance(self.head_dim, int) or isinstance(self.head_dim, bool) or self.head_dim < 0:
+            raise ValueError(f"ModelConfig.head_dim must be an int >= 0 (0: latent_dim / num_heads), got "
+                             f"{self.head_dim!r}")
+        if self.head_dim == 0 and self.latent_dim % self.num_heads != 0:
             raise ValueError(
-                f"ModelConfig.latent_dim ({self.latent_dim}) must be divisible by num_heads ({self.num_heads})"
+                f"ModelConfig.latent_dim ({self.latent_dim}) must be divisible by num_heads ({self.num_heads}), "
+                "or head_dim set"
             )
         if self.latent_dim % 2 != 0:
             raise ValueError(f"ModelConfig.latent_dim must be even (sinusoidal embeddings), got {self.latent_dim}")
@@ -206,10 +257,21 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.cond_dim must be a positive int for a text model (num_actions=0), got {self.cond_dim!r}"
             )
-        for name in ("dropout", "cond_drop_prob"):
+        for name in ("dropout", "cond_drop_prob", "attention_dropout", "ff_dropout", "residual_dropout"):
             value = getattr(self, name)
-            if not 0.0 <= value < 1.0:
+            if value is None and name not in ("dropout", "cond_drop_prob"):
+                continue
+            if not isinstance(value, numbers.Real) or isinstance(value, bool) or not 0.0 <= value < 1.0:
                 raise ValueError(f"ModelConfig.{name} must be in [0, 1), got {value!r}")
+        if (not isinstance(self.layer_dropout, numbers.Real) or isinstance(self.layer_dropout, bool)
+                or not 0.0 <= self.layer_dropout <= 1.0):
+            raise ValueError(f"ModelConfig.layer_dropout must be in [0, 1], got {self.layer_dropout!r}")
+        for name in ("attention_bias", "wrapper_projections"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"ModelConfig.{name} must be a bool, got {getattr(self, name)!r}")
+        if self.absolute_positions not in ABSOLUTE_POSITIONS:
+            raise ValueError(f"ModelConfig.absolute_positions must be one of {ABSOLUTE_POSITIONS}, got "
+                             f"{self.absolute_positions!r}")
         if not 0.0 <= self.bpe_train_relative_prob <= 1.0:
             raise ValueError(
                 f"ModelConfig.bpe_train_relative_prob must be in [0, 1], got {self.bpe_train_relative_prob!r}"
@@ -256,9 +318,9 @@ class ModelConfig:
             )
         if self.positional == "bpe":
             rotary = self.rotary_dims
-            if rotary <= 0 or rotary % 2 != 0 or rotary > self.head_dim:
+            if rotary <= 0 or rotary % 2 != 0 or rotary > self.head_size:
                 raise ValueError(
-                    f"ModelConfig.rope_dims must be even and in [2, head dim {self.head_dim}], got {rotary}"
+                    f"ModelConfig.rope_dims must be even and in [2, head dim {self.head_size}], got {rotary}"
                 )
         if self.length_token and self.max_frames + self.num_prefix_tokens > self.max_len:
             raise ValueError(
@@ -277,13 +339,30 @@ class ModelConfig:
         return self.num_actions > 0
 
     @property
-    def head_dim(self) -> int:
-        return self.latent_dim // self.num_heads
+    def head_size(self) -> int:
+        """Channels per attention head: ``head_dim``, or latent_dim / num_heads when it is 0."""
+        return self.head_dim if self.head_dim > 0 else self.latent_dim // self.num_heads
+
+    @property
+    def attention_dim(self) -> int:
+        """Width of the attention's queries, keys and values: num_heads · head_size (latent_dim by default)."""
+        return self.num_heads * self.head_size
 
     @property
     def rotary_dims(self) -> int:
         """Rotated channels per head in bpe relative mode (default: half the head dim, rounded down to even)."""
-        return self.rope_dims if self.rope_dims is not None else 2 * (self.head_dim // 4)
+        return self.rope_dims if self.rope_dims is not None else 2 * (self.head_size // 4)
+
+    @property
+    def blocks_per_layer(self) -> int:
+        """Residual blocks of each layer that layer dropout may skip: attention, [cross-attention,] feed-forward."""
+        return 3 if self.conditioning == "cross_attention" else 2
+
+    def dropout_of(self, name: str) -> float:
+        """The dropout probability of ``'attention'``, ``'ff'`` or ``'residual'`` (its own setting, else
+        ``dropout``)."""
+        value = getattr(self, f"{name}_dropout")
+        return self.dropout if value is None else value
 
     @property
     def output_size(self) -> int:
@@ -306,6 +385,30 @@ def sinusoidal_embedding(positions: torch.Tensor, dim: int) -> torch.Tensor:
     angles = positions.unsqueeze(-1) * frequencies
     # Interleave sin/cos exactly like MDM's PositionalEncoding table (pe[:, 0::2] = sin, pe[:, 1::2] = cos).
     return torch.stack((angles.sin(), angles.cos()), dim=-1).flatten(-2)
+
+
+def concatenated_sinusoid(positions: torch.Tensor, dim: int) -> torch.Tensor:
+    """x-transformers' sinusoid for real-valued positions: ``cat(sin(p·ω), cos(p·ω))`` over the last dim, with
+    ``ω_i = 10000^(-i/(dim/2))`` for i < dim/2 (the frequencies of :func:`sinusoidal_embedding`, laid out in two
+    halves instead of interleaved). fp32 whatever the autocast state."""
+    half = dim // 2
+    frequencies = 10000.0 ** -(torch.arange(half, device=positions.device, dtype=torch.float32) / half)
+    angles = positions.float().unsqueeze(-1) * frequencies
+    return torch.cat((angles.sin(), angles.cos()), dim=-1)
+
+
+class ScaledSinusoidalEmbedding(nn.Module):
+    """FlowMDM's absolute positions (x-transformers' ``ScaledSinusoidalEmbedding``): :func:`concatenated_sinusoid`
+    times one learned scalar ``scale``, initialised to ``dim ** -0.5`` (ModelConfig.absolute_positions)."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.dim = dim
+        self.scale = nn.Parameter(torch.full((1,), dim**-0.5))
+
+    def forward(self, positions: torch.Tensor) -> torch.Tensor:
+        """(..., dim) fp32 embedding of the real positions (...)."""
+        return concatenated_sinusoid(positions, self.dim) * self.scale.float()
 
 
 def valid_frame_mask(lengths: torch.Tensor, num_frames: int) -> torch.Tensor:
@@ -341,6 +444,20 @@ def draw_positional_mode(
     that draws ``cond_mask`` itself should draw this too and pass it as ``positional_mode``.
     """
     return _draw_bernoulli(batch, relative_prob, generator, device)
+
+
+def draw_block_drop_mask(
+    num_layers: int,
+    blocks: int,
+    prob: float,
+    generator: torch.Generator | None = None,
+    device: torch.device | None = None,
+) -> torch.Tensor:
+    """(num_layers, blocks) bool, True for the residual blocks skipped in this batch (ModelConfig.layer_dropout):
+    each independently with probability ``prob``, one draw per batch as x-transformers. Drawn on the generator's
+    device (a CPU generator works with a GPU model), then moved to ``device``."""
+    draw_device = generator.device if generator is not None else device
+    return (torch.rand(num_layers, blocks, generator=generator, device=draw_device) < prob).to(device)
 
 
 def segment_runs(
@@ -542,8 +659,14 @@ def _init_split_projection(query: nn.Linear, key_value: nn.Linear) -> None:
     with torch.no_grad():
         query.weight.copy_(weight[: query.out_features])
         key_value.weight.copy_(weight[query.out_features :])
-    nn.init.zeros_(query.bias)
-    nn.init.zeros_(key_value.bias)
+    for layer in (query, key_value):
+        if layer.bias is not None:
+            nn.init.zeros_(layer.bias)
+
+
+def _zero_bias(layer: nn.Linear) -> None:
+    if layer.bias is not None:
+        nn.init.zeros_(layer.bias)
 
 
 class EncoderLayer(nn.Module):
@@ -559,20 +682,22 @@ class EncoderLayer(nn.Module):
 
     def __init__(self, config: ModelConfig, *, pose_centric: bool = False, cross_attention: bool = False) -> None:
         super().__init__()
-        d = config.latent_dim
+        d, inner, bias = config.latent_dim, config.attention_dim, config.attention_bias
         self.num_heads = config.num_heads
-        self.dropout = config.dropout
+        self.attention_dropout = config.dropout_of("attention")
+        self.ff_dropout = config.dropout_of("ff")
+        self.residual_dropout = config.dropout_of("residual")
         self.norm_first = config.norm_first
         self.activation = ACTIVATIONS[config.activation]
         self.pose_centric = pose_centric
         self.has_cross_attention = cross_attention
         if pose_centric:
             self.query_cond = nn.Linear(2 * d, d)
-            self.q_proj = nn.Linear(d, d)
-            self.kv_proj = nn.Linear(d, 2 * d)
+            self.q_proj = nn.Linear(d, inner, bias=bias)
+            self.kv_proj = nn.Linear(d, 2 * inner, bias=bias)
         else:
-            self.qkv = nn.Linear(d, 3 * d)
-        self.out_proj = nn.Linear(d, d)
+            self.qkv = nn.Linear(d, 3 * inner, bias=bias)
+        self.out_proj = nn.Linear(inner, d, bias=bias)
         self.linear1 = nn.Linear(d, config.ff_dim)
         self.linear2 = nn.Linear(config.ff_dim, d)
         self.norm1 = FP32LayerNorm(d)
@@ -582,18 +707,18 @@ class EncoderLayer(nn.Module):
             _init_split_projection(self.q_proj, self.kv_proj)
         else:
             nn.init.xavier_uniform_(self.qkv.weight)
-            nn.init.zeros_(self.qkv.bias)
-        nn.init.zeros_(self.out_proj.bias)
+            _zero_bias(self.qkv)
+        _zero_bias(self.out_proj)
         if cross_attention:
-            self.cross_q = nn.Linear(d, d)
-            self.cross_kv = nn.Linear(d, 2 * d)
-            self.cross_out = nn.Linear(d, d)
+            self.cross_q = nn.Linear(d, inner, bias=bias)
+            self.cross_kv = nn.Linear(d, 2 * inner, bias=bias)
+            self.cross_out = nn.Linear(inner, d, bias=bias)
             self.norm_cross = FP32LayerNorm(d)
             _init_split_projection(self.cross_q, self.cross_kv)
-            nn.init.zeros_(self.cross_out.bias)
+            _zero_bias(self.cross_out)
 
     def _split_heads(self, x: Tensor, parts: int) -> tuple[Tensor, ...]:
-        """(B, S, parts·d) → ``parts`` tensors (B, heads, S, d/heads)."""
+        """(B, S, parts·a) → ``parts`` tensors (B, heads, S, a/heads), a = ModelConfig.attention_dim."""
         batch, seq, width = x.shape
         head_dim = width // (parts * self.num_heads)
         return x.view(batch, seq, parts, self.num_heads, head_dim).permute(2, 0, 3, 1, 4).unbind(0)
@@ -603,7 +728,7 @@ class EncoderLayer(nn.Module):
         return x.transpose(1, 2).reshape(batch, seq, -1)
 
     def _attention(self, x: Tensor, attention: Attention, condition: Tensor | None) -> Tensor:
-        dropout_p = self.dropout if self.training else 0.0
+        dropout_p = self.attention_dropout if self.training else 0.0
         if self.pose_centric:
             if condition is None:
                 raise ValueError("a pose-centric (PCCAT) layer needs the per-token condition")
@@ -613,18 +738,18 @@ class EncoderLayer(nn.Module):
             q, k, v = self._split_heads(self.qkv(x), 3)
         q, k = attention.position(q, k)
         out = self._merge_heads(attention.attend(q, k, v, dropout_p))
-        return F.dropout(self.out_proj(out), self.dropout, self.training)
+        return F.dropout(self.out_proj(out), self.residual_dropout, self.training)
 
     def _cross_attention(self, x: Tensor, memory: Tensor, memory_mask: Tensor | None) -> Tensor:
-        dropout_p = self.dropout if self.training else 0.0
+        dropout_p = self.attention_dropout if self.training else 0.0
         (q,) = self._split_heads(self.cross_q(x), 1)
         k, v = self._split_heads(self.cross_kv(memory), 2)
         out = F.scaled_dot_product_attention(q, k, v, attn_mask=memory_mask, dropout_p=dropout_p)
-        return F.dropout(self.cross_out(self._merge_heads(out)), self.dropout, self.training)
+        return F.dropout(self.cross_out(self._merge_heads(out)), self.residual_dropout, self.training)
 
     def _feed_forward(self, x: torch.Tensor) -> torch.Tensor:
-        hidden = F.dropout(self.activation(self.linear1(x)), self.dropout, self.training)
-        return F.dropout(self.linear2(hidden), self.dropout, self.training)
+        hidden = F.dropout(self.activation(self.linear1(x)), self.ff_dropout, self.training)
+        return F.dropout(self.linear2(hidden), self.residual_dropout, self.training)
 
     def forward(
         self,
@@ -634,24 +759,34 @@ class EncoderLayer(nn.Module):
         condition: Tensor | None = None,
         memory: Tensor | None = None,
         memory_mask: Tensor | None = None,
+        skip: Tensor | None = None,
     ) -> torch.Tensor:
         """x: (B, S, d). attn_mask: (B, 1, 1, S) bool, True = key may be attended, or None (attend to all), or an
         attention plan (:class:`DenseAttention`, :class:`BlendedAttention`).
         condition: (B, S, d) per-token query condition (pose-centric layers). memory: (B, M, d) and memory_mask
-        (B, 1, 1, M) bool (cross-attention layers)."""
+        (B, 1, 1, M) bool (cross-attention layers).
+        skip: (blocks,) bool, True = that residual block (attention, [cross-attention,] feed-forward) passes its
+        input through unchanged (layer dropout); None = every block runs."""
         plans = (DenseAttention, BlendedAttention)
         attention = attn_mask if isinstance(attn_mask, plans) else DenseAttention(attn_mask)
         if self.has_cross_attention and memory is None:
             raise ValueError("a cross-attention layer needs the memory")
         if self.norm_first:
-            x = x + self._attention(self.norm1(x), attention, condition)
+            blocks = [lambda h: h + self._attention(self.norm1(h), attention, condition)]
             if self.has_cross_attention:
-                x = x + self._cross_attention(self.norm_cross(x), memory, memory_mask)
-            return x + self._feed_forward(self.norm2(x))
-        x = self.norm1(x + self._attention(x, attention, condition))
-        if self.has_cross_attention:
-            x = self.norm_cross(x + self._cross_attention(x, memory, memory_mask))
-        return self.norm2(x + self._feed_forward(x))
+                blocks.append(lambda h: h + self._cross_attention(self.norm_cross(h), memory, memory_mask))
+            blocks.append(lambda h: h + self._feed_forward(self.norm2(h)))
+        else:
+            blocks = [lambda h: self.norm1(h + self._attention(h, attention, condition))]
+            if self.has_cross_attention:
+                blocks.append(lambda h: self.norm_cross(h + self._cross_attention(h, memory, memory_mask)))
+            blocks.append(lambda h: self.norm2(h + self._feed_forward(h)))
+        if skip is not None and skip.shape != (len(blocks),):
+            raise ValueError(f"skip must be ({len(blocks)},) bool, one per residual block, got {tuple(skip.shape)}")
+        for index, block in enumerate(blocks):
+            # A skipped block is still computed, so its parameters stay in the graph (DDP); its result is dropped.
+            x = block(x) if skip is None else torch.where(skip[index], x, block(x))
+        return x
 
 
 class TimeEmbedding(nn.Module):
@@ -704,6 +839,10 @@ class MotionFlowTransformer(nn.Module):
             "positional_table", sinusoidal_embedding(torch.arange(config.max_len), d),
             persistent=config.positional_table == "stored",
         )
+        if config.absolute_positions == "scaled_sinusoidal":
+            self.absolute_embedding = ScaledSinusoidalEmbedding(d)
+        if config.wrapper_projections:
+            self.project_in = nn.Linear(d, d)
         self.layers = nn.ModuleList(
             EncoderLayer(
                 config,
@@ -714,6 +853,8 @@ class MotionFlowTransformer(nn.Module):
         )
         # Pre-norm leaves the residual stream un-normalised; post-norm (MDM) already ends in a LayerNorm.
         self.final_norm = FP32LayerNorm(d) if config.norm_first else nn.Identity()
+        if config.wrapper_projections:
+            self.project_out = nn.Linear(d, d)
         self.output_proj = nn.Linear(d, config.output_size)
         if config.conditioning == "cross_attention":
             # FLAME: Linear(768 → 768) of RoBERTa's last hidden states, the cross-attention memory.
@@ -754,6 +895,7 @@ class MotionFlowTransformer(nn.Module):
         text_token_len: torch.Tensor | None = None,
         positional_mode: torch.Tensor | None = None,
         attention_chunk: int | None = None,
+        block_drop_mask: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Velocity at ``x`` (B, T, D) and times ``t`` (B,) in [0, 1].
 
@@ -764,7 +906,8 @@ class MotionFlowTransformer(nn.Module):
             Overrides the random training-time dropout, so one batched call can hold a sampler's conditional and
             unconditional halves.
         generator: RNG for the training-time draws, in this order: condition dropout (unless ``cond_mask``), then
-            the BPE mode (unless ``positional_mode``). Global RNG if None.
+            the BPE mode (unless ``positional_mode``), then the skipped blocks (``layer_dropout`` > 0, unless
+            ``block_drop_mask``). Global RNG if None.
         segments: bpe only; (B, T) integer segment index of every frame (a segment = a run of equal values);
             None = one segment. Absolute positions restart and absolute-mode attention stays inside each segment.
         frame_cond: pccat only; (B, T, cond_dim) text embedding of the segment each frame belongs to; None =
@@ -775,6 +918,8 @@ class MotionFlowTransformer(nn.Module):
             (``bpe_train_relative_prob``), all absolute in eval.
         attention_chunk: bpe only; compute the frames' attention blockwise in query blocks of this many frames
             (memory linear in T, same result). None: one dense mask.
+        block_drop_mask: (num_layers, blocks_per_layer) bool, True = that residual block is skipped (layer
+            dropout, in any mode). None: drawn in training when ``layer_dropout`` > 0, no block skipped otherwise.
         Returns (B, T, output_size) in ``x``'s dtype (fp32 under bf16 autocast, for the ODE solver).
         """
         config = self.config
@@ -782,6 +927,11 @@ class MotionFlowTransformer(nn.Module):
         self._check_variant_inputs(
             batch, num_frames, segments, frame_cond, text_tokens, text_token_len, positional_mode, attention_chunk
         )
+        expected_blocks = (config.num_layers, config.blocks_per_layer)
+        if block_drop_mask is not None and (block_drop_mask.shape != expected_blocks
+                                            or block_drop_mask.dtype != torch.bool):
+            raise ValueError(f"block_drop_mask must be bool {expected_blocks}, got {tuple(block_drop_mask.shape)} "
+                             f"{block_drop_mask.dtype}")
         if cond_mask is None and self.training and config.cond_drop_prob > 0:
             cond_mask = draw_cond_drop_mask(batch, config.cond_drop_prob, generator, x.device)
 
@@ -799,6 +949,8 @@ class MotionFlowTransformer(nn.Module):
             motion = self.input_proj((x.float() * c_in).to(x.dtype))
         else:
             motion = self.input_proj(x)
+        if config.wrapper_projections:
+            motion = self.project_in(motion)
         tokens = torch.cat([token.unsqueeze(1).to(motion.dtype) for token in aux] + [motion], dim=1)
         if config.positional == "bpe":
             if positional_mode is None:
@@ -817,7 +969,7 @@ class MotionFlowTransformer(nn.Module):
             )
         else:
             # The fp32 table promotes the residual stream to fp32 under autocast; only the matmuls run in bf16.
-            tokens = tokens + self.positional_table[: tokens.shape[1]]
+            tokens = tokens + self._sequence_positions(tokens.shape[1])
             key_mask = None
             if frame_mask is not None and not config.attend_padding:
                 aux_valid = torch.ones(batch, len(aux), dtype=torch.bool, device=x.device)
@@ -832,9 +984,16 @@ class MotionFlowTransformer(nn.Module):
         if config.conditioning == "cross_attention":
             memory, memory_mask = self._text_memory(aux, text_tokens, text_token_len, cond_mask)
 
-        for layer in self.layers:
-            tokens = layer(tokens, attention, condition=condition, memory=memory, memory_mask=memory_mask)
-        velocity = self.output_proj(self.final_norm(tokens[:, len(aux) :]))
+        if block_drop_mask is None and self.training and config.layer_dropout > 0:
+            block_drop_mask = draw_block_drop_mask(config.num_layers, config.blocks_per_layer, config.layer_dropout,
+                                                   generator, x.device)
+        for index, layer in enumerate(self.layers):
+            skip = None if block_drop_mask is None else block_drop_mask[index].to(x.device)
+            tokens = layer(tokens, attention, condition=condition, memory=memory, memory_mask=memory_mask, skip=skip)
+        hidden = self.final_norm(tokens[:, len(aux) :])
+        if config.wrapper_projections:
+            hidden = self.project_out(hidden)
+        velocity = self.output_proj(hidden)
         if config.prediction == "data":
             velocity = velocity_from_data(velocity.float(), x.float(), t.to(x.device).float())
         elif config.prediction == "preconditioned":
@@ -925,11 +1084,20 @@ class MotionFlowTransformer(nn.Module):
 
     # -- blended positional encodings -------------------------------------------------------------------------
 
+    def _sequence_positions(self, length: int) -> Tensor:
+        """(length, latent) absolute embedding of positions 0 … length−1 (ModelConfig.absolute_positions)."""
+        if self.config.absolute_positions == "scaled_sinusoidal":
+            return self.absolute_embedding(torch.arange(length, device=self.positional_table.device))
+        return self.positional_table[:length]
+
     def _segment_positions(self, offsets: Tensor, num_aux: int) -> Tensor:
         """(B, P + T, latent) absolute positions: the auxiliary tokens at 0 … P−1, each frame at P + its index in
         its segment (one segment = MFM's table exactly)."""
-        table = self.positional_table
         batch = offsets.shape[0]
+        if self.config.absolute_positions == "scaled_sinusoidal":
+            aux = torch.arange(num_aux, device=offsets.device).unsqueeze(0).expand(batch, -1)
+            return self.absolute_embedding(torch.cat([aux, num_aux + offsets], dim=1))
+        table = self.positional_table
         aux = table[:num_aux].unsqueeze(0).expand(batch, -1, -1)
         return torch.cat([aux, table[num_aux + offsets]], dim=1)
 
