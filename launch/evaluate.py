@@ -10,10 +10,11 @@ plausibility figures (bone lengths, floor penetration, foot skating, jerk vs gro
         output.dir=eval-nfe              # MFM's FID vs NFE, flow vs diffusion: one sweep, one plot
     python launch/evaluate.py --checkpoint ... evaluator.kind=t2m evaluator.t2m_checkpoint_dir=DIR \
         evaluator.t2m_glove_dir=DIR                                              # the official T2M evaluator
+    python launch/evaluate.py --checkpoint ... --protocol mdm evaluator.kind=t2m ...   # MDM/MFM's loop, quirks too
     python launch/evaluate.py --checkpoint runs/bpe --protocol fast tasks.composition=true \
         composition.switch=[relative,humanml3d,0.25,0.5,absolute]                # FlowMDM composition, bpe+pccat
 
-Settings: configs/eval_{full,fast}.yaml (--protocol) or --config YAML, then ``key.sub=value`` overrides
+Settings: configs/eval_{full,fast,mdm}.yaml (--protocol) or --config YAML, then ``key.sub=value`` overrides
 (pipeline/eval_config.py EvalConfig). Diffusion baselines (train.objective=diffusion) take --solver ddpm|ddim and
 --steps respaced from their training steps (e.g. 1000 or 50); a sweep listing both kinds runs each checkpoint's own
 (flow: ODE solvers, diffusion: ddpm/ddim). ``--steps SOLVER=a,b`` gives one solver its own step counts; adaptive
@@ -50,7 +51,7 @@ if __package__ in (None, ""):  # run as a script: make the project importable fr
 
 from pipeline.config import ConfigError, describe_config
 from pipeline.distributed import Dist
-from pipeline.eval_config import load_eval_config, sweep_overrides
+from pipeline.eval_config import PROTOCOL_PRESETS, load_eval_config, sweep_overrides
 from pipeline.eval_spaces import EvaluationError, EvaluatorUnavailable
 from pipeline.evaluation import EvaluationJob, JobSummary, result_label, summary_line
 
@@ -62,7 +63,9 @@ def main(argv: list[str] | None = None) -> int:
                                                                 "complete one); repeat it to sweep several in one job")
     target.add_argument("--watch", metavar="RUN_DIR", help="evaluate every complete checkpoint of a run, once each")
     parser.add_argument("--once", action="store_true", help="with --watch: one scan, then exit (cron / CronJob)")
-    parser.add_argument("--protocol", choices=("full", "fast"), default="full", help="20 or 3 replications")
+    parser.add_argument("--protocol", choices=sorted(PROTOCOL_PRESETS), default="full",
+                        help="full: 20 replications, fast: 3 (our loop); mdm: the MDM/MFM reference loop, rule by "
+                             "rule (configs/eval_mdm.yaml, docs/protocol.md)")
     parser.add_argument("--config", help="a YAML preset instead of configs/eval_<protocol>.yaml")
     parser.add_argument("--solver", help="comma list, e.g. euler,midpoint")
     parser.add_argument("--steps", action="append", help="comma list, e.g. 5,10,20; again as SOLVER=5,10 for one "

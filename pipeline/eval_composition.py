@@ -80,7 +80,7 @@ from mfm.composition import SWITCH_TOLERANCE, check_composition_budget, compose,
 from mfm.features import features_to_joints
 from pipeline.config import to_dict
 from pipeline.distributed import Dist
-from pipeline.eval_config import CompositionConfig, EvalConfig, SamplingPoint
+from pipeline.eval_config import MDM_RULES, CompositionConfig, EvalConfig, SamplingPoint
 from pipeline.eval_replications import (
     CheckpointContext,
     PhaseTimer,
@@ -429,8 +429,10 @@ def composition_unit(checkpoint_name: str, ids: Mapping[str, str], point: Sampli
     ccfg = {k: v for k, v in to_dict(cfg.composition).items() if k != "switch"}
     settings = {"format": COMPOSITION_FORMAT, "task": "composition", "ids": dict(ids),
                 "point": dataclasses.asdict(point), "switch": switch, "composition": ccfg, "set": cset.key,
-                # protocol.redraw_items is text-to-motion's: the composition set is always the fixed one
-                "protocol": {k: v for k, v in to_dict(cfg.protocol).items() if k != "redraw_items"},
+                # protocol.redraw_items and the loop's rules (mdm protocol) are text-to-motion's: the composition
+                # set is always the fixed one, scored by FlowMDM's loop
+                "protocol": {k: v for k, v in to_dict(cfg.protocol).items()
+                             if k != "redraw_items" and k not in MDM_RULES},
                 "split": cfg.data.split,
                 "sampling": {"use_ema": cfg.sampling.use_ema}}
     name = f"compose-{point.name}-switch{switch:.4g}-{cfg.composition.scenario}"

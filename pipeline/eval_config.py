@@ -1,5 +1,5 @@
-"""Settings of the evaluation job (launch/evaluate.py): typed sections, presets configs/eval_{full,fast}.yaml, dotted
-overrides, and the sweep flags ``--solver/--steps/--guidance`` (comma lists). See pipeline.evaluation.
+"""Settings of the evaluation job (launch/evaluate.py): typed sections, presets configs/eval_{full,fast,mdm}.yaml,
+dotted overrides, and the sweep flags ``--solver/--steps/--guidance`` (comma lists). See pipeline.evaluation.
 """
 
 from __future__ import annotations
@@ -16,7 +16,9 @@ from mfm.editing import EDIT_SETTINGS
 from mfm.solvers import is_adaptive
 from pipeline.config import ConfigError, coerce_fields, load_config, parse_yaml
 
-PROTOCOL_PRESETS = {"full": "eval_full", "fast": "eval_fast"}
+PROTOCOL_PRESETS = {"full": "eval_full", "fast": "eval_fast", "mdm": "eval_mdm"}
+"""``--protocol`` names and their presets: ``full`` / ``fast`` are our loop, ``mdm`` the reference loop
+(configs/eval_mdm.yaml, docs/protocol.md)."""
 EDIT_PRESETS = ("prediction", "inbetween", "interpolation", "upper_body")
 """mfm.editing presets the editing metrics may use."""
 
@@ -28,10 +30,12 @@ def _require(condition: bool, message: str) -> None:
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class ProtocolConfig:
-    """The metric protocol; ``full`` and ``fast`` presets are configs/eval_full.yaml and eval_fast.yaml."""
+    """The metric protocol; ``full``, ``fast`` and ``mdm`` presets are configs/eval_full.yaml, eval_fast.yaml and
+    eval_mdm.yaml."""
 
     name: str = "full"
-    """Recorded in every result (``full``: 20 replications as published; ``fast``: 3, for training curves)."""
+    """Recorded in every result (``full``: 20 replications as published; ``fast``: 3, for training curves; ``mdm``:
+    the reference loop, rule by rule). Which loop the rules make is recorded beside it (:attr:`loop`)."""
     replications: int = 20
     r_precision_batch: int = 32
     """Retrieval among this many (1 match + 31 others); a smaller test set uses its size (recorded)."""
@@ -56,6 +60,39 @@ class ProtocolConfig:
     every replication, so the intervals hold only the generator's noise and the metrics' draws (the former
     default, kept for comparison)."""
     seed: int = 0
+    # -- where the reference loop (MDM's eval_humanml.py as copied into MFM; ``--protocol mdm``) differs from ours.
+    # Each rule's default is our loop; MDM_RULES lists the reference's values (docs/protocol.md cites the code).
+    round_to_batches: bool = False
+    """Round the generated motions up to whole ``r_precision_batch`` batches as the reference's generation loop
+    (it stops only once it holds ``num_samples`` motions: 1000 -> 32 batches of 32 = 1,024 rows, all scored) and the
+    MultiModality texts to the reference's ``mm_num_samples // batch + 1`` whole batches (100 -> 4 x 32 = 128).
+    false: exactly ``num_samples`` and ``mm_num_texts``."""
+    gt_draws: Literal["shared", "independent"] = "shared"
+    """shared (ours): one draw of the items per replication gives the generated motions their captions and lengths,
+    FID's statistics and the ground-truth row (scored on the generated items; its FID a bootstrap resample of them
+    against the whole draw: the metric's noise floor). independent (the reference: a generation loader and two
+    passes over the shuffled ground-truth loader): three independent draws per replication, seeded by (seed,
+    replication, pass): the generated motions' captions and lengths; the ground-truth row (every test item, its
+    FID, Diversity and R-precision); FID's statistics for both rows. Each ground-truth pass keeps all but
+    ``N mod r_precision_batch`` random items (the reference's ``drop_last``). Needs ``redraw_items``."""
+    generated_caption_length: Literal["sentence", "padded"] = "sentence"
+    """Caption length the T2M text encoder gets for the generated row (its GRU stops there). sentence (ours, and
+    the reference's ground truth): sos + the first 20 tokens + eos. padded (the reference's generated row, MDM
+    issue #182, fixed in MDM but not in MFM): the length of the token list padded with unk/OTHER, 22 for every
+    caption. Only the T2M evaluator reads caption lengths."""
+    generated_padding: Literal["zero", "model"] = "zero"
+    """What the evaluator sees past a generated motion's length (the T2M movement encoder convolves over every
+    frame of its 196-frame window). zero (ours): generated like the ground truth, zero past the length (in the
+    evaluator's normalisation). model (the reference): every motion (and MultiModality repetition) is sampled in a
+    ``max_length``-frame window with noise on every frame and every frame integrated, and the evaluator gets the
+    whole window as the sampler leaves it. Edits keep ours."""
+    mm_normalisation: Literal["evaluator", "model"] = "evaluator"
+    """MultiModality motions as the evaluator gets them. evaluator (ours; MDM since its fix): converted to the
+    evaluator's normalisation like every other motion. model (the reference, MFM's copy): left in the generating
+    model's normalisation (the evaluator's own normalisation is skipped)."""
+    mm_replications: int = 0
+    """MultiModality runs in the first this many replications (its interval over those); 0: every replication.
+    The reference's MultiModality comes from its ``mm_short`` mode: 5 replications."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)
@@ -66,6 +103,31 @@ class ProtocolConfig:
                  f"protocol.mm_times ({self.mm_times}) must not exceed mm_repeats ({self.mm_repeats})")
         _require(self.num_samples >= 0, f"protocol.num_samples must be >= 0, got {self.num_samples}")
         _require(self.seed >= 0, f"protocol.seed must be >= 0, got {self.seed}")
+        _require(self.mm_replications >= 0, f"protocol.mm_replications must be >= 0, got {self.mm_replications}")
+        _require(self.gt_draws == "shared" or self.redraw_items,
+                 "protocol.gt_draws=independent draws each pass anew: it needs protocol.redraw_items=true")
+
+    def rules(self) -> dict[str, Any]:
+        """The loop's rules (the fields where the reference and ours differ) with their values."""
+        return {name: getattr(self, name) for name in MDM_RULES}
+
+    @property
+    def loop(self) -> str:
+        """Which evaluation loop the rules make: 'ours' (every rule at our default), 'mdm' (every rule as the
+        reference's, MDM_RULES) or 'mixed'. Recorded in every result and table row."""
+        rules = self.rules()
+        if rules == {name: OUR_RULES[name] for name in MDM_RULES}:
+            return "ours"
+        return "mdm" if rules == MDM_RULES else "mixed"
+
+
+MDM_RULES: dict[str, Any] = {"round_to_batches": True, "gt_draws": "independent",
+                              "generated_caption_length": "padded", "generated_padding": "model",
+                              "mm_normalisation": "model", "mm_replications": 5}
+"""The reference loop's value of every rule of ProtocolConfig (MFM dongzhuoyao/motionfm 08eb88d, whose loop is MDM's
+before its fixes of 2024-01 (caption lengths) and 2025-03 (MultiModality normalisation)); configs/eval_mdm.yaml."""
+OUR_RULES: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(ProtocolConfig) if f.name in MDM_RULES}
+"""Our loop's value of every rule (the ProtocolConfig defaults)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -315,7 +377,7 @@ class EvalConfig:
 
 def load_eval_config(protocol: str = "full", preset: str | Path | None = None,
                      overrides: Sequence[str] = ()) -> EvalConfig:
-    """Defaults <- the protocol's preset (configs/eval_{full,fast}.yaml), or ``preset`` instead of it, <- dotted
+    """Defaults <- the protocol's preset (configs/eval_{full,fast,mdm}.yaml), or ``preset`` instead of it, <- dotted
     overrides."""
     if preset is None:
         if protocol not in PROTOCOL_PRESETS:

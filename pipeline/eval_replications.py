@@ -17,6 +17,11 @@ per set, so later sampling points and checkpoints read them).
 
 Generation uses the sampling code: ``mfm.solvers.solve`` over ``guided_velocity`` with padded frames zeroed (what
 ``mfm.solvers.sample`` does, with per-motion noise), and ``mfm.editing.edit`` for the editing tasks.
+
+The ``mdm`` protocol's rules (pipeline.eval_config.MDM_RULES) change four places here: :func:`plan_protocol` (whole
+batches, MultiModality replications), :class:`GroundTruthPasses` (the ground-truth row and FID statistics from two
+further passes), :func:`generate` with ``window`` and :meth:`PointRun.encode_generated` (what the evaluator sees past
+a motion's length, MultiModality's normalisation), and the generated row's captions (``text_padded``).
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ from mfm.skeleton import Skeleton
 from mfm.solvers import FIXED_STEP_SOLVERS, draw_noise, guided_velocity, seeded_generators, solve, zero_padded_frames
 from pipeline.data import Manifest
 from pipeline.distributed import Dist
-from pipeline.eval_config import EDIT_PRESETS, EvalConfig, SamplingConfig, SamplingPoint
+from pipeline.eval_config import EDIT_PRESETS, OUR_RULES, EvalConfig, SamplingConfig, SamplingPoint
 from pipeline.eval_spaces import ClassifierSpace, EmbeddingSpace, EvaluationError, GroundTruthPool, GroundTruthSet
 from pipeline.inference import TrainedModel
 
@@ -60,7 +65,10 @@ logger = logging.getLogger(__name__)
 
 # Task tags keep the random streams of different uses independent (noise, subsets, shuffles, draws).
 _TAG = {"main": 1, "mm": 2, "edit": 3, "subset": 4, "mm_texts": 5, "shuffle": 6, "diversity": 7,
-        "multimodality": 8, "bootstrap": 9, "gt": 11}
+        "multimodality": 8, "bootstrap": 9, "gt": 11, "gt_row": 12, "gt_stats": 13}
+GT_ROW_STREAM, GT_STATS_STREAM = 1, 2
+"""``protocol.gt_draws=independent``: the ground-truth passes of a replication besides its own set (stream 0, which
+the generated motions take their captions and lengths from): the ground-truth row's, and FID's statistics'."""
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -173,17 +181,21 @@ class GroundTruthEmbeddings:
     motion: np.ndarray
     text: np.ndarray | None
     logits: np.ndarray | None
+    text_padded: np.ndarray | None = None
+    """The captions embedded with the 'padded' caption length rule (``protocol.generated_caption_length``)."""
 
 
-def gt_cache_path(cache_dir: Path, space: EmbeddingSpace, gt: GroundTruthSet) -> Path:
-    return cache_dir / f"gt-{space.evaluator_id[-16:]}-{gt.dataset_id[:12]}-{gt.split}-{gt.key[:12]}.npz"
+def gt_cache_path(cache_dir: Path, space: EmbeddingSpace, gt: GroundTruthSet, padded_text: bool = False) -> Path:
+    suffix = "-padtext" if padded_text else ""
+    return cache_dir / f"gt-{space.evaluator_id[-16:]}-{gt.dataset_id[:12]}-{gt.split}-{gt.key[:12]}{suffix}.npz"
 
 
 def ground_truth_embeddings(gt: GroundTruthSet, space: EmbeddingSpace, dist: Dist, cache_dir: Path,
-                            batch_size: int) -> tuple[GroundTruthEmbeddings, bool]:
+                            batch_size: int, padded_text: bool = False) -> tuple[GroundTruthEmbeddings, bool]:
     """The evaluator's embeddings of every item (rank 0 gets them; other ranks get None) and whether they came
-    from the cache. Missing: computed by all ranks, written by rank 0 (atomically)."""
-    path = gt_cache_path(cache_dir, space, gt)
+    from the cache. Missing: computed by all ranks, written by rank 0 (atomically). ``padded_text``: also the
+    captions under the 'padded' caption length rule (cached in a file of their own)."""
+    path = gt_cache_path(cache_dir, space, gt, padded_text)
     cached = dist.broadcast_object(path.is_file() if dist.is_main else None)
     if cached:
         return (_read_gt_cache(path, gt) if dist.is_main else None), True
@@ -195,12 +207,15 @@ def ground_truth_embeddings(gt: GroundTruthSet, space: EmbeddingSpace, dist: Dis
         parts["motion"].append((batch.slots, space.encode_motions(features, lengths)))
         if space.has_text:
             parts["text"].append((batch.slots, space.encode_texts(gt, batch.items)))
+            if padded_text:
+                parts["text_padded"].append((batch.slots, space.encode_texts(gt, batch.items, "padded")))
         if isinstance(space, ClassifierSpace):
             parts["logits"].append((batch.slots, space.logits(features, lengths)))
     widths = dist.all_gather_object({k: int(v[0][1].shape[1]) for k, v in parts.items() if v})
     width = {k: w for d in widths for k, w in d.items()}
     gathered = {k: gather_rows(dist, parts.get(k, []), len(gt), width[k]) for k in sorted(width)}
-    result = GroundTruthEmbeddings(gathered["motion"], gathered.get("text"), gathered.get("logits"))
+    result = GroundTruthEmbeddings(gathered["motion"], gathered.get("text"), gathered.get("logits"),
+                                   gathered.get("text_padded"))
     if dist.is_main:
         cache_dir.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.tmp.npz")
@@ -215,8 +230,8 @@ def _read_gt_cache(path: Path, gt: GroundTruthSet) -> GroundTruthEmbeddings:
     with np.load(path) as data:
         if tuple(data["ids"].tolist()) != gt.ids:
             raise EvaluationError(f"{path}: cached ground truth lists other items; delete it to recompute")
-        return GroundTruthEmbeddings(data["motion"], data["text"] if "text" in data else None,
-                                     data["logits"] if "logits" in data else None)
+        return GroundTruthEmbeddings(*(data[k] if k in data else None for k in ("motion", "text", "logits",
+                                                                                 "text_padded")))
 
 
 def ground_truth_plausibility(gt: GroundTruthSet, skeleton: Skeleton, batch_size: int,
@@ -253,6 +268,30 @@ class ReplicationTruth:
         return {"replication": self.gt.replication, "gt_key": self.gt.key, "embeddings_from_cache": self.from_cache}
 
 
+@dataclasses.dataclass
+class GroundTruthPasses:
+    """``protocol.gt_draws=independent``: a replication's two further passes over the test set, each keeping the
+    items of whole R-precision batches (the reference loader's ``drop_last``): the ground-truth row's and FID's
+    statistics' (both rows are scored against the latter)."""
+
+    row: ReplicationTruth
+    row_items: np.ndarray
+    stats: ReplicationTruth
+    stats_items: np.ndarray
+
+    def record(self) -> dict[str, Any]:
+        return {"row_gt_key": self.row.gt.key, "row_items": len(self.row_items), "stats_gt_key": self.stats.gt.key,
+                "stats_items": len(self.stats_items),
+                "embeddings_from_cache": self.row.from_cache and self.stats.from_cache}
+
+
+def whole_batches(num_items: int, batch: int, rng: np.random.Generator) -> np.ndarray:
+    """The items one shuffled pass with ``drop_last`` scores: all but ``num_items mod batch`` random ones (all of
+    them when fewer than one batch), in item order."""
+    keep = num_items - num_items % batch if num_items >= batch else num_items
+    return np.sort(rng.permutation(num_items)[:keep])
+
+
 class GroundTruthDraws:
     """The ground-truth sets of one split for the protocol: with ``protocol.redraw_items`` replication r scores
     against its own draw (:meth:`GroundTruthPool.draw`, seeds ``(protocol.seed, r, ...)``), else every replication
@@ -261,34 +300,43 @@ class GroundTruthDraws:
     the set's key), their plausibility figures kept in memory (rank 0). The fixed set is what composition uses."""
 
     def __init__(self, pool: GroundTruthPool, space: EmbeddingSpace, skeleton: Skeleton, redraw: bool,
-                 batch_size: int) -> None:
+                 batch_size: int, padded_text: bool = False) -> None:
         self.pool, self.space, self.skeleton, self.redraw, self.batch_size = pool, space, skeleton, redraw, batch_size
+        self.padded_text = padded_text and space.has_text
+        """The generated row's captions are also embedded with the 'padded' length rule (the sets they come from:
+        the fixed one and each replication's stream 0)."""
         self.fixed = pool.draw(None)
         self._fixed_truth: ReplicationTruth | None = None
-        self._figures: dict[int, metrics.PlausibilityFigures] = {}
+        self._figures: dict[tuple[int, int], metrics.PlausibilityFigures] = {}
 
     def fixed_truth(self, dist: Dist, cache_dir: Path) -> ReplicationTruth:
         """The fixed set with its embeddings and figures (computed on first use: call on every rank)."""
         if self._fixed_truth is None:
-            self._fixed_truth = self._truth(self.fixed, dist, cache_dir, None)
+            self._fixed_truth = self._truth(self.fixed, dist, cache_dir, None, self.padded_text)
         return self._fixed_truth
 
     def truth(self, replication: int, dist: Dist, cache_dir: Path) -> ReplicationTruth:
         """Replication ``replication``'s ground truth (call on every rank: the embeddings may be computed)."""
         if not self.redraw:
             return self.fixed_truth(dist, cache_dir)
-        gt = self.pool.draw(replication)
+        return self.pass_truth(replication, 0, dist, cache_dir)
+
+    def pass_truth(self, replication: int, stream: int, dist: Dist, cache_dir: Path) -> ReplicationTruth:
+        """Pass ``stream`` of replication ``replication`` (0: the replication's own set; :meth:`GroundTruthPool.draw`)
+        with its embeddings and (rank 0) plausibility figures; call on every rank."""
+        gt = self.pool.draw(replication, stream)
         if gt.ids != self.fixed.ids:  # labels, MultiModality candidates, the plan: all index the items
             raise RuntimeError(f"replication {replication}'s ground truth lists other items than the fixed set")
-        return self._truth(gt, dist, cache_dir, self._figures.get(replication))
+        return self._truth(gt, dist, cache_dir, self._figures.get((replication, stream)),
+                           self.padded_text and stream == 0, stream)
 
-    def _truth(self, gt: GroundTruthSet, dist: Dist, cache_dir: Path,
-               figures: metrics.PlausibilityFigures | None) -> ReplicationTruth:
-        emb, cached = ground_truth_embeddings(gt, self.space, dist, cache_dir, self.batch_size)
+    def _truth(self, gt: GroundTruthSet, dist: Dist, cache_dir: Path, figures: metrics.PlausibilityFigures | None,
+               padded_text: bool = False, stream: int = 0) -> ReplicationTruth:
+        emb, cached = ground_truth_embeddings(gt, self.space, dist, cache_dir, self.batch_size, padded_text)
         if dist.is_main and figures is None:  # only rank 0 computes metrics
             figures = ground_truth_plausibility(gt, self.skeleton, self.batch_size, dist.device)
             if gt.replication is not None:
-                self._figures[gt.replication] = figures
+                self._figures[(gt.replication, stream)] = figures
         return ReplicationTruth(gt, emb, cached, figures if dist.is_main else None)
 
 
@@ -317,18 +365,42 @@ class ProtocolPlan:
     """Each replication scores against its own draw of the ground-truth items (captions, crops)."""
     intervals: str = ""
     """What the 95 % intervals over replications include."""
+    loop: str = "ours"
+    """'ours', 'mdm' (the reference loop: every rule as MDM_RULES) or 'mixed' (ProtocolConfig.loop)."""
+    rules: Mapping[str, Any] = dataclasses.field(default_factory=lambda: dict(OUR_RULES))
+    """The loop's rules as set (ProtocolConfig.rules); ``mm_replications`` there is the setting, here below the
+    count applied."""
+    mm_replications: int = 0
+    """Replications that run MultiModality (the first ones); 0 when it is off."""
+    gt_row_items: int = 0
+    """gt_draws=independent: items each ground-truth pass scores (whole R-precision batches); else 0."""
+
+    @property
+    def independent_gt(self) -> bool:
+        return self.rules.get("gt_draws") == "independent"
 
     def as_dict(self) -> dict[str, Any]:
         out = dataclasses.asdict(self)
         out["notes"] = list(self.notes)
+        out["rules"] = dict(self.rules)
         return out
 
 
 def plan_protocol(cfg: EvalConfig, num_items: int, mm_candidates: int) -> ProtocolPlan:
     p, notes = cfg.protocol, []
+    batch = p.r_precision_batch
     num_samples = num_items if p.num_samples == 0 else min(p.num_samples, num_items)
     if 0 < p.num_samples and p.num_samples > num_items:
         notes.append(f"num_samples {p.num_samples} > {num_items} test items: all items used")
+    if p.round_to_batches and num_samples >= batch:
+        # The reference generates until it holds num_samples_limit motions, a batch at a time (ceil); without a
+        # limit, every whole batch of its drop_last loader (floor).
+        whole = -(-num_samples // batch) if p.num_samples else num_samples // batch
+        rounded = min(whole * batch, num_items // batch * batch)
+        if rounded != num_samples:
+            notes.append(f"{rounded} motions generated, not {p.num_samples or num_items}: whole batches of "
+                         f"{batch} (protocol.round_to_batches, the reference's generation loop)")
+        num_samples = rounded
     if num_samples < 2:
         raise EvaluationError(f"the test set has {num_samples} item(s); metrics need at least 2")
     rp = min(p.r_precision_batch, num_samples)
@@ -338,20 +410,44 @@ def plan_protocol(cfg: EvalConfig, num_items: int, mm_candidates: int) -> Protoc
     diversity_times = min(p.diversity_times, num_samples - 1)
     if diversity_times < p.diversity_times:
         notes.append(f"Diversity over {diversity_times} pairs (test set of {num_samples}), not {p.diversity_times}")
-    mm_texts = min(p.mm_num_texts, mm_candidates)
-    if p.multimodality and mm_texts < p.mm_num_texts:
+    wanted_texts = p.mm_num_texts
+    if p.round_to_batches:  # the reference: mm_num_samples // batch_size + 1 whole generation batches
+        wanted_texts = (p.mm_num_texts // batch + 1) * batch
+        if p.multimodality:
+            notes.append(f"MultiModality over {wanted_texts} texts, not {p.mm_num_texts}: "
+                         f"{wanted_texts // batch} whole batches of {batch} (protocol.round_to_batches, the "
+                         "reference's mm_num_samples // batch_size + 1)")
+    mm_texts = min(wanted_texts, mm_candidates)
+    if p.multimodality and mm_texts < wanted_texts:
         notes.append(f"MultiModality over {mm_texts} texts/classes (only {mm_candidates} available), "
-                     f"not {p.mm_num_texts}")
+                     f"not {wanted_texts}")
+    mm_reps = min(p.mm_replications or p.replications, p.replications) if p.multimodality else 0
+    if p.multimodality and mm_reps < p.replications:
+        notes.append(f"MultiModality in the first {mm_reps} of {p.replications} replications "
+                     "(protocol.mm_replications; the reference's mm_short mode); its interval over those")
+    gt_row_items = 0
+    if p.gt_draws == "independent":
+        gt_row_items = num_items - num_items % rp if num_items >= rp else num_items
+        if diversity_times > gt_row_items - 1:
+            diversity_times = gt_row_items - 1
+            notes.append(f"Diversity over {diversity_times} pairs: each ground-truth pass scores {gt_row_items} "
+                         "items (whole batches)")
     edit_reps = cfg.tasks.editing_replications or p.replications
+    intervals = interval_sources(p.redraw_items, num_samples < num_items, p.multimodality,
+                                 independent=p.gt_draws == "independent")
     return ProtocolPlan(p.name, p.replications, edit_reps, num_items, num_samples, rp, diversity_times,
                         p.multimodality, mm_texts, p.mm_repeats, p.mm_times, tuple(notes), p.redraw_items,
-                        interval_sources(p.redraw_items, num_samples < num_items, p.multimodality))
+                        intervals, p.loop, p.rules(), mm_reps, gt_row_items)
 
 
-def interval_sources(redraw: bool, subset: bool, multimodality: bool) -> str:
+def interval_sources(redraw: bool, subset: bool, multimodality: bool, independent: bool = False) -> str:
     """What varies between replications, hence what the 95 % intervals (1.96·std/√R) hold."""
     sources = ["the generator's noise"]
-    if redraw:
+    if redraw and independent:
+        sources.append("the ground-truth items re-drawn per replication in three independent passes (each test "
+                       "motion's caption and crop: one for the generated motions' captions and lengths, one for the "
+                       "ground-truth row, one for FID's statistics)")
+    elif redraw:
         sources.append("the ground-truth items re-drawn per replication (each test motion's caption and crop; the "
                        "generated motions use the drawn captions and lengths, FID statistics and the ground-truth "
                        "row the drawn clips)")
@@ -430,6 +526,20 @@ class CheckpointContext:
             return ReplicationTruth(self.gt, self.gt_emb, self.gt_from_cache, self.gt_plausibility)
         return self.draws.truth(replication, dist, self.cache_dir)
 
+    def passes(self, replication: int, dist: Dist, seed: int) -> GroundTruthPasses | None:
+        """``protocol.gt_draws=independent``: the replication's ground-truth row pass and FID statistics pass
+        (call on every rank); None otherwise."""
+        if not self.plan.independent_gt:
+            return None
+        if self.draws is None:
+            raise EvaluationError("protocol.gt_draws=independent needs the re-drawn ground truth (a full context)")
+        batch = self.plan.r_precision_batch
+        row = self.draws.pass_truth(replication, GT_ROW_STREAM, dist, self.cache_dir)
+        stats = self.draws.pass_truth(replication, GT_STATS_STREAM, dist, self.cache_dir)
+        return GroundTruthPasses(row, whole_batches(len(row.gt), batch, rng_of(seed, _TAG["gt_row"], replication)),
+                                 stats, whole_batches(len(stats.gt), batch,
+                                                      rng_of(seed, _TAG["gt_stats"], replication)))
+
 
 def action_labels(trained: TrainedModel, space: EmbeddingSpace, gt: GroundTruthSet,
                   seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -496,10 +606,17 @@ def baseline_sampling(trained: TrainedModel, enabled: bool) -> BaselineSampling 
 @torch.no_grad()
 def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], lengths: Tensor,
              seeds: Sequence[int], point: SamplingPoint, sampling: SamplingConfig, *, known: Tensor | None = None,
-             keep: Tensor | None = None, rewrite_until: float = 1.0, restore_known: bool = False
-             ) -> tuple[Tensor, int]:
+             keep: Tensor | None = None, rewrite_until: float = 1.0, restore_known: bool = False,
+             window: int | None = None) -> tuple[Tensor, int]:
     """Sample (or, with ``known``/``keep``, edit) one batch with the sampling code; raw (un-normalised) features,
     zero past each length, and the number of (guided) model evaluations.
+
+    ``window`` (``protocol.generated_padding=model``, sampling only): every motion is sampled in a window of
+    ``max(window, longest length)`` frames, as the reference samples all 196 frames of every motion: its initial
+    noise covers every frame, every frame is integrated (the velocity past the length is not zeroed), and the
+    output keeps whatever the sampler leaves past the length (a model that masks padding, as ours, leaves its
+    initial noise there; one that attends over it, ``attend_padding``, what it made of it; the diffusion sampler
+    zero in the model's normalisation).
 
     Flow models: ``mfm.solvers.solve`` of the guided velocity (``mfm.editing.edit`` for edits), each motion's
     initial noise from its own seed. Diffusion models (FLAME / FlowMDM baselines): ``sample_diffusion`` /
@@ -509,6 +626,9 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
     """
     model = BoundInputs(trained.model, dict(extras)) if extras else trained.model
     num_frames, dim = int(lengths.max()), trained.model_config.feature_dim
+    windowed = window is not None and keep is None
+    if windowed:
+        num_frames = max(int(window), num_frames)
     if trained.objective == "diffusion":
         schedule = trained.diffusion.respaced(point.steps)
         generator = seeded_generators(seeds)
@@ -521,17 +641,19 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
                                       generator=generator, restore_known=restore_known)
     else:
         velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths)
-        x0 = draw_noise((len(seeds), num_frames, dim), seeded_generators(seeds), lengths=lengths,
-                        device=trained.device)
+        x0 = draw_noise((len(seeds), num_frames, dim), seeded_generators(seeds),
+                        lengths=None if windowed else lengths, device=trained.device)
         if keep is None:
-            result = solve(zero_padded_frames(velocity, lengths), x0, solver=point.solver, steps=point.steps,
-                           rtol=sampling.rtol, atol=sampling.atol)
+            result = solve(velocity if windowed else zero_padded_frames(velocity, lengths), x0, solver=point.solver,
+                           steps=point.steps, rtol=sampling.rtol, atol=sampling.atol)
         else:
             result = edit(velocity, known, keep, steps=point.steps, rewrite_until=rewrite_until,
                           solver=point.solver, x0=x0, lengths=lengths)
     baseline = baseline_sampling(trained, sampling.baseline_defaults)
     x1 = result.x1.float() if baseline is None else smooth_over_time(result.x1.float(), lengths,
                                                                        baseline.smoothing_sigma)
+    if windowed:
+        return trained.denormalize(x1), result.nfe
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)
     return trained.denormalize(x1) * valid, result.nfe
 
@@ -545,6 +667,12 @@ class PointRun:
         self.trained, self.gt, self.space, self.plan = ctx.trained, ctx.gt, ctx.space, ctx.plan
         self.truth: ReplicationTruth | None = None
         """The current replication's ground truth; ``self.gt`` is its set."""
+        self.passes: GroundTruthPasses | None = None
+        """The current replication's further ground-truth passes (``protocol.gt_draws=independent``)."""
+        rules = cfg.protocol
+        self.window = rules.max_length if rules.generated_padding == "model" else None
+        """Sampling window of the generated motions and MultiModality repetitions (``generated_padding=model``)."""
+        self.padded_captions = rules.generated_caption_length == "padded" and not ctx.is_action
         self.truths: list[dict[str, Any]] = []
         self.skeleton = ctx.trained.skeleton
         self.layout = FeatureLayout(self.skeleton)
@@ -580,7 +708,7 @@ class PointRun:
                                                                            replace=False))
         batches = plan_rows("main", items, lengths, size, 0)
         mm_items = np.zeros(0, np.int64)
-        if plan.multimodality:
+        if plan.multimodality and replication < plan.mm_replications:
             candidates = self.ctx.mm_candidates
             mm_items = np.sort(rng_of(seed, _TAG["mm_texts"], replication).choice(candidates, plan.mm_num_texts,
                                                                                 replace=False))
@@ -597,9 +725,14 @@ class PointRun:
         with self.timer.phase("ground_truth"):  # a set and its embeddings per replication when items are re-drawn
             self.truth = self.ctx.truth(replication, self.dist)
             self.gt = self.truth.gt
+            self.passes = self.ctx.passes(replication, self.dist, self.cfg.protocol.seed)
             if self.width is None:
                 self.width = self.dist.broadcast_object(self.truth.emb.motion.shape[1] if self.dist.is_main else None)
-        self.truths.append(self.truth.record())
+        record = self.truth.record()
+        if self.passes is not None:
+            record.update(self.passes.record(), embeddings_from_cache=record["embeddings_from_cache"]
+                          and self.passes.record()["embeddings_from_cache"])
+        self.truths.append(record)
         items, mm_items, batches = self.batches(replication)
         parts: dict[str, list] = defaultdict(list)
         stats: list[tuple[int, str, dict]] = []
@@ -649,16 +782,29 @@ class PointRun:
                                     known=known, keep=keep, rewrite_until=self.edit_setup["rewrite_until"][preset],
                                     restore_known=self.cfg.tasks.edit_restore_known)
             else:
-                raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.point, self.cfg.sampling)
+                raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.point, self.cfg.sampling,
+                                    window=self.window)
         stats: dict[str, Any] = {"nfe": nfe, "rows": len(batch.items), "seconds": self.timer.seconds[phase] - before}
         with self.timer.phase("features"):
-            parts[kind].append((batch.slots, self.space.encode_motions(raw, lengths)))
+            parts[kind].append((batch.slots, self.encode_generated(kind, raw, lengths)))
             if kind == "main" and isinstance(self.space, ClassifierSpace):
                 parts["logits"].append((batch.slots, self.space.logits(raw, lengths)))
+        raw = raw[:, : int(lengths.max())]  # the frames the joint figures read (a sampling window is longer)
         if kind == "main" or kind.startswith("edit:") or (self.flame and kind == "mm"):
             with self.timer.phase("joints"):
                 stats.update(self._joint_stats(batch, kind, raw, lengths, gt_raw))
         return stats
+
+    def encode_generated(self, kind: str, raw: Tensor, lengths: Tensor) -> Tensor:
+        """Evaluator embeddings of generated (or edited) motions under the protocol's rules: past each length the
+        evaluator sees zero, or with ``generated_padding=model`` what the sampler left in the window (main and
+        MultiModality motions); MultiModality motions are given in the model's normalisation with
+        ``mm_normalisation=model``."""
+        keep_padding = self.window is not None and kind in ("main", "mm")
+        if kind == "mm" and self.cfg.protocol.mm_normalisation == "model":
+            return self.space.encode_motions(self.trained.normalize(raw), lengths, keep_padding=keep_padding,
+                                             normalized=True)
+        return self.space.encode_motions(raw, lengths, keep_padding=keep_padding)
 
     def _joint_stats(self, batch: Batch, kind: str, raw: Tensor, lengths: Tensor,
                      gt_raw: Tensor | None) -> dict[str, Any]:
@@ -696,26 +842,40 @@ class PointRun:
         def draws(tag: str) -> np.random.Generator:  # the same draws for the generated and the GT row
             return rng_of(seed, _TAG[tag], replication)
 
+        # The ground-truth row: the generated items of the replication's set, its FID that of a bootstrap resample
+        # against the whole set; or (gt_draws=independent, the reference) a pass of its own over the test set
+        # against FID statistics from another pass, which the generated row's FID uses too.
+        row_truth, row_items, passes = self.truth, items, self.passes
+        if passes is not None:
+            gt_all = passes.stats.emb.motion[passes.stats_items]
+            row_truth, row_items = passes.row, passes.row_items
+        row_emb = row_truth.emb
+        row_motion = row_emb.motion[row_items]
         gen = self._spread(rows["main"], gt_all, draws)
         gen.update(self._plausibility(stats, "main", items))
-        boot = draws("bootstrap").integers(0, len(gt_motion), len(gt_motion))
-        truth = {"fid": metrics.fid(gt_motion[boot], gt_all), **self._spread(gt_motion, None, draws)}
-        gt_figures = self.truth.plausibility.select(items)
+        if passes is None:
+            boot = draws("bootstrap").integers(0, len(gt_motion), len(gt_motion))
+            truth = {"fid": metrics.fid(gt_motion[boot], gt_all), **self._spread(gt_motion, None, draws)}
+        else:
+            truth = {"fid": metrics.fid(row_motion, gt_all), **self._spread(row_motion, None, draws)}
+        gt_figures = row_truth.plausibility.select(row_items)
         truth.update(gt_figures.with_jerk_reference(gt_figures.mean_jerk).summary())
         if self.ctx.is_action:
             labels = self.ctx.labels[items]
             gen["accuracy"] = metrics.action_accuracy(logits, labels)
-            truth["accuracy"] = metrics.action_accuracy(gt_emb.logits[items], labels)
+            truth["accuracy"] = metrics.action_accuracy(row_emb.logits[row_items], self.ctx.labels[row_items])
         else:
-            text = gt_emb.text[items]
-            gen.update(retrieval_metrics(text, rows["main"], plan.r_precision_batch, draws("shuffle")))
-            truth.update(retrieval_metrics(text, gt_motion, plan.r_precision_batch, draws("shuffle")))
+            text, row_text = gt_emb.text[items], row_emb.text[row_items]
+            # The captions of the generated row as the text encoder reads them (generated_caption_length)
+            gen_text = gt_emb.text_padded[items] if self.padded_captions and gt_emb.text_padded is not None else text
+            gen.update(retrieval_metrics(gen_text, rows["main"], plan.r_precision_batch, draws("shuffle")))
+            truth.update(retrieval_metrics(row_text, row_motion, plan.r_precision_batch, draws("shuffle")))
             if self.flame:
                 gen.update(self._flame(text, rows["main"], gt_motion, stats))
-                truth["mclip"] = metrics.mclip_score(text, gt_motion)
-                truth["mid"] = metrics.mutual_information_divergence(text, gt_motion, gt_motion,
+                truth["mclip"] = metrics.mclip_score(row_text, row_motion)
+                truth["mid"] = metrics.mutual_information_divergence(row_text, row_motion, row_motion,
                                                                      eps=self.cfg.tasks.mid_eps)
-        if plan.multimodality:
+        if "mm" in rows:
             mm = rows["mm"].reshape(len(mm_items), plan.mm_repeats, -1)
             gen["multimodality"] = metrics.multimodality(mm, plan.mm_times, draws("multimodality"))
             if self.flame:
@@ -782,8 +942,13 @@ class PointRun:
         rows = sum(r for _, r in self.nfe)
         nfe = sum(n * r for n, r in self.nfe) / rows
         passes = 1 if self.point.guidance in (0.0, 1.0) else 2
+        summary = summarise(self.generated)
+        for name in ("multimodality", "joint_variance"):  # protocol.mm_replications: over the replications it ran
+            ran = [{name: g[name]} for g in self.generated if g.get(name) is not None]
+            if name not in summary and ran and len(ran) == self.plan.mm_replications:
+                summary[name] = summarise(ran)[name]
         return {
-            "metrics": summarise(self.generated),
+            "metrics": summary,
             "ground_truth": summarise(self.ground_truth),
             "editing": {preset: summarise(values) for preset, values in self.edited.items()},
             "editing_settings": self._editing_settings() if self.edited else None,

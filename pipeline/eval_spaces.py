@@ -10,6 +10,8 @@ offset). The split is verified and read once (:class:`GroundTruthPool`, in memor
   (MDM/T2M ``Text2MotionDatasetV2``) draws anew on every pass over the shuffled test set. The same items (ids, order)
   in every replication; their captions, lengths and clips differ.
 * fixed: picks and crops drawn once from ``(seed, motion id, span)``, the same for every replication.
+* further passes of a replication (``protocol.gt_draws=independent``, the ``mdm`` protocol): the same rule from
+  ``(seed, r, pass, motion id, span)``, independent of the replication's own set.
 
 Either way a set is the same for every checkpoint, job and rank, and its evaluator embeddings are cached per
 evaluator and set (:attr:`GroundTruthSet.key`).
@@ -51,6 +53,7 @@ EVALUATOR_FILE = "contrastive.safetensors"
 CLASSIFIER_FILE = "action_classifier.safetensors"
 _TAG_GT_PICK = 10
 _TAG_GT_REDRAW = 12
+_TAG_GT_PASS = 13
 
 
 class EvaluationError(RuntimeError):
@@ -158,12 +161,17 @@ class GroundTruthPool:
     def max_length(self) -> int:
         return int(self.settings["max_length"])
 
-    def draw(self, replication: int | None = None) -> GroundTruthSet:
+    def draw(self, replication: int | None = None, stream: int = 0) -> GroundTruthSet:
         """The fixed set (``replication=None``: one caption pick and crop per span from ``(seed, motion id, span)``,
         the same in every replication, job and checkpoint), or replication ``r``'s re-drawn set: per span a caption
         picked at random, the crop one unit shorter with probability 1/3 (the reference loader's 'double' coin,
         when ``unit_length < 10``; never shortened to zero) and a random offset, from ``(seed, r, motion id,
-        span)``. Deterministic: every rank and every job draws the same items for the same seed and replication."""
+        span)``. Deterministic: every rank and every job draws the same items for the same seed and replication.
+
+        ``stream`` > 0: another pass of replication ``r`` over the loader, independent of stream 0 (the replication's
+        set) and of the other streams, seeded by ``(seed, r, stream, motion id, span)`` (``protocol.gt_draws``)."""
+        if stream and replication is None:
+            raise ValueError("only a re-drawn set (a replication) has further streams")
         seed, unit, max_length = int(self.settings["seed"]), self.unit_length, self.max_length
         fields: dict[str, list] = defaultdict(list)
         for motion in self.motions:
@@ -176,8 +184,9 @@ class GroundTruthPool:
                         [seed, _TAG_GT_PICK, stable_id_hash(record.id), start, end]))
                     c = captions[int(rng.integers(len(captions)))]
                 else:
+                    pass_seed = [_TAG_GT_REDRAW] if stream == 0 else [_TAG_GT_PASS, stream]
                     rng = np.random.default_rng(np.random.SeedSequence(
-                        [seed, _TAG_GT_REDRAW, replication, stable_id_hash(record.id), start, end]))
+                        [seed, *pass_seed, replication, stable_id_hash(record.id), start, end]))
                     c = captions[int(rng.integers(len(captions)))]
                     if unit < 10:  # the reference: coin2 = choice(['single', 'single', 'double'])
                         shorten = rng.random() < REDRAW_SHORTEN_PROB  # drawn always: a stable stream position
@@ -200,6 +209,8 @@ class GroundTruthPool:
         if replication is not None:  # the fixed set's key is the one it always had (its caches stay valid)
             settings["redraw"] = {"format": REDRAW_FORMAT, "replication": int(replication),
                                   "shorten_prob": REDRAW_SHORTEN_PROB if unit < 10 else 0.0}
+            if stream:  # stream 0 keeps the key it always had
+                settings["redraw"]["stream"] = int(stream)
         tokens = self.token_features
         return GroundTruthSet(
             dataset_id=self.dataset_id, split=self.split, ids=tuple(fields["ids"]),
@@ -281,9 +292,17 @@ class EmbeddingSpace(Protocol):
     evaluator_id: str
     has_text: bool
 
-    def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor: ...
+    def encode_motions(self, features_raw: Tensor, lengths: Tensor, *, keep_padding: bool = False,
+                       normalized: bool = False) -> Tensor:
+        """Embeddings of (B, T, D) motions. keep_padding: the frames past each length are given to the encoder as
+        they are (else zero, in the evaluator's normalisation); normalized: the motions are already in the
+        evaluator's input space (its normalisation is skipped)."""
+        ...
 
-    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray) -> Tensor: ...
+    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray, lengths: str = "sentence") -> Tensor:
+        """Embeddings of the items' captions; ``lengths``: the caption length rule (T2M only:
+        mfm.evaluators.t2m.CAPTION_LENGTHS)."""
+        ...
 
     def describe(self) -> dict[str, Any]: ...
 
@@ -296,10 +315,15 @@ class _NormalisingEncoder:
         self.std = torch.as_tensor(std, dtype=torch.float32, device=device)
         self.device = device
 
-    def normalise(self, features_raw: Tensor, lengths: Tensor) -> tuple[Tensor, Tensor]:
+    def normalise(self, features_raw: Tensor, lengths: Tensor, keep_padding: bool = False,
+                  normalized: bool = False) -> tuple[Tensor, Tensor]:
         lengths = lengths.to(self.device)
-        valid = valid_frame_mask(lengths, features_raw.shape[1]).unsqueeze(-1)
-        return ((features_raw.to(self.device) - self.mean) / self.std) * valid, lengths
+        x = features_raw.to(self.device)
+        if not normalized:
+            x = (x - self.mean) / self.std
+        if keep_padding:
+            return x, lengths
+        return x * valid_frame_mask(lengths, features_raw.shape[1]).unsqueeze(-1), lengths
 
 
 class _SavedEvaluatorSpace(_NormalisingEncoder):
@@ -329,11 +353,13 @@ class ContrastiveSpace(_SavedEvaluatorSpace):
     noun = "a contrastive evaluator"
 
     @torch.no_grad()
-    def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
-        return self.model.encode_motions(*self.normalise(features_raw, lengths)).float()
+    def encode_motions(self, features_raw: Tensor, lengths: Tensor, *, keep_padding: bool = False,
+                       normalized: bool = False) -> Tensor:
+        return self.model.encode_motions(*self.normalise(features_raw, lengths, keep_padding, normalized)).float()
 
     @torch.no_grad()
-    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray) -> Tensor:
+    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray, lengths: str = "sentence") -> Tensor:
+        # A pooled caption embedding: no caption length to choose (``lengths`` does not apply).
         return self.model.encode_texts(torch.from_numpy(gt.text_cond[indices]).to(self.device)).float()
 
     def describe(self) -> dict[str, Any]:
@@ -353,14 +379,15 @@ class ClassifierSpace(_SavedEvaluatorSpace):
         self.action_classes: list[str] = list(self.model.action_classes)
 
     @torch.no_grad()
-    def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
-        return self.model.features(*self.normalise(features_raw, lengths)).float()
+    def encode_motions(self, features_raw: Tensor, lengths: Tensor, *, keep_padding: bool = False,
+                       normalized: bool = False) -> Tensor:
+        return self.model.features(*self.normalise(features_raw, lengths, keep_padding, normalized)).float()
 
     @torch.no_grad()
     def logits(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
         return self.model(*self.normalise(features_raw, lengths)).float()
 
-    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray) -> Tensor:
+    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray, lengths: str = "sentence") -> Tensor:
         raise EvaluationError("the action classifier has no text tower")
 
     def describe(self) -> dict[str, Any]:
@@ -390,17 +417,19 @@ class T2MSpace:
         self.files = files
         self.dataset = dataset
 
-    def encode_motions(self, features_raw: Tensor, lengths: Tensor) -> Tensor:
-        return self.model.encode_motions(features_raw, lengths.cpu()).float()
+    def encode_motions(self, features_raw: Tensor, lengths: Tensor, *, keep_padding: bool = False,
+                       normalized: bool = False) -> Tensor:
+        return self.model.encode_motions(features_raw, lengths.cpu(), keep_padding=keep_padding,
+                                         normalized=normalized).float()
 
-    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray) -> Tensor:
+    def encode_texts(self, gt: GroundTruthSet, indices: np.ndarray, lengths: str = "sentence") -> Tensor:
         tokens = [gt.caption_tokens[i] for i in indices]
         if any(len(t) == 0 for t in tokens):
             raise EvaluationError(
                 f"the T2M evaluator reads captions as word/POS tokens, but item "
                 f"{gt.ids[indices[[len(t) == 0 for t in tokens].index(True)]]!r} of {gt.dataset_id[:16]} has none "
                 "(only the HumanML3D and KIT-ML sources carry them); use evaluator.kind=contrastive")
-        return self.model.encode_texts(tokens).float()
+        return self.model.encode_texts(tokens, lengths).float()
 
     def describe(self) -> dict[str, Any]:
         return {"kind": self.kind, "id": self.evaluator_id, "dataset": self.dataset,

@@ -10,7 +10,8 @@ Layout of an evaluation folder (default ``<run_dir>/eval``)::
     checkpoints_seen.jsonl                                            every checkpoint a watcher has listed: one
                                                                       deleted before any result is reported
     cache/gt-<evaluator>-<dataset>-<split>-<gt key>.npz               ground-truth embeddings per evaluator and
-                                                                      set (re-drawn items: one per replication)
+                                                                      set (re-drawn items: one per replication;
+                                                                      -padtext: with the mdm caption lengths)
     plots/*.png
 
 Concurrency. Any number of jobs (cron, Slurm array, Kubernetes CronJob, two shells) may watch the same run. A unit

@@ -27,6 +27,10 @@ Plausibility (mfm.metrics.plausibility, on joints recovered from the features): 
 deviation, floor penetration, foot skating ratio / contact and skating foot speeds, mean jerk and its ratio to the
 paired ground-truth clip's, as medians over the clips of a replication, for generated and edited motions (metric
 names as the PlausibilityFigures fields) and for the ground truth (per ground-truth set, rank 0).
+``--protocol mdm`` (configs/eval_mdm.yaml) runs the MDM/MFM reference loop instead, rule by rule (ProtocolConfig's
+rules: 1,024 motions in whole batches, three independent ground-truth passes per replication so that the GT row's FID
+is that of two draws, caption length 22 for the generated row, the sampler's 196-frame window seen by the evaluator,
+MultiModality in the model's normalisation over 5 replications); results record the loop ('ours', 'mdm', 'mixed').
 With ``tasks.composition=true`` (a bpe + pccat model), FlowMDM's composition protocol adds one unit per sampling
 point and ``composition.switch`` point (pipeline.eval_composition); ``tasks.text_to_motion=false`` runs only those.
 
@@ -61,7 +65,7 @@ from pipeline.eval_composition import (
     evaluate_switch,
     prepare_composition,
 )
-from pipeline.eval_config import EvalConfig, SamplingPoint
+from pipeline.eval_config import OUR_RULES, EvalConfig, SamplingPoint
 from pipeline.eval_replications import (
     CheckpointContext,
     GroundTruthDraws,
@@ -194,7 +198,8 @@ class CheckpointScorer:
                                               backend=backend_for_format(data.format), require_action=is_action,
                                               token_features=tokens)
             self._gt[key] = GroundTruthDraws(pool, space, trained.skeleton, p.redraw_items,
-                                             self.cfg.sampling.batch_size)
+                                             self.cfg.sampling.batch_size,
+                                             padded_text=p.generated_caption_length == "padded")
         draws = self._gt[key]
         gt, emb, cached, gt_figures = draws.fixed, None, False, None
         if not p.redraw_items or self.cfg.tasks.composition:  # something scores against the fixed set
@@ -205,11 +210,16 @@ class CheckpointScorer:
         if int(gt.lengths.max()) > limit:
             raise EvaluationError(f"test clips reach {int(gt.lengths.max())} frames but {trained.checkpoint} "
                                   f"generates at most {limit}: set protocol.max_length={limit}")
+        if p.generated_padding == "model" and p.max_length > limit:
+            raise EvaluationError(f"protocol.generated_padding=model samples {p.max_length}-frame windows but "
+                                  f"{trained.checkpoint} generates at most {limit} frames: set "
+                                  f"protocol.max_length={limit} or protocol.generated_padding=zero")
         notes = []
         if int(gt.lengths.max()) > trained.window:
             notes.append(f"test clips reach {int(gt.lengths.max())} frames; the model trained on windows of "
                          f"{trained.window}")
             logger.warning("%s: %s", trained.checkpoint, notes[-1])
+        notes += _rules_without_effect(self.cfg, space, is_action)
         labels, candidates = None, np.arange(len(gt))
         if is_action:
             labels, candidates = action_labels(trained, space, gt, p.seed)
@@ -269,11 +279,28 @@ class Work:
 
 def protocol_key(protocol: Any) -> dict[str, Any]:
     """The protocol settings as hashed into a text-to-motion unit's key. ``redraw_items=false`` is left out: the
-    fixed set scores exactly as before the setting existed, so results computed then keep their keys."""
+    fixed set scores exactly as before the setting existed, so results computed then keep their keys; so are the
+    loop's rules (``mdm`` protocol) at our values, which score as before they existed."""
     out = to_dict(protocol)
     if not out.get("redraw_items", True):
         out.pop("redraw_items")
+    for name, ours in OUR_RULES.items():
+        if out.get(name) == ours:
+            out.pop(name)
     return out
+
+
+def _rules_without_effect(cfg: EvalConfig, space: Any, is_action: bool) -> list[str]:
+    """Notes on the protocol's reference rules that the evaluator in use cannot show (they change what the T2M
+    evaluator reads: caption lengths, the frames past a motion's length, its normalisation)."""
+    p, notes = cfg.protocol, []
+    if p.generated_caption_length == "padded" and (is_action or not isinstance(space, T2MSpace)):
+        notes.append("protocol.generated_caption_length=padded has no effect: this evaluator reads no caption "
+                     "lengths (only the T2M text encoder does)")
+    if p.generated_padding == "model" and not isinstance(space, T2MSpace):
+        notes.append("protocol.generated_padding=model: the motions are sampled in the reference's window, but "
+                     f"this {space.kind} evaluator masks the frames past each length")
+    return notes
 
 
 def _max_generation_length(trained: TrainedModel) -> int:
@@ -298,6 +325,9 @@ def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
         "evaluator_kind": result["evaluator"]["kind"], "evaluator_id": result["evaluator"]["id"],
         "dataset_id": result["data"]["dataset_id"], "checkpoint_dataset_id": result["checkpoint"]["dataset_id"],
         "split": result["data"]["split"], "protocol": result["protocol"]["name"],
+        # Which evaluation loop the protocol's rules make: 'ours', 'mdm' (the reference loop) or 'mixed';
+        # text-to-motion results written before the rules existed ran ours.
+        "protocol_loop": result["protocol"].get("loop", "ours" if result.get("task") != "composition" else None),
         "replications": result["protocol"]["replications"], "num_items": result["protocol"]["num_items"],
         # Whether the intervals include re-drawn ground-truth items (results before the setting: a fixed set).
         "redraw_items": bool(result["protocol"].get("redraw_items", False)),

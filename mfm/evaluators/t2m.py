@@ -18,6 +18,9 @@ that sorted order (texts re-indexed to follow); here packing uses ``enforce_sort
 **in input order**. Normalisation is done here (the reference's dataset does it), and each clip is placed in a
 196-frame window zeroed (in normalised space) from its length on, which is how the reference's ground-truth loader
 pads. The reference's loader also crops ground-truth clips to a multiple of 4 frames; that is the caller's choice.
+Two reference behaviours are options, for the ``mdm`` evaluation protocol: ``keep_padding`` hands the encoder the
+frames past each length as given (the reference's generated motions are sampled over the whole window), and caption
+length rule 'padded' gives the text encoder 22 for every caption (the reference's generated-motion dataset).
 """
 
 from __future__ import annotations
@@ -223,11 +226,28 @@ def pos_class(word: str, pos: str) -> str:
     return pos if pos in POS_INDEX else "OTHER"
 
 
+CAPTION_LENGTHS = ("sentence", "padded")
+"""How long a caption is to the text encoder (its GRU stops there): 'sentence' = sos + tokens[:20] + eos, the
+reference's ground-truth ``sent_len`` (``Text2MotionDatasetV2.__getitem__``); 'padded' = the 22 slots of the
+unk-padded token list, what MDM's generated-motion dataset passed before MDM's fix of issue #182 (MFM's copy still
+does: ``CompMDMGeneratedDataset``: ``cap_len = len(tokens)`` of the padded list re-split on '_')."""
+
+
 def sentence_tokens(tokens: Sequence[str]) -> tuple[list[str], int]:
     """``sos/OTHER + tokens[:20] + eos/OTHER`` padded with ``unk/OTHER`` to 22 slots, and the unpadded length."""
     sentence = ["sos/OTHER", *tokens[:MAX_TEXT_TOKENS], "eos/OTHER"]
     sent_len = len(sentence)
     return sentence + ["unk/OTHER"] * (SENTENCE_SLOTS - sent_len), sent_len
+
+
+def caption_length(tokens: Sequence[str], rule: str = "sentence") -> int:
+    """The caption length the text encoder gets under ``rule`` (CAPTION_LENGTHS): 'sentence' counts sos + the
+    first 20 tokens + eos (3 tokens -> 5); 'padded' is the length of the padded token list, always 22 (a reference
+    token list re-split on '_' is 22 long unless a token holds '_', where the reference's vectorizer fails)."""
+    if rule not in CAPTION_LENGTHS:
+        raise ValueError(f"caption length rule must be one of {CAPTION_LENGTHS}, got {rule!r}")
+    padded, sent_len = sentence_tokens(tokens)
+    return len(padded) if rule == "padded" else sent_len
 
 
 class _PlainUnpickler(pickle.Unpickler):
@@ -296,19 +316,23 @@ class WordVectorizer:
         onehot[POS_INDEX["OTHER"]] = 1.0
         return self.word_to_vec["unk"], onehot
 
-    def encode_sentence(self, tokens: Sequence[str]) -> tuple[np.ndarray, np.ndarray, int]:
-        """Caption tokens -> word vectors (22, 300), POS one-hots (22, 15), sentence length (sos/eos included)."""
-        sentence, sent_len = sentence_tokens(tokens)
+    def encode_sentence(self, tokens: Sequence[str],
+                        lengths: str = "sentence") -> tuple[np.ndarray, np.ndarray, int]:
+        """Caption tokens -> word vectors (22, 300), POS one-hots (22, 15), caption length (:func:`caption_length`:
+        sos/eos included; 'padded': 22)."""
+        sentence, _ = sentence_tokens(tokens)
         vectors, onehots = zip(*(self.lookup(t) for t in sentence))
-        return np.stack(vectors), np.stack(onehots), sent_len
+        return np.stack(vectors), np.stack(onehots), caption_length(tokens, lengths)
 
-    def encode_batch(self, token_lists: Sequence[Sequence[str]]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """A batch of captions -> word_embs (B, 22, 300), pos_onehot (B, 22, 15), sent_lens (B,) int64."""
+    def encode_batch(self, token_lists: Sequence[Sequence[str]],
+                     lengths: str = "sentence") -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """A batch of captions -> word_embs (B, 22, 300), pos_onehot (B, 22, 15), sent_lens (B,) int64 (``lengths``:
+        a CAPTION_LENGTHS rule)."""
         if isinstance(token_lists, str) or any(isinstance(t, str) for t in token_lists):
             raise TypeError("token_lists must be a list of token lists (one list of 'word/POS' strings per caption)")
         if len(token_lists) == 0:
             raise ValueError("token_lists is empty")
-        encoded = [self.encode_sentence(tokens) for tokens in token_lists]
+        encoded = [self.encode_sentence(tokens, lengths) for tokens in token_lists]
         words = torch.from_numpy(np.stack([e[0] for e in encoded]))
         pos = torch.from_numpy(np.stack([e[1] for e in encoded]))
         lens = torch.tensor([e[2] for e in encoded], dtype=torch.int64)
@@ -462,17 +486,25 @@ class T2MEvaluator(nn.Module):
     def device(self) -> torch.device:
         return self.mean.device
 
-    def normalized_window(self, features_raw: torch.Tensor, lengths: torch.Tensor) -> torch.Tensor:
+    def normalized_window(self, features_raw: torch.Tensor, lengths: torch.Tensor, *, keep_padding: bool = False,
+                          normalized: bool = False) -> torch.Tensor:
         """Raw (B, T, D) features -> evaluator-normalised float32 (B, T', D), zero at every frame >= length.
 
         T' = max(196, longest length): the reference always feeds 196-frame windows zero-padded after the clip (GT
         loader) and the convolutions see a few frames past each length, so this window makes embeddings equal to
         the reference's and independent of how the caller padded.
+
+        keep_padding: the frames the caller gives past each length are kept (normalised like the others), as the
+        reference's generated motions, sampled over the whole 196-frame window; frames beyond ``T`` are still zero.
+        normalized: the input is already in the space the networks read (the evaluator's normalisation is skipped).
         """
         window = max(self.spec.max_motion_length, int(lengths.max()))
-        x = (features_raw[:, :window].to(self.device, torch.float64) - self.mean) / self.std
-        valid = torch.arange(x.shape[1], device=self.device)[None, :] < lengths.to(self.device)[:, None]
-        x = torch.where(valid[..., None], x, torch.zeros((), dtype=x.dtype, device=x.device))
+        x = features_raw[:, :window].to(self.device, torch.float64)
+        if not normalized:
+            x = (x - self.mean) / self.std
+        if not keep_padding:
+            valid = torch.arange(x.shape[1], device=self.device)[None, :] < lengths.to(self.device)[:, None]
+            x = torch.where(valid[..., None], x, torch.zeros((), dtype=x.dtype, device=x.device))
         out = x.new_zeros(x.shape[0], window, x.shape[2])
         out[:, : x.shape[1]] = x
         return out.float()
@@ -489,19 +521,23 @@ class T2MEvaluator(nn.Module):
 
     @torch.no_grad()
     def encode_motions(self, features_raw: torch.Tensor | np.ndarray,
-                       lengths: torch.Tensor | np.ndarray | Sequence[int]) -> torch.Tensor:
-        """Raw Guo features (B, T, D) with valid lengths (B,) -> motion embeddings (B, 512), in input order."""
+                       lengths: torch.Tensor | np.ndarray | Sequence[int], *, keep_padding: bool = False,
+                       normalized: bool = False) -> torch.Tensor:
+        """Raw Guo features (B, T, D) with valid lengths (B,) -> motion embeddings (B, 512), in input order.
+        ``keep_padding`` / ``normalized``: see :meth:`normalized_window` (default: zero past each length, the
+        reference's ground-truth padding)."""
         features = torch.as_tensor(features_raw)
         lengths = torch.as_tensor(lengths, dtype=torch.int64).reshape(-1)
         self._check_motion_batch(features, lengths)
-        normalized = self.normalized_window(features, lengths)
-        movements = self.movement_encoder(normalized[..., :-4])  # foot contacts are not seen by the evaluator
+        window = self.normalized_window(features, lengths, keep_padding=keep_padding, normalized=normalized)
+        movements = self.movement_encoder(window[..., :-4])  # foot contacts are not seen by the evaluator
         return self.motion_encoder(movements, lengths // self.spec.unit_length)
 
     @torch.no_grad()
-    def encode_texts(self, token_lists: Sequence[Sequence[str]]) -> torch.Tensor:
-        """Captions as lists of ``word/POS`` tokens -> text embeddings (B, 512), in input order."""
-        word_embs, pos_onehot, sent_lens = self.vectorizer.encode_batch(token_lists)
+    def encode_texts(self, token_lists: Sequence[Sequence[str]], lengths: str = "sentence") -> torch.Tensor:
+        """Captions as lists of ``word/POS`` tokens -> text embeddings (B, 512), in input order; ``lengths``: the
+        caption length rule (CAPTION_LENGTHS)."""
+        word_embs, pos_onehot, sent_lens = self.vectorizer.encode_batch(token_lists, lengths)
         return self.encode_word_features(word_embs, pos_onehot, sent_lens)
 
     @torch.no_grad()
