@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.print_config:
             print("\n".join(describe_config(cfg)))
             return 0
-        with Dist(mixed_precision=cfg.train.mixed_precision) as dist:
+        with Dist(mixed_precision=cfg.train.mixed_precision, loss_scaling=True) as dist:
             ensure_embedded_dataset(cfg.data.manifest, dist)
             return Trainer(cfg, dist).fit()
     except ResumeConflictError as exc:

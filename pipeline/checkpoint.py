@@ -6,8 +6,11 @@ Layout (one folder per optimizer step; zero-padded so names sort by step)::
       step-00001000/
         model.safetensors   raw model weights
         ema.safetensors     EMA weights (absent when the run keeps no EMA)
-        state.pt            {"version": 1, "step", "world_size", "optimizer", "scheduler",
+        state.pt            {"version": 1, "step", "world_size", "optimizer", "scheduler", "scaler",
                              "rng": [per rank], "data": [per rank], "config", "manifest", "extra"}
+                            "scaler": the fp16 loss scaler's {"scale", "growth_tracker"}, None without fp16. An
+                            optional entry, so the format stays version 1 both ways: a file written before it
+                            existed loads with "scaler": None, and older code reads new files (ignoring it)
         COMPLETE            written last: JSON {"format", "version", "step", "files": {name: {bytes, sha256}}}
       step-00002000.tmp-node7-4242   a save in progress by pid 4242 on host node7 (or one that was killed):
                                      never read; removed at the next start-up once that pid is gone, or pruned
@@ -229,12 +232,14 @@ def save_checkpoint(
     config: Mapping[str, Any],
     manifest: Mapping[str, Any],
     extra: Mapping[str, Any] | None = None,
+    scaler_state: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write ``<ckpt_root>/step-<step>`` atomically and return its path. Call on global rank 0 only.
 
     ``rng_states`` / ``data_states``: one entry per rank, indexed by rank (already gathered). ``config``: the
     resolved config dict (``pipeline.config.to_dict``); ``manifest``: the dataset identity (dataset_id, feature
-    spec, ...); ``extra``: counters such as samples seen. Raises FileExistsError if a complete checkpoint for
+    spec, ...); ``extra``: counters such as samples seen; ``scaler_state``: the fp16 loss scaler's state (None
+    without fp16). Raises FileExistsError if a complete checkpoint for
     ``step`` already exists, and CheckpointWriteError (an OSError) if writing fails: the partial folder is then
     already removed and the reason logged (for a full disk: the space needed and the space free).
     """
@@ -256,6 +261,7 @@ def save_checkpoint(
         "world_size": len(rng_states),
         "optimizer": dict(optimizer_state),
         "scheduler": None if scheduler_state is None else dict(scheduler_state),
+        "scaler": None if scaler_state is None else dict(scaler_state),
         "rng": list(rng_states),
         "data": list(data_states),
         "config": dict(config),
@@ -638,6 +644,7 @@ def load_checkpoint(
         raise CheckpointError(f"{state_path}: state format version {version!r}; this code reads {CHECKPOINT_VERSION}")
     if state.get("step") != marker["step"]:
         raise CorruptCheckpointError(f"{state_path}: step {state.get('step')} but the marker says {marker['step']}")
+    state.setdefault("scaler", None)  # written before fp16 loss scaling existed
     return model_state, ema_state, state
 
 

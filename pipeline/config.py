@@ -155,14 +155,26 @@ class TrainLoopConfig:
     out_dir: str = "runs/default"
     """Run folder: resolved config, checkpoints/, logs. A new or empty folder, or an existing run folder; never
     the filesystem root, a file, or a non-empty folder that is not a run (checked before anything is written)."""
-    mixed_precision: Literal["no", "bf16", "auto"] = "auto"
-    """auto: ``accelerate launch --mixed_precision bf16`` when given, else bf16 autocast on a GPU that supports it,
-    full fp32 otherwise. An explicit setting that the launcher's bf16 contradicts is refused (the launcher's "no"
-    is also its default, so it never overrides); fp16 is refused (no loss scaling yet)."""
+    mixed_precision: Literal["no", "bf16", "fp16", "auto"] = "auto"
+    """auto: ``accelerate launch --mixed_precision bf16|fp16`` when given, else bf16 autocast on a GPU that supports
+    it, full fp32 otherwise (never fp16 unasked). An explicit setting that the launcher's bf16/fp16 contradicts is
+    refused (the launcher's "no" is also its default, so it never overrides). fp16: fp16 autocast (CPU or GPU) with
+    dynamic loss scaling (torch.amp.GradScaler); a step whose scaled gradients overflow on any rank is skipped on
+    every rank and the scale lowered, counted as scaler_skips, apart from the non-finite policy below."""
+    fp16_init_scale: float = 65536.0
+    """With fp16: the initial loss scale (GradScaler's init_scale; halved at each overflow, doubled after
+    fp16_growth_interval steps without one)."""
+    fp16_growth_interval: int = 2000
+    """With fp16: consecutive updates without an overflow before the loss scale doubles."""
+    fp16_min_scale: float = 1.0e-4
+    """With fp16: the run stops (NonFiniteLossError) when overflow skips push the loss scale below this: the
+    gradients overflow even barely scaled, which is divergence, not fp16's range (use bf16 or no)."""
     seed: int = 0
     """Seed of model initialisation and of the noise / time draws of training."""
     nonfinite: Literal["skip", "stop"] = "skip"
-    """On a non-finite loss or gradient norm on any rank: skip the update on every rank, or stop the run."""
+    """On a non-finite loss or gradient norm on any rank: skip the update on every rank, or stop the run. With
+    fp16, non-finite gradients under a finite loss are a loss-scale overflow instead (see mixed_precision): they
+    never count here."""
     nonfinite_budget: int = 10
     """With nonfinite=skip: consecutive skipped steps tolerated before the run stops."""
     wandb: Literal["offline", "online", "disabled"] = "offline"
@@ -220,6 +232,12 @@ class TrainLoopConfig:
         _require(bool(self.out_dir.strip()), "train.out_dir must not be empty")
         _require(self.seed >= 0, f"train.seed must be >= 0, got {self.seed}")
         _require(self.nonfinite_budget >= 0, f"train.nonfinite_budget must be >= 0, got {self.nonfinite_budget}")
+        _require(self.fp16_init_scale > 0, f"train.fp16_init_scale must be > 0, got {self.fp16_init_scale}")
+        _require(self.fp16_growth_interval >= 1,
+                 f"train.fp16_growth_interval must be >= 1, got {self.fp16_growth_interval}")
+        _require(0 < self.fp16_min_scale <= self.fp16_init_scale,
+                 f"train.fp16_min_scale must lie in (0, train.fp16_init_scale={self.fp16_init_scale}], got "
+                 f"{self.fp16_min_scale}")
         _require(self.val_every >= 0, f"train.val_every must be >= 0 (0 disables validation), got {self.val_every}")
         _require(self.val_batches >= 1, f"train.val_batches must be >= 1, got {self.val_batches}")
 
@@ -316,6 +334,9 @@ def _coerce_union(value: Any, tp: Any, where: str) -> Any:
         if type(None) in arms:
             return None
         raise ConfigError(f"{where}: expected {_type_name(tp)}, got None")
+    # A value already of one arm's type keeps it (``int | float``: 1.0 stays a float, 3 an int).
+    if type(value) in arms:
+        return value
     for arm in arms:
         if arm is type(None):
             continue
@@ -604,13 +625,19 @@ def _set_nested(data: dict[str, Any], keys: list[str], value: Any) -> None:
     node[keys[-1]] = value
 
 
-def load_config(cls: type[T], preset: str | Path | None = None, overrides: Iterable[str] = ()) -> T:
-    """Resolve a config: ``cls`` defaults, then the preset (name in configs/ or YAML path), then the overrides.
+def load_config(cls: type[T], preset: str | Path | None = None, overrides: Iterable[str] = (),
+                values: Mapping[str, Any] | None = None) -> T:
+    """Resolve a config: ``cls`` defaults, then the preset (name in configs/ or YAML path), then ``values`` (dotted
+    key -> value, already typed: what a command line's flags set), then the overrides.
 
     Raises ConfigError (a ValueError) naming the offending key, override or file, and FileNotFoundError for a
     preset that does not exist.
     """
     data: dict[str, Any] = {} if preset is None else read_preset(preset)
+    for key, value in (values or {}).items():
+        keys = key.split(".")
+        _check_key_path(cls, keys, f"{key}={value!r}")
+        _set_nested(data, keys, value)
     for text in overrides:
         keys, value = parse_override(text)
         _check_key_path(cls, keys, text)

@@ -24,13 +24,14 @@ import logging
 import os
 from collections.abc import Mapping
 from datetime import timedelta
+from types import MethodType
 from typing import Any, TypeVar
 
 import torch
 import torch.distributed as torch_dist
 from accelerate import Accelerator
 from accelerate.state import AcceleratorState, GradientState
-from accelerate.utils import DistributedDataParallelKwargs, InitProcessGroupKwargs
+from accelerate.utils import DistributedDataParallelKwargs, InitProcessGroupKwargs, convert_outputs_to_fp32
 
 logger = logging.getLogger(__name__)
 
@@ -86,33 +87,38 @@ class MixedPrecisionError(ValueError):
     supported; the message says which setting to change."""
 
 
-def resolve_mixed_precision(setting: str, launcher: str | None = None) -> str:
+def resolve_mixed_precision(setting: str, launcher: str | None = None, *, loss_scaling: bool = False) -> str:
     """The autocast this run uses, from the config's ``train.mixed_precision`` and the launcher's
-    ``ACCELERATE_MIXED_PRECISION`` (``accelerate launch --mixed_precision``).
+    ``ACCELERATE_MIXED_PRECISION`` (``accelerate launch --mixed_precision``): ``"no"``, ``"bf16"`` or ``"fp16"``.
 
     ``accelerate launch`` sets ``no`` when nothing is given, so ``no`` from the launcher is not a choice and never
-    overrides the config. A launcher's ``bf16`` is: with ``auto`` it is honoured, against an explicit different
-    setting it is refused. ``auto`` otherwise: bf16 on a CUDA device that supports it, else no autocast. fp16 (loss
-    scaling for GPUs without bf16) is refused: its scaler's skipped steps would interleave with the trainer's own
-    non-finite step skipping, which is untested without a GPU.
+    overrides the config. A launcher's ``bf16`` or ``fp16`` is: with ``auto`` it is honoured, against an explicit
+    different setting it is refused. ``auto`` otherwise: bf16 on a CUDA device that supports it, else no autocast
+    (never fp16 on its own: its overflow steps are skipped, so it is asked for by name). fp16 needs dynamic loss
+    scaling (:class:`pipeline.loss_scaling.LossScaler`), which only the generator's trainer does: a program without
+    it (``loss_scaling=False``) refuses fp16 rather than train with gradients that underflow to zero.
     """
-    if setting not in ("no", "bf16", "auto"):
-        raise MixedPrecisionError(f"train.mixed_precision must be 'no', 'bf16' or 'auto', got {setting!r}")
-    if launcher == "fp16":
+    if setting not in ("no", "bf16", "fp16", "auto"):
+        raise MixedPrecisionError(f"train.mixed_precision must be 'no', 'bf16', 'fp16' or 'auto', got {setting!r}")
+    if launcher not in (None, "no", "bf16", "fp16"):
+        raise MixedPrecisionError(f"accelerate launch --mixed_precision {launcher}: expected no, bf16 or fp16")
+    if launcher in ("bf16", "fp16") and setting not in ("auto", launcher):
         raise MixedPrecisionError(
-            "accelerate launch --mixed_precision fp16 is not supported: fp16 loss scaling is not implemented yet. "
-            "Use --mixed_precision bf16 (GPUs since Ampere) or no")
-    if launcher not in (None, "no", "bf16"):
-        raise MixedPrecisionError(f"accelerate launch --mixed_precision {launcher}: expected no, bf16 (or fp16)")
-    if launcher == "bf16" and setting == "no":
-        raise MixedPrecisionError(
-            "accelerate launch --mixed_precision bf16 disagrees with train.mixed_precision=no: pass "
-            "train.mixed_precision=bf16 (or auto, which follows the launcher), or launch without --mixed_precision")
+            f"accelerate launch --mixed_precision {launcher} disagrees with train.mixed_precision={setting}: pass "
+            f"train.mixed_precision={launcher} (or auto, which follows the launcher), or launch without "
+            "--mixed_precision")
     if setting != "auto":
-        return setting
-    if launcher == "bf16":
-        return "bf16"
-    return "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"
+        resolved = setting
+    elif launcher in ("bf16", "fp16"):
+        resolved = launcher
+    else:
+        resolved = "bf16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "no"
+    if resolved == "fp16" and not loss_scaling:
+        asked = "accelerate launch --mixed_precision fp16" if launcher == "fp16" else "mixed_precision=fp16"
+        raise MixedPrecisionError(
+            f"{asked}: this program has no fp16 loss scaling (only the generator's training, launch/train.py, "
+            "has); use bf16 (GPUs since Ampere) or no")
+    return resolved
 
 
 class Dist:
@@ -121,13 +127,20 @@ class Dist:
     Build one per process, before the model. ``cpu=None`` picks CPU (gloo between ranks) when no GPU is visible
     or ACCELERATE_USE_CPU is set. ``mixed_precision`` is the config's ``train.mixed_precision``, resolved with
     ``accelerate launch --mixed_precision`` by :func:`resolve_mixed_precision` (honoured, or refused when they
-    disagree).
+    disagree); ``loss_scaling=True`` says the caller scales its loss for fp16 (the trainer's
+    :class:`pipeline.loss_scaling.LossScaler`), without it fp16 is refused.
+
+    fp16 is done here, not by accelerate: accelerate's fp16 is CUDA-only (on a CPU it silently runs in fp32) and
+    its prepared optimizer would step through its own GradScaler, deciding alone, per rank, whether a step is
+    skipped. So accelerate is told ``no``, :meth:`prepare` wraps the model's forward in fp16 autocast (outputs in
+    fp32, as accelerate does for bf16), :meth:`autocast` gives the same context, and the trainer owns the scaler.
     """
 
     def __init__(
         self,
         *,
         mixed_precision: str = "no",
+        loss_scaling: bool = False,
         grad_accum: int = 1,
         cpu: bool | None = None,
         find_unused_parameters: bool = False,
@@ -138,16 +151,18 @@ class Dist:
         if cpu is None:
             cpu = _flag(environ.get("ACCELERATE_USE_CPU")) or not torch.cuda.is_available()
         launcher_precision = environ.get("ACCELERATE_MIXED_PRECISION")
-        self._mixed_precision = resolve_mixed_precision(mixed_precision, launcher_precision)
+        self._mixed_precision = resolve_mixed_precision(mixed_precision, launcher_precision,
+                                                        loss_scaling=loss_scaling)
         if launcher_precision == "no" and self._mixed_precision != "no":
-            logger.info("accelerate's --mixed_precision no is also its default, so it does not turn bf16 off: "
-                        "train.mixed_precision=no does")
+            logger.info("accelerate's --mixed_precision no is also its default, so it does not turn %s off: "
+                        "train.mixed_precision=no does", self._mixed_precision)
         handlers: list[Any] = [DistributedDataParallelKwargs(find_unused_parameters=find_unused_parameters)]
         if collective_timeout_s is not None:
             handlers.append(InitProcessGroupKwargs(timeout=timedelta(seconds=collective_timeout_s)))
         self._accelerator = Accelerator(
             cpu=cpu,
-            mixed_precision=self._mixed_precision,
+            # fp16 autocast and loss scaling are this module's and the trainer's (see the class docstring)
+            mixed_precision="no" if self._mixed_precision == "fp16" else self._mixed_precision,
             gradient_accumulation_steps=grad_accum,
             kwargs_handlers=handlers,
             # The trainer steps its scheduler once per optimizer step; accelerate's default would step it
@@ -198,7 +213,7 @@ class Dist:
 
     @property
     def mixed_precision(self) -> str:
-        """The resolved setting: ``"no"`` or ``"bf16"``."""
+        """The resolved setting: ``"no"``, ``"bf16"`` or ``"fp16"``."""
         return self._mixed_precision
 
     # -- training-step hooks (thin accelerate wrappers) -------------------------------------------------------
@@ -215,7 +230,23 @@ class Dist:
                     "Dist.prepare() refuses DataLoaders: the streaming dataset shards itself by rank, and "
                     "accelerate.prepare() would shard it a second time and silently drop data"
                 )
+        if self._mixed_precision == "fp16":
+            for obj in objects:
+                if isinstance(obj, torch.nn.Module):
+                    self._fp16_autocast_forward(obj)
         return self._accelerator.prepare(*objects)
+
+    def _fp16_autocast_forward(self, model: torch.nn.Module) -> None:
+        """Run ``model``'s forward under fp16 autocast with its outputs converted to fp32: what accelerate's
+        prepare does for bf16 (the same wrapping, so :meth:`unwrap` keeps it and a deep copy of the module, e.g.
+        the validation's EMA model, calls its own forward)."""
+        model._original_forward = model.forward
+        autocast = torch.autocast(device_type=self.device.type, dtype=torch.float16)
+        forward = getattr(model.forward, "__func__", None)
+        if forward is None:  # a forward that is not a bound method (e.g. torch.compile's)
+            model.forward = convert_outputs_to_fp32(autocast(model.forward))
+        else:
+            model.forward = MethodType(convert_outputs_to_fp32(autocast(forward)), model)
 
     def accumulate(self, model: torch.nn.Module) -> contextlib.AbstractContextManager[None]:
         """Context for one micro-batch: gradients sync (and the prepared optimizer steps) every grad_accum calls."""
@@ -239,6 +270,8 @@ class Dist:
 
     def autocast(self) -> contextlib.AbstractContextManager[None]:
         """Autocast for code outside the prepared model's forward (e.g. a loss), per the resolved precision."""
+        if self._mixed_precision == "fp16":
+            return torch.autocast(device_type=self.device.type, dtype=torch.float16)
         return self._accelerator.autocast()
 
     def unwrap(self, model: torch.nn.Module) -> torch.nn.Module:

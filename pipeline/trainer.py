@@ -31,9 +31,19 @@ all-reduce (tolerant mode only; strict batches are always full) gives before the
 micro-batch still runs forward and backward, on a zero stand-in with weight 0, so the gradient all-reduce
 happens on every rank. A step with no sample on any rank makes no update (see :meth:`Trainer.train_step`).
 
+fp16 (``train.mixed_precision=fp16`` or ``accelerate launch --mixed_precision fp16``): the loss is scaled
+before each backward pass and the gradients unscaled once after the last (:mod:`pipeline.loss_scaling`), before
+they are measured, clipped or applied. A step whose gradients overflow is a normal fp16 event, not bad data: each
+rank's overflow flag travels in the same per-step flag all-reduce, so every rank skips that update alike (no
+optimizer, scheduler or EMA step), the loss scale backs off on every rank, and the step is counted in
+``scaler_skips``, never in ``skipped_steps`` nor against train.nonfinite / train.nonfinite_budget. A non-finite
+LOSS (computed before scaling) is still the bad-data case, and wins when both happen (the scale is then left as it
+was). The run stops only if overflows push the scale below train.fp16_min_scale. The logged loss, the EMA and the
+validation loss never see the scale: the loss is read before scaling and the weights are fp32.
+
 Exact resume: a run killed at any point and resumed with ``train.resume=auto`` continues bit-identically to an
-uninterrupted one (weights, EMA, optimizer, scheduler, Python/NumPy/torch RNGs, the per-rank draw generator,
-the data position, counters), and metrics.jsonl holds every step once.
+uninterrupted one (weights, EMA, optimizer, scheduler, fp16 loss scale and growth tracker, Python/NumPy/torch
+RNGs, the per-rank draw generator, the data position, counters), and metrics.jsonl holds every step once.
 """
 
 from __future__ import annotations
@@ -80,6 +90,7 @@ from pipeline.data import (
 )
 from pipeline.distributed import Dist
 from pipeline.locations import RetryPolicy
+from pipeline.loss_scaling import LossScaler
 from pipeline.run_folder import RunFolderError, check_run_folder
 from pipeline.train_logging import MetricsSink, require_tensorboard
 from pipeline.validation import Validator, build_validator, has_val_split
@@ -92,7 +103,8 @@ T = TypeVar("T")
 
 
 class NonFiniteLossError(RuntimeError):
-    """The loss or gradient norm was not finite on some rank and the policy (or its budget) says stop."""
+    """The loss or gradient norm was not finite on some rank and the policy (or its budget) says stop; or, with
+    fp16, gradient overflows pushed the loss scale below train.fp16_min_scale."""
 
 
 class CheckpointSaveError(RuntimeError):
@@ -326,6 +338,7 @@ class StepResult:
     skipped: bool  # the update was skipped on every rank (non-finite loss or gradient norm on some rank)
     stop_signal: int  # the signal number some rank received before this step's end (0: none)
     empty: bool = False  # no rank had a sample (tolerant mode: every record skipped): no update, loss meaningless
+    overflow: bool = False  # fp16: the scaled gradients overflowed on some rank: update skipped, scale lowered
 
 
 class Trainer:
@@ -366,6 +379,10 @@ class Trainer:
             model = torch.compile(model)
         self.model, self.optimizer, self.scheduler = dist.prepare(model, optimizer, scheduler)
         self.ema.shadow = {k: v.to(dist.device) for k, v in self.ema.shadow.items()}
+        # fp16's dynamic loss scale (the identity for no/bf16); its state is part of the resume state
+        self.loss_scaler = LossScaler(dist.device, enabled=dist.mixed_precision == "fp16",
+                                      init_scale=cfg.train.fp16_init_scale,
+                                      growth_interval=cfg.train.fp16_growth_interval)
 
         self.loader = MotionLoader(
             self.manifest,
@@ -396,6 +413,7 @@ class Trainer:
         self.skipped_steps = 0
         self.consecutive_skips = 0
         self.empty_steps = 0  # steps with no sample on any rank (tolerant mode): stepped through, no update
+        self.scaler_skips = 0  # fp16: steps whose update was skipped for a gradient overflow (not bad data)
         self.stop_signal = StopSignal()
         self._last_saved_step = -1
         self._validator: Validator | None = None  # built by the first validate() (train.val_every)
@@ -526,7 +544,12 @@ class Trainer:
         every rank skips the update as for a non-finite step (no optimizer, scheduler or EMA step: the LR
         schedule counts updates), but the step counts (``Trainer.step`` advances: train.max_steps counts the
         planned batches consumed) and is counted in ``empty_steps``, not in ``skipped_steps``; the non-finite
-        policy and budget ignore it. Every part of this is a function of the data, so exact resume holds."""
+        policy and budget ignore it. Every part of this is a function of the data, so exact resume holds.
+
+        fp16: each backward runs on the scaled loss; the gradients are unscaled once, before the norm and the
+        clipping. Non-finite gradients under a finite loss on ANY rank are an overflow (``StepResult.overflow``):
+        every rank skips the update and lowers the scale alike (the flag is in the step's one all-reduce). Order
+        of precedence: a non-finite loss (``skipped``), then no sample (``empty``), then an overflow."""
         model, device = self.model, self.dist.device
         accum = len(micro_batches)
         weights = self._micro_batch_weights([len(batch["ids"]) for batch in micro_batches])
@@ -539,35 +562,56 @@ class Trainer:
                 else:
                     loss = self._stand_in_loss(batch)
                 weighted = loss if isinstance(weights[i], float) and weights[i] == 1.0 else loss * weights[i]
-                self.dist.backward(weighted / accum)
-            loss_sum += weighted.detach()
+                self.dist.backward(self.loss_scaler.scale(weighted / accum))
+            loss_sum += weighted.detach()  # unscaled: what is logged and checked
         loss_mean = loss_sum / accum
+        # fp16: the gradients back to their true size before they are measured, clipped or applied, and this
+        # rank's overflow flag (0 without fp16)
+        found_inf = self.loss_scaler.unscale_(self.optimizer)
         if self.cfg.optim.grad_clip > 0:
             grad_norm = self.dist.clip_grad_norm_(model.parameters(), self.cfg.optim.grad_clip)
         else:
             grad_norm = torch.linalg.vector_norm(
                 torch.stack([p.grad.detach().norm() for p in model.parameters() if p.grad is not None])
             )
-        nonfinite = ~(torch.isfinite(loss_mean) & torch.isfinite(grad_norm))
+        loss_nonfinite = ~torch.isfinite(loss_mean)
+        grad_nonfinite = ~torch.isfinite(grad_norm)
+        if self.loss_scaler.enabled:
+            # fp16: non-finite gradients under a finite loss are the scaled gradients overflowing (the scaler's
+            # business); only a non-finite loss is the bad-data case
+            nonfinite, overflow = loss_nonfinite, (found_inf > 0) | grad_nonfinite
+        else:
+            nonfinite, overflow = loss_nonfinite | grad_nonfinite, found_inf > 0  # found_inf is 0 here
         samples = sum(len(batch["ids"]) for batch in micro_batches)
         host_flags = torch.tensor([*self.stop_signal.flags(), float(samples)], device=device)
-        flags = self.dist.all_reduce_sum(torch.cat([nonfinite.float().view(1), loss_mean.float().view(1), host_flags]))
+        flags = self.dist.all_reduce_sum(torch.cat([nonfinite.float().view(1), overflow.float().view(1),
+                                                    loss_mean.float().view(1), host_flags]))
         # The one host sync per step: every rank reads the same sums, so every rank decides alike.
-        nonfinite_ranks, loss_sum, *signal_counts, total_samples = flags.tolist()
+        nonfinite_ranks, overflow_ranks, loss_sum, *signal_counts, total_samples = flags.tolist()
         skip = nonfinite_ranks > 0
         empty = total_samples == 0
-        if skip or empty:
+        overflowed = overflow_ranks > 0 and not (skip or empty)
+        if skip or empty or overflowed:
             self.optimizer.zero_grad(set_to_none=True)
+            if overflowed:
+                self.loss_scaler.update(overflow=True)  # backs off on every rank
+            else:
+                self.loss_scaler.keep()
         else:
             self.optimizer.step()
+            self.loss_scaler.update(overflow=False)
             self.scheduler.step()
             self.optimizer.zero_grad(set_to_none=True)
             if self.step % self.cfg.optim.ema_every == 0:
                 self.ema.update(self.dist.unwrap(model))
         loss = loss_sum / self.dist.world_size
-        return StepResult(loss, grad_norm, skip, StopSignal.from_flags(signal_counts), empty=empty and not skip)
+        return StepResult(loss, grad_norm, skip, StopSignal.from_flags(signal_counts), empty=empty and not skip,
+                          overflow=overflowed)
 
     def _handle_nonfinite(self, result: StepResult) -> None:
+        if result.overflow:  # fp16: a normal event, counted apart; the non-finite policy and budget untouched
+            self._handle_overflow()
+            return
         if result.empty:  # neither a non-finite step nor a normal one: counted apart, the budget untouched
             self.empty_steps += 1
             self.dist.log0("step %d: no rank had a sample (tolerant mode: every record of its batches was skipped); "
@@ -588,6 +632,21 @@ class Trainer:
                 f"{message}; {self.consecutive_skips} consecutive skipped steps exceed train.nonfinite_budget={budget}"
             )
         self.dist.log0("%s: update skipped on every rank (%d in a row)", message, self.consecutive_skips, level=logging.WARNING)
+
+    def _handle_overflow(self) -> None:
+        """Count an fp16 overflow step; stop the run (on every rank: all hold the same scale) once the scale has
+        fallen below train.fp16_min_scale."""
+        self.scaler_skips += 1
+        scale = self.loss_scaler.get_scale()  # a host sync, on overflow steps only
+        floor = self.cfg.train.fp16_min_scale
+        if scale < floor:
+            raise NonFiniteLossError(
+                f"fp16 gradient overflow at step {self.step}: the loss scale fell to {scale:g}, below "
+                f"train.fp16_min_scale={floor:g} ({self.scaler_skips} overflow step(s) skipped): the gradients "
+                "overflow even barely scaled, so the model diverged or fp16's range is too small for it. Use "
+                "train.mixed_precision=bf16 or no, or resume from an earlier checkpoint with a lower optim.lr")
+        self.dist.log0("step %d: fp16 gradient overflow on at least one rank: update skipped on every rank, loss "
+                       "scale lowered to %g (%d overflow skip(s) so far)", self.step, scale, self.scaler_skips)
 
     # -- state ------------------------------------------------------------------------------------------------
 
@@ -630,6 +689,7 @@ class Trainer:
             ema_state=self.ema.state_dict(),
             optimizer_state=self.optimizer.state_dict(),
             scheduler_state=self.scheduler.state_dict(),
+            scaler_state=self.loss_scaler.state_dict(),
             rng_states=rank_states,
             data_states=data_states,
             config=to_dict(self.cfg),
@@ -641,6 +701,7 @@ class Trainer:
                       "train_lengths": list(self.manifest.split("train")["lengths"])},
             extra={"samples_seen": self.samples_seen, "skipped_steps": self.skipped_steps,
                    "consecutive_skips": self.consecutive_skips, "empty_steps": self.empty_steps,
+                   "scaler_skips": self.scaler_skips, "mixed_precision": self.dist.mixed_precision,
                    "ema_updates": self.ema.num_updates,
                    "model_config": dataclasses.asdict(self.model_config)},
         )
@@ -685,9 +746,27 @@ class Trainer:
         self.skipped_steps = extra["skipped_steps"]
         self.consecutive_skips = extra.get("consecutive_skips", 0)
         self.empty_steps = extra.get("empty_steps", 0)
+        self.scaler_skips = extra.get("scaler_skips", 0)
+        self._restore_loss_scale(path, state.get("scaler"), extra.get("mixed_precision"))
         self._last_saved_step = self.step
         self.dist.log0("resumed from %s at step %d", path, self.step)
         return Path(path)
+
+    def _restore_loss_scale(self, path: Path | str, saved: Mapping[str, Any] | None, saved_precision: str | None
+                            ) -> None:
+        """fp16 resumes with the checkpoint's loss scale and growth tracker. A checkpoint without them (written
+        without fp16, or before loss scaling existed) starts from train.fp16_init_scale; a no/bf16 run ignores
+        them."""
+        if self.loss_scaler.enabled and saved is not None:
+            self.loss_scaler.load_state_dict(saved)
+        elif self.loss_scaler.enabled:
+            written = (f"written with precision {saved_precision}" if saved_precision
+                       else "written before fp16 loss scaling existed")
+            self.dist.log0("%s holds no fp16 loss scale (%s): the loss scale starts at train.fp16_init_scale=%g",
+                           path, written, self.cfg.train.fp16_init_scale)
+        elif saved is not None:
+            self.dist.log0("%s was written with fp16: its loss scale is not used by this %s run", path,
+                           self.dist.mixed_precision)
 
     def _decided_by_main(self, decide: Callable[[], T]) -> T:
         """Take a start-up decision on rank 0 only (it may touch the run folder) and hand the answer to every rank.
@@ -761,6 +840,10 @@ class Trainer:
             progress.close()
             logger_sink.close()
             self.stop_signal.restore()
+            if self.loss_scaler.enabled:
+                self.dist.log0("precision fp16: loss scale %g at step %d; %d step(s) skipped for a gradient overflow "
+                               "(scaler_skips), %d for a non-finite loss (skipped_steps)", self.loss_scaler.get_scale(),
+                               self.step, self.scaler_skips, self.skipped_steps)
 
     # -- validation -------------------------------------------------------------------------------------------
 
@@ -834,7 +917,15 @@ class Trainer:
             "records_skipped": int(records_skipped),
             "empty_batches": int(empty_batches),  # batches (all ranks) whose every record was skipped
             "empty_steps": self.empty_steps,  # steps with no sample on any rank: no update
+            **self._loss_scale_record(),
         }
+
+    def _loss_scale_record(self) -> dict[str, Any]:
+        """fp16 only: the loss scale after this step and the overflow steps skipped so far (this run and the runs
+        it resumes); apart from skipped_steps, which counts non-finite losses."""
+        if not self.loss_scaler.enabled:
+            return {}
+        return {"loss_scale": self.loss_scaler.get_scale(), "scaler_skips": self.scaler_skips}
 
     def _write_run_files(self) -> None:
         """config.yaml (the resolved config) and shard_report.json (what verification found and skipped); written

@@ -183,7 +183,7 @@ def test_direct_construction_is_validated_and_coerced():
     with pytest.raises(ConfigError, match="keep_last"):
         TrainLoopConfig(keep_last=-1)
     with pytest.raises(ConfigError, match="mixed_precision"):
-        TrainLoopConfig(mixed_precision="fp16")
+        TrainLoopConfig(mixed_precision="fp8")
     with pytest.raises(TypeError):  # keyword-only: no positional surprises
         DataConfig("manifest.json")
 

@@ -91,12 +91,13 @@ def test_resolve_mixed_precision():
     with pytest.raises(ValueError, match="fp16"):
         resolve_mixed_precision("fp16")
     # accelerate launch --mixed_precision: bf16 is honoured by auto and refused against an explicit "no"; "no" is
-    # also accelerate's default, so it never turns a configured bf16 off; fp16 is refused with what to use instead
+    # also accelerate's default, so it never turns a configured bf16 off; fp16 is refused where nothing scales the
+    # loss, with what to use instead (the trainer's fp16: tests/test_fp16_training.py)
     assert resolve_mixed_precision("auto", "bf16") == "bf16"
     assert resolve_mixed_precision("bf16", "no") == "bf16" and resolve_mixed_precision("auto", "no") == expected_auto
     with pytest.raises(MixedPrecisionError, match="--mixed_precision bf16 disagrees with train.mixed_precision=no"):
         resolve_mixed_precision("no", "bf16")
-    with pytest.raises(MixedPrecisionError, match="fp16 loss scaling is not implemented.*bf16"):
+    with pytest.raises(MixedPrecisionError, match="no fp16 loss scaling.*bf16"):
         resolve_mixed_precision("auto", "fp16")
 
 

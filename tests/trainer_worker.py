@@ -17,7 +17,13 @@ torch processes is most of the cost). Each scenario is a dict:
     signal_at     fit: [rank, step, "SIGTERM"|"SIGINT"]: send the signal to this process in the middle of that step
     nan_at        fit: [rank, [steps]]: the loss VALUE is NaN on that rank at those steps (gradients stay finite,
                   so only the cross-rank flag can make the other ranks skip)
-    snapshot_at   fit: [steps]: before and after each of these steps s, save weights, optimizer state and EMA to
+    overflow_at   fit: [rank, [steps]]: with fp16, one gradient of that rank is set to inf after the backward
+                  passes (after DDP's gradient all-reduce) and before unscaling: an fp16 overflow on that rank
+                  alone, which only the cross-rank flag can make the other ranks skip
+    mixed_precision  train.mixed_precision of the process's Dist (the same in every scenario of a spec; default
+                  "no"); set it in the overrides too
+    snapshot_at   fit: [steps]: before and after each of these steps s, save weights, optimizer state, EMA and the
+                  fp16 loss scaler's state to
                   OUT/snap-rank{r}-step{s-1}.pt and OUT/snap-rank{r}-step{s}.pt
     steps         equivalence: number of optimizer steps
     empty_at      equivalence: [rank, [steps]]: that rank's slice of those global batches (1-based steps) is empty,
@@ -69,6 +75,7 @@ class Faults:
             self.signal_at = (int(scenario["signal_at"][1]), getattr(signal, scenario["signal_at"][2]))
         nan = scenario.get("nan_at")
         self.nan_steps = set(nan[1]) if nan and nan[0] == rank else set()
+        self.overflow_steps = _steps_for_rank(scenario.get("overflow_at"), rank)
         self.step_in_progress = 0
         self.real_loss = None  # the objective's real loss, set when the trainer builds its objective
 
@@ -101,6 +108,16 @@ class InstrumentedTrainer(Trainer):
         self.faults = faults
         self.record_ids = bool(scenario.get("record_ids"))
         self.snapshot_at = set(scenario.get("snapshot_at") or ())
+        if faults.overflow_steps:
+            unscale = self.loss_scaler.unscale_
+
+            def unscale_with_overflow(optimizer):
+                if self.faults.step_in_progress in self.faults.overflow_steps:
+                    grad = next(p.grad for p in self.model.parameters() if p.grad is not None)
+                    grad.view(-1)[0] = float("inf")
+                return unscale(optimizer)
+
+            self.loss_scaler.unscale_ = unscale_with_overflow
 
     def train_step(self, micro_batches, draws=None):
         step = self.step + 1
@@ -120,6 +137,7 @@ class InstrumentedTrainer(Trainer):
             "model": {k: v.detach().clone() for k, v in self.dist.unwrap(self.model).state_dict().items()},
             "optimizer": self.optimizer.state_dict(),
             "ema": {k: v.clone() for k, v in self.ema.state_dict().items()},
+            "scaler": self.loss_scaler.state_dict(),  # fp16's loss scale (None without fp16)
         }
         torch.save(state, self.out / f"snap-rank{self.dist.rank}-step{step}.pt")
 
@@ -254,7 +272,10 @@ def main(spec_path: str) -> int:
     scenarios = json.loads(Path(spec_path).read_text())
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(1)  # bitwise comparisons across processes: same intra-op split everywhere
-    with Dist(mixed_precision="no") as dist:
+    precisions = {scenario.get("mixed_precision", "no") for scenario in scenarios}
+    if len(precisions) != 1:
+        raise ValueError(f"one Dist per process: every scenario of a spec needs the same mixed_precision, got {precisions}")
+    with Dist(mixed_precision=precisions.pop(), loss_scaling=True) as dist:
         for scenario in scenarios:
             code = run_scenario(scenario, dist)
             if code != 0:
