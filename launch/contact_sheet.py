@@ -25,7 +25,7 @@ if __package__ in (None, ""):  # run as a script: make the project importable fr
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.contact_sheet import ContactSheetRequest, run_contact_sheet
-from pipeline.sampling import JOINT_DECODES, SamplingError, read_prompts
+from pipeline.request import JOINT_DECODES, SamplingError, read_prompts
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

@@ -217,7 +217,7 @@ def _edited_flags(out_dir: Path, sample: Mapping[str, Any], skeleton: Skeleton, 
     if path is None or not (out_dir / path).is_file():
         return None
     from mfm.layout import FeatureLayout
-    from pipeline.sampling import edited_joints
+    from pipeline.outputs import edited_joints
 
     keep = np.load(out_dir / path)
     edited = edited_joints(keep, FeatureLayout(skeleton))[:frames]

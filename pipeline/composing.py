@@ -47,7 +47,6 @@ import torch
 from tqdm.auto import tqdm
 
 from mfm.composition import (
-    BABEL_SWITCH,
     HUMANML3D_SWITCH,
     SWITCH_TOLERANCE,
     Composition,
@@ -60,42 +59,26 @@ from mfm.composition import (
 )
 from mfm.model import ModelConfig
 from pipeline.inference import TrainedModel
-from pipeline.sampling import (
-    RESULTS_FILE,
+from pipeline.integration import (
     Integrator,
-    SampleRequest,
-    SampleWriter,
-    SamplingError,
     load_for_request,
-    prepare_out_dir,
     resolve_integrator,
-    results_header,
     sample_seed,
     synchronize,
+)
+from pipeline.outputs import (
+    RESULTS_FILE,
+    SampleWriter,
+    prepare_out_dir,
+    results_header,
+    write_index_page,
     write_json_atomically,
 )
+from pipeline.request import SampleRequest, SamplingError
 
 logger = logging.getLogger(__name__)
 
-SWITCH_PRESETS = {"humanml3d": HUMANML3D_SWITCH, "babel": BABEL_SWITCH}
-"""FlowMDM's ``bpe_denoising_step`` per dataset (60 HumanML3D, 125 Babel) as flow times."""
 NEEDED_CONFIG = "model.positional=bpe model.conditioning=pccat"
-
-
-def parse_switch(text: str) -> float | int:
-    """``--switch``: a preset name (humanml3d, babel), an int (leading absolute solver steps) or a float flow time."""
-    name = text.strip().lower()
-    if name in SWITCH_PRESETS:
-        return SWITCH_PRESETS[name]
-    try:
-        return int(name)
-    except ValueError:
-        pass
-    try:
-        return float(name)
-    except ValueError:
-        raise ValueError(f"switch must be {' or '.join(SWITCH_PRESETS)}, an int step count or a float flow time, "
-                         f"got {text!r}") from None
 
 
 def composition_segments(request: SampleRequest, fps: float) -> list[tuple[str, int]]:
@@ -309,9 +292,5 @@ def run_composition(request: SampleRequest) -> dict[str, Any]:
     write_json_atomically(out_dir / RESULTS_FILE, results)
     logger.info("wrote %d composed sequence(s) of %d frames (%d segments) to %s", request.num_samples, total,
                 len(segments), out_dir)
-    try:  # index.html to browse the sequences (pipeline/browse.py): a failure is logged, never fatal
-        from pipeline.browse import write_sample_index
-        write_sample_index(out_dir)
-    except Exception as exc:
-        logger.warning("index.html not written: %s", exc)
+    write_index_page(out_dir)
     return results

@@ -27,11 +27,11 @@ import numpy as np
 from mfm.export import render_contact_sheet
 from mfm.features import features_to_joints, features_to_joints_rigid
 from mfm.metrics import plausibility, plausibility_settings, plausibility_side_by_side
-from mfm.skeleton import Skeleton
-from mfm.skeleton import get_skeleton
+from mfm.skeleton import Skeleton, get_skeleton
 from pipeline.data import Manifest, iter_motions, open_manifest
 from pipeline.inference import load_trained_model, skeleton_from_spec
-from pipeline.sampling import JOINT_DECODES, SampleRequest, SamplingError, run_sampling
+from pipeline.request import JOINT_DECODES, SampleRequest, SamplingError
+from pipeline.sampling import run_sampling
 
 DECODERS = {"ric": features_to_joints, "rigid": features_to_joints_rigid}  # the keys of JOINT_DECODES
 

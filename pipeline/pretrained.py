@@ -221,23 +221,23 @@ class GeneratedMotions:
              overwrite: bool = False) -> Path:
         """Write every motion (sample_NNN/ with features.npy, joints.npy, motion.mp4|gif, motion.bvh) and
         results.json into ``out_dir``; ``mdm_results`` also MDM's results.npy."""
-        from pipeline import sampling
+        from pipeline import outputs
 
         out_dir = Path(out_dir)
         request = dataclasses.replace(self._request, out_dir=str(out_dir), video=video, bvh=bvh,
                                       mdm_results=mdm_results, overwrite=overwrite)
-        sampling.prepare_out_dir(out_dir, overwrite)
-        writer = sampling.SampleWriter(request, self._trained, out_dir)
+        outputs.prepare_out_dir(out_dir, overwrite)
+        writer = outputs.SampleWriter(request, self._trained, out_dir)
         samples = []
         for record, features in zip(self.records, self.features):
             title = record["text"] or record["action"] or "unconditional"
             samples.append({**record, **writer.write(record["index"], features, title)})
-        results = {**sampling.results_header(request, self._trained, self._integrator, "sample",
+        results = {**outputs.results_header(request, self._trained, self._integrator, "sample",
                                              bool(request.texts or request.actions)),
                    "api": "pipeline.pretrained.MotionPipeline", "samples": samples}
         if mdm_results:
-            results["mdm_results"] = sampling.write_mdm_layout(out_dir, samples, request.num_samples)
-        sampling.write_json_atomically(out_dir / sampling.RESULTS_FILE, results)
+            results["mdm_results"] = outputs.write_mdm_layout(out_dir, samples, request.num_samples)
+        outputs.write_json_atomically(out_dir / outputs.RESULTS_FILE, results)
         return out_dir
 
 
@@ -253,7 +253,7 @@ class MotionPipeline:
                         text_weights: str | None = None) -> MotionPipeline:
         """``folder``: an exported folder, a checkpoint or a run folder. ``text_weights``: CLIP datasets' weights
         file (checked against the recorded hash)."""
-        from pipeline.sampling import resolve_device
+        from pipeline.integration import resolve_device
 
         trained = load_trained_model(folder, use_ema=weights == "ema", device=resolve_device(device))
         return cls(trained, text_weights=text_weights)
@@ -269,15 +269,16 @@ class MotionPipeline:
         """Motions for ``texts`` (or ``actions``), ``num_samples`` each, ``seconds`` or ``lengths`` long (one value
         or one per prompt; default: drawn from the training lengths). The same arguments give the same motions as
         ``launch/sample.py``."""
-        from pipeline import sampling
+        from pipeline import integration, sampling
+        from pipeline.request import SampleRequest
 
         texts = [texts] if isinstance(texts, str) else list(texts)
-        request = sampling.SampleRequest(
+        request = SampleRequest(
             checkpoint=str(self.trained.checkpoint), out_dir="", texts=texts, actions=list(actions),
             seconds=_as_list(seconds), lengths=_as_list(lengths), num_samples=num_samples, seed=seed, steps=steps,
             solver=solver, guidance=guidance, batch_size=batch_size, text_weights=self.text_weights)
         trained = self.trained
-        integrator = sampling.resolve_integrator(request, trained)
+        integrator = integration.resolve_integrator(request, trained)
         conditions = sampling.encode_prompts(request, trained)
         specs = sampling.plan_samples(request, trained, None)
         records: dict[int, dict[str, Any]] = {}

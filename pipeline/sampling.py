@@ -49,11 +49,7 @@ shares this module's request, outputs and checkpoint loading.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
-import os
-import re
-import shutil
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -63,29 +59,18 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from mfm import metrics
 from mfm.composition import BoundInputs
-from mfm.diffusion import GaussianDiffusion
-from mfm.diffusion_sampling import SAMPLERS, replacement_edit, sample_diffusion, smooth_over_time
+from mfm.diffusion_sampling import replacement_edit, sample_diffusion, smooth_over_time
 from mfm.editing import (
-    DEFAULT_EDIT_SETTINGS,
-    EDIT_SETTINGS,
-    EditSettings,
     edit,
     edit_mask,
     joint_frame_mask,
     motion_to_features,
 )
-from mfm.export import plot_x1_trajectory, render_motion, write_bvh, write_mdm_results
-from mfm.export.bvh import JOINT_CHANNELS, ROOT_CHANNELS
-from mfm.export.render import Captions
-from mfm.features import features_to_joints, rigid_joints
 from mfm.guidance import classifier_free_guidance
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
-from mfm.skeleton import Skeleton
 from mfm.solvers import (
-    FIXED_STEP_SOLVERS,
     SolveResult,
     draw_noise,
     guided_velocity,
@@ -94,213 +79,27 @@ from mfm.solvers import (
     solve,
     zero_padded_frames,
 )
-from pipeline.inference import TrainedModel, load_trained_model
+from pipeline.inference import TrainedModel
+from pipeline.integration import (
+    Integrator,
+    load_for_request,
+    resolve_integrator,
+    sample_seed,
+    synchronize,
+)
+from pipeline.outputs import (
+    RESULTS_FILE,
+    SampleWriter,
+    frame_ranges,
+    prepare_out_dir,
+    results_header,
+    write_index_page,
+    write_json_atomically,
+    write_mdm_layout,
+)
+from pipeline.request import EDIT_PRESETS, KEEP_OPTIONS, SampleRequest, SamplingError
 
 logger = logging.getLogger(__name__)
-
-RESULTS_FILE = "results.json"
-BROWSE_PAGE = "index.html"  # pipeline/browse.py's page of the outputs, written last
-RESULTS_VERSION = 1
-SAMPLE_DIR = "sample_{:03d}"
-TIME_CONVENTIONS = {"flow": "flow time t, 1 = data", "diffusion": "diffusion t_model = step / train steps, 0 = data"}
-_SAMPLE_DIR_PATTERN = re.compile(r"^sample_\d{3,}$")
-
-# Command-line preset name -> mfm.editing preset (None: the custom joints/frames mask built here).
-EDIT_PRESETS: dict[str, str | None] = {
-    "prediction": "prediction",
-    "inbetween": "inbetween",
-    "interpolate": "interpolation",
-    "upper-body": "upper_body",
-    "joints": None,
-}
-# ``--keep KEY=VALUE`` options each preset accepts, with their parsers.
-KEEP_OPTIONS: dict[str, dict[str, type]] = {
-    "prediction": {"prefix": float},
-    "inbetween": {"prefix": float, "suffix": float},
-    "interpolate": {"every": int},
-    "upper-body": {},
-    "joints": {"joints": str, "frames": str},
-}
-
-
-class SamplingError(ValueError):
-    """A request that cannot be served (bad option combination, unknown name, unreadable source motion)."""
-
-
-def known_solvers() -> list[str]:
-    """Fixed-step solvers of mfm.solvers, then the torchdiffeq methods it hands on (e.g. dopri5)."""
-    # torchdiffeq has no public list of its methods; mfm.solvers reads the same table.
-    from torchdiffeq._impl.odeint import SOLVERS
-
-    return sorted(FIXED_STEP_SOLVERS) + sorted(set(SOLVERS) - set(FIXED_STEP_SOLVERS))
-
-
-DEFAULT_FLOW_SOLVER = "euler"
-MDM_RESULTS_FILES = ("results.npy", "results.txt", "results_len.txt")
-DEFAULT_FLOW_STEPS = 10
-DEFAULT_GUIDANCE = 2.5  # MFM's sampling scale (its generate.py and evaluation)
-DEFAULT_DIFFUSION_SAMPLER = "ddpm"  # FLAME's and FlowMDM's sampler; its default steps are the training steps
-# How joints.npy (and the video) are decoded from the features, as results.json describes them.
-JOINT_DECODES = {
-    "ric": "features_to_joints (recover_from_ric)",
-    "rigid": "features_to_joints_rigid (recover_from_ric fitted onto the skeleton's fixed bone lengths)",
-}
-
-
-def _positive_int(name: str, value: Any) -> None:
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-        raise SamplingError(f"{name} must be a positive int, got {value!r}")
-
-
-@dataclasses.dataclass
-class SampleRequest:
-    """Everything one sampling run needs; see the module docstring for the outputs."""
-
-    checkpoint: str | Path  # a step-XXXXXXXX folder, or a run/checkpoints folder (newest complete checkpoint)
-    out_dir: str | Path
-    texts: Sequence[str] = ()
-    actions: Sequence[str] = ()  # class names, for action models
-    lengths: Sequence[int] = ()  # frames: one for all prompts or one per prompt; empty: see module docstring
-    seconds: Sequence[float] = ()  # alternative to lengths (converted with the dataset's fps)
-    num_samples: int = 1  # per prompt (without prompts: in total, unconditional); composition: sequences
-    steps: int | None = None  # None: 10 for flow models, every training step (1000) for diffusion models
-    solver: str | None = None  # None: "euler" (flow) or "ddpm" (diffusion); see the module docstring
-    guidance: float | None = None  # None: DEFAULT_GUIDANCE, or the edit settings' scale for a flow edit
-    seed: int = 0
-    batch_size: int = 64
-    weights: str = "ema"  # "ema" (falls back to the raw weights when the run kept none) or "model"
-    device: str = "auto"  # "auto": cuda when available
-    text_weights: str | None = None  # CLIP datasets: the text encoder weights file (checked by hash)
-    edit: str | None = None  # a key of EDIT_PRESETS
-    source_motion: str | Path | None = None
-    keep: Mapping[str, str] = dataclasses.field(default_factory=dict)  # preset options (KEEP_OPTIONS)
-    rewrite_until: float | None = None  # ς; None: the edit settings' value for the preset
-    edit_settings: str = DEFAULT_EDIT_SETTINGS  # flow edits: steps, ς and guidance (mfm.editing.EDIT_SETTINGS)
-    smoothing: float | None = None  # output smoothing σ in frames; None: the diffusion baseline's (FLAME: 1), else 0
-    mdm_results: bool = False  # also write MDM's results.npy (+ results.txt, results_len.txt) for MDM's scripts
-    video: bool = True
-    video_format: str = "auto"  # "auto" (MP4 if ffmpeg is on PATH, else GIF), "mp4" or "gif"
-    bvh: bool = True
-    plot_trajectory: bool = False
-    decode: str = "ric"  # joints.npy and the video: a key of JOINT_DECODES (the BVH is always rigid)
-    overwrite: bool = False  # replace the outputs of an earlier run in out_dir
-    progress: bool | None = None  # None: progress bars when stderr is a terminal
-    # Composition (pipeline/composing.py): one sequence made of (text, frames) segments.
-    compose_file: str | Path | None = None  # FlowMDM prompt file {"text": [...], "lengths": [...]}
-    extrapolate: bool = False  # one text (or action) over every segment; also chosen when the file's texts agree
-    num_segments: int | None = None  # extrapolation without a file: the one length repeated this many times
-    switch: float | int | None = None  # bpe models: flow time or leading absolute steps; None: HUMANML3D_SWITCH
-    attention_chunk: int | None = None  # bpe models: attention block size; None: auto; 0: dense attention
-
-    def __post_init__(self) -> None:
-        if self.texts and self.actions:
-            raise SamplingError("give texts or actions, not both")
-        if self.lengths and self.seconds:
-            raise SamplingError("give lengths (frames) or seconds, not both")
-        for name in ("num_samples", "batch_size"):
-            _positive_int(name, getattr(self, name))
-        if self.steps is not None:
-            _positive_int("steps", self.steps)
-        if self.smoothing is not None and not self.smoothing >= 0:
-            raise SamplingError(f"smoothing must be a σ >= 0 (frames; 0: none), got {self.smoothing}")
-        if self.weights not in ("ema", "model"):
-            raise SamplingError(f"weights must be 'ema' or 'model', got {self.weights!r}")
-        if self.solver is not None and self.solver not in known_solvers() + list(SAMPLERS):
-            raise SamplingError(f"unknown solver {self.solver!r}; known: {known_solvers()} for flow models, "
-                                f"{list(SAMPLERS)} for diffusion models")
-        if self.video_format not in ("auto", "mp4", "gif"):
-            raise SamplingError(f"video_format must be 'auto', 'mp4' or 'gif', got {self.video_format!r}")
-        if self.decode not in JOINT_DECODES:
-            raise SamplingError(f"decode must be one of {sorted(JOINT_DECODES)}, got {self.decode!r}")
-        if self.composes:
-            self._check_composition()
-        elif self.num_segments is not None or self.switch is not None or self.attention_chunk is not None:
-            raise SamplingError("num_segments, switch and attention_chunk only apply to a composition "
-                                "(compose_file / extrapolate)")
-        if self.edit is None:
-            if self.source_motion is not None or self.keep or self.rewrite_until is not None:
-                raise SamplingError("source motion, keep options and rewrite_until only apply to an edit")
-            return
-        if self.edit not in EDIT_PRESETS:
-            raise SamplingError(f"unknown edit {self.edit!r}; known: {sorted(EDIT_PRESETS)}")
-        if self.source_motion is None:
-            raise SamplingError(f"edit {self.edit!r} needs a source motion (.npy features (T, D) or joints (T, J, 3))")
-        if self.solver is not None and self.solver not in FIXED_STEP_SOLVERS and self.solver not in SAMPLERS:
-            raise SamplingError(f"editing rewrites the trajectory between fixed steps: use a solver in "
-                                f"{sorted(FIXED_STEP_SOLVERS)} (flow) or {list(SAMPLERS)} (diffusion), "
-                                f"not {self.solver!r}")
-        unknown = sorted(set(self.keep) - set(KEEP_OPTIONS[self.edit]))
-        if unknown:
-            raise SamplingError(f"edit {self.edit!r} takes keep options {sorted(KEEP_OPTIONS[self.edit]) or 'none'}, "
-                                f"got {unknown}")
-        if self.edit == "joints" and "joints" not in self.keep:
-            raise SamplingError("edit 'joints' needs keep joints=NAME,NAME,... (the joints taken from the source)")
-        if self.rewrite_until is not None and not 0.0 <= self.rewrite_until <= 1.0:
-            raise SamplingError(f"rewrite_until must be in [0, 1], got {self.rewrite_until}")
-        if self.edit_settings not in EDIT_SETTINGS:
-            raise SamplingError(f"unknown edit settings {self.edit_settings!r}; known: {', '.join(EDIT_SETTINGS)}")
-
-    @property
-    def composes(self) -> bool:
-        """A composition request (pipeline/composing.py) rather than independent samples or edits."""
-        return self.compose_file is not None or self.extrapolate
-
-    def _check_composition(self) -> None:
-        if self.edit is not None:
-            raise SamplingError("a composition cannot also be an edit")
-        if self.compose_file is not None:
-            if self.texts or self.actions or self.lengths or self.seconds or self.num_segments is not None:
-                raise SamplingError(f"{self.compose_file}: the composition's texts and lengths come from the file; "
-                                    "do not also give texts, actions, lengths, seconds or num_segments")
-        else:
-            if len(self.texts) + len(self.actions) != 1:
-                raise SamplingError("extrapolation without a prompt file repeats one text (or action): give exactly "
-                                    "one")
-            if not (self.lengths or self.seconds):
-                raise SamplingError("extrapolation without a prompt file needs the segment lengths (one per segment, "
-                                    "or one with num_segments)")
-            if self.num_segments is not None:
-                _positive_int("num_segments", self.num_segments)
-                if len(self.lengths) + len(self.seconds) != 1:
-                    raise SamplingError("num_segments repeats one length: give exactly one length (or seconds)")
-        if self.switch is not None:
-            if isinstance(self.switch, bool) or not isinstance(self.switch, (int, float)):
-                raise SamplingError(f"switch must be a flow time (float) or a step count (int), got {self.switch!r}")
-        if self.attention_chunk is not None and (isinstance(self.attention_chunk, bool)
-                                                 or not isinstance(self.attention_chunk, int)
-                                                 or self.attention_chunk < 0):
-            raise SamplingError(f"attention_chunk must be an int >= 0 (0: dense attention), got "
-                                f"{self.attention_chunk!r}")
-
-    @property
-    def settings(self) -> EditSettings:
-        """The flow edit's settings (``edit_settings``); explicit steps, guidance and ς override them."""
-        return EDIT_SETTINGS[self.edit_settings]
-
-    @property
-    def rewrite_time(self) -> float:
-        if self.rewrite_until is not None:
-            return float(self.rewrite_until)
-        return self.settings.rewrite_time(EDIT_PRESETS[self.edit] or "joints")
-
-    def guidance_for(self, trained: TrainedModel) -> float:
-        """The guidance scale: as given, else the edit settings' for a flow edit, else the diffusion baseline's own
-        (FLAME: 8.0, mfm.diffusion_sampling.BASELINE_SAMPLING), else DEFAULT_GUIDANCE."""
-        if self.guidance is not None:
-            return float(self.guidance)
-        if self.edit is not None and trained.objective == "flow":
-            return self.settings.guidance
-        baseline = trained.baseline_sampling
-        return baseline.guidance if baseline is not None else DEFAULT_GUIDANCE
-
-    def smoothing_for(self, trained: TrainedModel) -> float:
-        """σ (frames) of the output's Gaussian smoothing over time: as given, else the diffusion baseline's own
-        (FLAME: 1.0), else 0 (none)."""
-        if self.smoothing is not None:
-            return float(self.smoothing)
-        baseline = trained.baseline_sampling
-        return baseline.smoothing_sigma if baseline is not None else 0.0
-
 
 @dataclasses.dataclass(frozen=True)
 class SampleSpec:
@@ -308,7 +107,6 @@ class SampleSpec:
     prompt: int | None  # index into the request's texts/actions; None: unconditional
     length: int
     seed: int
-
 
 @dataclasses.dataclass
 class SourceMotion:
@@ -318,37 +116,12 @@ class SourceMotion:
     kind: str  # "features" or "joints"
     features: torch.Tensor  # (T, D), normalised
 
-
-# ---------------------------------------------------------------------------------------------------------------
-# planning
-
-
-def read_prompts(path: str | Path) -> list[str]:
-    """One prompt per line; blank lines and lines starting with ``#`` are skipped."""
-    path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as err:
-        raise SamplingError(f"{path}: cannot read the prompts file ({err})") from err
-    prompts = [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
-    if not prompts:
-        raise SamplingError(f"{path}: the prompts file holds no prompt")
-    return prompts
-
-
 def max_sample_length(trained: TrainedModel) -> int:
     """Longest motion to ask for: the window the model was trained on (196 frames for HumanML3D, as MDM/MFM)."""
     return min(int(trained.window), int(trained.model_config.max_frames))
 
-
-def sample_seed(seed: int, index: int) -> int:
-    """The noise seed of sample ``index``: independent streams per (seed, index), unlike ``seed + index``."""
-    return int(np.random.SeedSequence([seed, index]).generate_state(1)[0])
-
-
 def _prompt_count(request: SampleRequest) -> int:
     return len(request.texts) or len(request.actions)
-
 
 def requested_lengths(request: SampleRequest, fps: float) -> list[int] | None:
     """Per-prompt lengths in frames from ``lengths``/``seconds`` (None when neither was given)."""
@@ -362,7 +135,6 @@ def requested_lengths(request: SampleRequest, fps: float) -> list[int] | None:
     if min(frames) < 1:
         raise SamplingError(f"lengths must be at least one frame, got {frames}")
     return frames * prompts if len(frames) == 1 else frames
-
 
 def plan_samples(request: SampleRequest, trained: TrainedModel, source: SourceMotion | None) -> list[SampleSpec]:
     """One SampleSpec per output motion, with its prompt, length (clamped) and noise seed."""
@@ -384,17 +156,11 @@ def plan_samples(request: SampleRequest, trained: TrainedModel, source: SourceMo
         logger.warning("clamping lengths above %d frames (the model's max_frames) to %d", limit, limit)
     return [SampleSpec(i, prompt_of[i], min(int(lengths[i]), limit), sample_seed(request.seed, i)) for i in range(n)]
 
-
 def batches(specs: Sequence[SampleSpec], batch_size: int) -> Iterator[list[SampleSpec]]:
     """Chunks of ``batch_size``, longest samples together (less padding to compute)."""
     ordered = sorted(specs, key=lambda s: (-s.length, s.index))
     for start in range(0, len(ordered), batch_size):
         yield ordered[start:start + batch_size]
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# editing inputs
-
 
 def load_source_motion(path: str | Path, trained: TrainedModel) -> SourceMotion:
     """A ``.npy`` of un-normalised features (T, D) or joints (T, J, 3) on the checkpoint's skeleton, normalised."""
@@ -414,7 +180,6 @@ def load_source_motion(path: str | Path, trained: TrainedModel) -> SourceMotion:
         raise SamplingError(f"{path}: the source motion has no frames")
     return SourceMotion(path, kind, features.to(trained.device))
 
-
 def _parse_frames(text: str, num_frames: int) -> slice | list[int]:
     """``a:b`` (a slice, either end optional) or ``i,j,k`` frame indices."""
     try:
@@ -425,10 +190,8 @@ def _parse_frames(text: str, num_frames: int) -> slice | list[int]:
     except ValueError:
         raise SamplingError(f"keep frames={text!r}: use START:STOP or comma-separated frame indices") from None
 
-
 def _parse_joints(text: str) -> list[int | str]:
     return [int(j) if j.strip().isdigit() else j.strip() for j in text.split(",") if j.strip()]
-
 
 def preset_options(request: SampleRequest) -> dict[str, Any]:
     """The keep options converted to the preset's types (as recorded in results.json)."""
@@ -443,7 +206,6 @@ def preset_options(request: SampleRequest) -> dict[str, Any]:
         except ValueError:
             raise SamplingError(f"keep {key}={value!r}: expected a {types[key].__name__}") from None
     return options
-
 
 def keep_mask(request: SampleRequest, options: Mapping[str, Any], lengths: torch.Tensor, num_frames: int,
               layout: FeatureLayout, source_frames: int) -> torch.Tensor:
@@ -461,75 +223,6 @@ def keep_mask(request: SampleRequest, options: Mapping[str, Any], lengths: torch
     available = torch.arange(num_frames) < source_frames
     return (mask & available.view(1, -1, 1)).contiguous()
 
-
-# ---------------------------------------------------------------------------------------------------------------
-# the checkpoint and how to integrate it
-
-
-@dataclasses.dataclass(frozen=True)
-class Integrator:
-    """How a request integrates its checkpoint: an ODE solver (flow) or a diffusion sampler, with its steps."""
-
-    objective: str  # "flow" or "diffusion"
-    name: str  # the solver (flow) or sampler (diffusion: "ddpm" / "ddim")
-    steps: int
-    diffusion: GaussianDiffusion | None = None  # diffusion: the training process respaced to ``steps``
-
-    def record(self, trained: TrainedModel) -> dict[str, Any]:
-        """results.json's description of the objective and sampler."""
-        info: dict[str, Any] = {"objective": self.objective, "sampler": self.name, "solver": self.name,
-                                "steps": self.steps}
-        if self.diffusion is not None:
-            process = trained.diffusion
-            info["diffusion"] = {"preset": trained.diffusion_preset, "train_steps": process.num_train_steps,
-                                 "schedule": process.schedule, "prediction": process.prediction,
-                                 "learn_sigma": process.learn_sigma,
-                                 "model_steps": self.diffusion.timestep_map.tolist()}  # the training steps visited
-            if self.name == "ddim":
-                info["diffusion"]["eta"] = 0.0
-        return info
-
-
-def load_for_request(request: SampleRequest) -> TrainedModel:
-    """The request's checkpoint on its device (a checkpoint that cannot be loaded is a SamplingError)."""
-    try:
-        return load_trained_model(request.checkpoint, use_ema=request.weights == "ema",
-                                  device=resolve_device(request.device))
-    except ValueError as err:
-        raise SamplingError(str(err)) from err
-
-
-def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integrator:
-    """The solver or sampler and steps for ``trained``'s objective; a mismatch is a clear SamplingError."""
-    if trained.objective == "flow":
-        solver = request.solver or DEFAULT_FLOW_SOLVER
-        if solver in SAMPLERS:
-            raise SamplingError(f"{trained.checkpoint} is a flow-matching model (train.objective=flow): {solver!r} is "
-                                f"a diffusion sampler; use an ODE solver ({', '.join(known_solvers())})")
-        default_steps = request.settings.steps if request.edit is not None else DEFAULT_FLOW_STEPS
-        return Integrator("flow", solver, request.steps or default_steps)
-    sampler = request.solver or DEFAULT_DIFFUSION_SAMPLER
-    if sampler not in SAMPLERS:
-        raise SamplingError(f"{trained.checkpoint} is a diffusion model (train.objective=diffusion, preset "
-                            f"{trained.diffusion_preset!r}): sample it with solver 'ddpm' or 'ddim' (steps respaced "
-                            f"from its {trained.diffusion.num_train_steps} training steps), not the ODE solver "
-                            f"{sampler!r}")
-    if request.edit is not None and request.rewrite_until is not None:
-        raise SamplingError("rewrite_until is a flow-matching edit option: FLAME's replacement editing of a diffusion "
-                            "model re-noises the kept part before every step")
-    steps = request.steps or trained.diffusion.num_train_steps
-    try:
-        schedule = trained.diffusion.respaced(steps)
-    except ValueError as err:
-        raise SamplingError(f"cannot sample {trained.checkpoint} with {steps} steps of its "
-                            f"{trained.diffusion.num_train_steps}: {err}") from err
-    return Integrator("diffusion", sampler, steps, schedule)
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# generation
-
-
 @dataclasses.dataclass
 class BatchResult:
     specs: list[SampleSpec]
@@ -538,7 +231,6 @@ class BatchResult:
     keep: torch.Tensor | None  # (B, T, D) bool, edits only
     x1_hat: torch.Tensor | None  # (K, B, T, D), on request
     x1_hat_times: torch.Tensor | None
-
 
 @dataclasses.dataclass
 class PromptConditions:
@@ -552,7 +244,6 @@ class PromptConditions:
         index = prompts.to(self.cond.device)
         return PromptConditions(self.cond[index], {name: value[index] for name, value in self.extras.items()})
 
-
 def encode_prompts(request: SampleRequest, trained: TrainedModel) -> PromptConditions | None:
     """The request's texts or actions encoded for the model; None without prompts."""
     if not _prompt_count(request):
@@ -563,7 +254,6 @@ def encode_prompts(request: SampleRequest, trained: TrainedModel) -> PromptCondi
     except ValueError as err:
         raise SamplingError(str(err)) from err
     return PromptConditions(cond, extras)
-
 
 def placeholder_conditions(trained: TrainedModel, batch: int) -> PromptConditions:
     """Conditions of the right shapes for unconditional sampling (guidance 0 drops them through cond_mask)."""
@@ -577,11 +267,9 @@ def placeholder_conditions(trained: TrainedModel, batch: int) -> PromptCondition
                   "text_token_len": torch.ones(batch, dtype=torch.long, device=device)}
     return PromptConditions(torch.zeros(batch, config.cond_dim, device=device), extras)
 
-
 def conditioned_model(trained: TrainedModel, conditions: PromptConditions) -> torch.nn.Module | BoundInputs:
     """The model with the conditions' extra per-sample inputs bound (the solvers' and samplers' call signature)."""
     return BoundInputs(trained.model, conditions.extras) if conditions.extras else trained.model
-
 
 def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Tensor, num_frames: int) -> torch.Tensor:
     """(B, T, D) the source motion cropped/zero-padded to every sample's length."""
@@ -589,7 +277,6 @@ def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Te
     frames = min(num_frames, source.features.shape[0])
     known[:, :frames] = source.features[:frames]
     return known * valid_frame_mask(lengths, num_frames).unsqueeze(-1)
-
 
 @torch.no_grad()
 def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: Integrator, specs: list[SampleSpec],
@@ -640,96 +327,12 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
         None if result.x1_hat is None else result.x1_hat.float().cpu(), result.x1_hat_times,
     )
 
-
-# ---------------------------------------------------------------------------------------------------------------
-# outputs
-
-
-def _ranges(flags: np.ndarray) -> list[list[int]]:
-    """Half-open [start, stop) runs of True in a 1-D bool array."""
-    padded = np.concatenate(([False], flags.astype(bool), [False]))
-    edges = np.flatnonzero(padded[1:] != padded[:-1])
-    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
-
-
-def edited_joints(keep: np.ndarray, layout: FeatureLayout) -> np.ndarray:
-    """(T, J) bool: a joint is edited (generated) on a frame where any of its feature dims is not kept."""
-    return np.stack([~keep[:, layout.joint_dims(j)].all(axis=1) for j in range(layout.num_joints)], axis=1)
-
-
 def caption(request: SampleRequest, spec: SampleSpec) -> str:
     if spec.prompt is None:
         words = "unconditional"
     else:
         words = (request.texts or request.actions)[spec.prompt]
     return words if request.edit is None else f"{words} [{request.edit} edit]"
-
-
-class SampleWriter:
-    """Writes one sample's files and describes each of them for results.json (paths relative to out_dir)."""
-
-    def __init__(self, request: SampleRequest, trained: TrainedModel, out_dir: Path) -> None:
-        self.request = request
-        self.trained = trained
-        self.out_dir = out_dir
-        self.skeleton = trained.skeleton
-        self.layout = FeatureLayout(self.skeleton)
-
-    def _entry(self, path: Path, kind: str, **info: Any) -> dict[str, Any]:
-        return {"path": path.relative_to(self.out_dir).as_posix(), "kind": kind, **info}
-
-    def write(self, index: int, features: np.ndarray, title: Captions, keep: np.ndarray | None = None,
-              x1_hat: np.ndarray | None = None, x1_hat_times: np.ndarray | None = None) -> dict[str, Any]:
-        """Sample ``index``'s files from its un-normalised features (L, D); ``title``: a caption, or
-        ``[(start_frame, caption), ...]`` for captions that change over the motion (composition). Returns the
-        sample's results.json fields ``files`` and ``plausibility`` (:func:`plausibility_record`)."""
-        folder = self.out_dir / SAMPLE_DIR.format(index)
-        folder.mkdir(parents=True, exist_ok=True)
-        ric = features_to_joints(features, self.skeleton)
-        rigid = rigid_joints(ric, self.skeleton)  # fixed bone lengths: the only joints a rig (the BVH) can play
-        joints = (rigid if self.request.decode == "rigid" else ric).astype(np.float32)
-        files = []
-        np.save(folder / "features.npy", features)
-        files.append(self._entry(folder / "features.npy", "features", shape=list(features.shape),
-                                 normalized=False, dtype="float32"))
-        np.save(folder / "joints.npy", joints)
-        files.append(self._entry(folder / "joints.npy", "joints", shape=list(joints.shape), unit=self.skeleton.unit,
-                                 recovered_with=JOINT_DECODES[self.request.decode], dtype="float32"))
-        if keep is not None:
-            np.save(folder / "keep_mask.npy", keep)
-            files.append(self._entry(folder / "keep_mask.npy", "keep_mask", shape=list(keep.shape),
-                                     meaning="True = kept from the source motion"))
-        if self.request.video:
-            edited = None if keep is None else edited_joints(keep, self.layout)
-            video = render_motion(folder / "motion", joints, self.skeleton, self.trained.fps, title=title,
-                                  edited=edited, fmt=self.request.video_format)
-            captions = {} if isinstance(title, str) or title is None else {"captions": [list(c) for c in title]}
-            files.append(self._entry(video, "video", format=video.suffix.lstrip("."), fps=self.trained.fps,
-                                     colors="kept blue, edited red" if keep is not None else "one colour per chain",
-                                     **captions))
-        if self.request.bvh:
-            bvh = write_bvh(folder / "motion.bvh", rigid, self.skeleton, self.trained.fps)
-            files.append(self._entry(bvh, "bvh", skeleton=self.skeleton.name, unit="m", up="Y",
-                                     recovered_with=JOINT_DECODES["rigid"],
-                                     root_channels=list(ROOT_CHANNELS), joint_channels=list(JOINT_CHANNELS),
-                                     rotation_order="R = Ry @ Rx @ Rz (Blender Euler ZXY)", fps=self.trained.fps))
-        if x1_hat is not None:
-            plot_title = title if isinstance(title, str) or title is None else " / ".join(text for _, text in title)
-            png = plot_x1_trajectory(folder / "trajectory.png", x1_hat, x1_hat_times, self.skeleton,
-                                     mean=self.trained.mean.cpu(), std=self.trained.std.cpu(), title=plot_title)
-            # Flow: t of each x̂1 estimate (1 = data); diffusion: the denoiser's t_model (0 = data).
-            files.append(self._entry(png, "trajectory_plot", times=[round(float(t), 6) for t in x1_hat_times],
-                                     time_convention=TIME_CONVENTIONS[self.trained.objective]))
-        return {"files": files, "plausibility": plausibility_record(joints, self.skeleton)}
-
-
-def plausibility_record(joints: np.ndarray, skeleton: Skeleton) -> dict[str, float | None]:
-    """A sample's plausibility figures (mfm.metrics.plausibility of the (L, J, 3) joints written to joints.npy;
-    thresholds in results.json's ``plausibility_thresholds``), rounded; None where undefined (the contact foot
-    speed of a motion whose feet never touch the floor). No ground truth here, so no jerk ratio."""
-    figures = metrics.plausibility(joints, skeleton).clip(0)
-    return {name: None if value is None else round(value, 6) for name, value in figures.items()}
-
 
 def _edit_record(request: SampleRequest, integrator: Integrator, source: SourceMotion, options: Mapping[str, Any],
                  keep: np.ndarray) -> dict[str, Any]:
@@ -747,79 +350,10 @@ def _edit_record(request: SampleRequest, integrator: Integrator, source: SourceM
             **request.settings.record(),
             "overridden": [name for name, value in (("steps", request.steps), ("guidance", request.guidance),
                                                    ("rewrite_until", request.rewrite_until)) if value is not None]},
-        "kept_frame_ranges": _ranges(keep.any(axis=1)),
-        "kept_dim_ranges": _ranges(keep.any(axis=0)),
+        "kept_frame_ranges": frame_ranges(keep.any(axis=1)),
+        "kept_dim_ranges": frame_ranges(keep.any(axis=0)),
         "kept_fraction": round(float(keep.mean()), 6),
     }
-
-
-def write_mdm_layout(out_dir: Path, samples: Sequence[Mapping[str, Any]], num_samples: int) -> dict[str, Any]:
-    """MDM's ``results.npy`` (and its text files) of the written joints, so MDM's rendering and SMPL-fitting
-    scripts read our samples: our sample i is prompt i // num_samples's repetition i % num_samples."""
-    joints = [np.load(out_dir / next(f["path"] for f in s["files"] if f["kind"] == "joints")) for s in samples]
-    texts = [s["text"] or s["action"] or "" for s in samples]
-    path = write_mdm_results(out_dir / MDM_RESULTS_FILES[0], joints, texts, [s["length"] for s in samples],
-                             num_repetitions=num_samples, order="sample_major")
-    return {"path": path.name, "layout": "MDM sample/generate.py: motion (R·S, J, 3, F), index rep·S + sample, "
-            "padded with the last frame", "num_samples": len(samples) // num_samples, "num_repetitions": num_samples}
-
-
-def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
-    """Create ``out_dir``; refuse one with files unless ``overwrite``, which removes an earlier run's outputs
-    (results.json, index.html and sample_NNN folders) only."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    existing = [p for p in out_dir.iterdir()]
-    if not existing:
-        return
-    if not overwrite:
-        raise SamplingError(f"{out_dir} is not empty: choose a new output folder or pass overwrite")
-    ours = [p for p in existing if p.name in (RESULTS_FILE, *MDM_RESULTS_FILES, BROWSE_PAGE)
-            or (p.is_dir() and _SAMPLE_DIR_PATTERN.match(p.name))]
-    others = sorted(p.name for p in set(existing) - set(ours))
-    if others:
-        raise SamplingError(f"{out_dir} holds files that are not sampling outputs ({others[:5]}): not overwriting")
-    for path in ours:
-        shutil.rmtree(path) if path.is_dir() else path.unlink()
-
-
-def write_json_atomically(path: Path, payload: Mapping[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(payload, indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
-
-
-def resolve_device(device: str) -> str:
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return device
-
-
-def synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def results_header(request: SampleRequest, trained: TrainedModel, integrator: Integrator, mode: str,
-                   conditioned: bool) -> dict[str, Any]:
-    """The part of results.json every mode shares: the checkpoint, the data it knows and how it was integrated."""
-    return {
-        "version": RESULTS_VERSION,
-        "checkpoint": str(trained.checkpoint),
-        "step": trained.step,
-        "weights": trained.weights,
-        "dataset_id": trained.dataset_id,
-        "skeleton": trained.skeleton.name,
-        "fps": trained.fps,
-        "mode": mode,
-        "conditioning": "text" if request.texts or request.compose_file else "action" if request.actions else "none",
-        **integrator.record(trained),
-        "guidance": request.guidance_for(trained) if conditioned else 0.0,
-        "smoothing_sigma": request.smoothing_for(trained),
-        "seed": request.seed,
-        "device": str(trained.device),
-        "plausibility_thresholds": metrics.plausibility_settings(trained.skeleton),
-    }
-
 
 def sample_record(request: SampleRequest, trained: TrainedModel, integrator: Integrator, spec: SampleSpec,
                   chunk: Sequence[SampleSpec], nfe: int) -> dict[str, Any]:
@@ -835,7 +369,6 @@ def sample_record(request: SampleRequest, trained: TrainedModel, integrator: Int
         "nfe": nfe,
     }
 
-
 def generated_batches(request: SampleRequest, trained: TrainedModel, integrator: Integrator,
                       specs: Sequence[SampleSpec], conditions: PromptConditions | None, source: SourceMotion | None,
                       options: Mapping[str, Any]) -> Iterator[tuple[list[SampleSpec], BatchResult, np.ndarray, float]]:
@@ -850,7 +383,6 @@ def generated_batches(request: SampleRequest, trained: TrainedModel, integrator:
         seconds = time.perf_counter() - tick
         features = trained.denormalize(batch.features.to(trained.device)).cpu().numpy()
         yield chunk, batch, features, seconds
-
 
 def run_sampling(request: SampleRequest) -> dict[str, Any]:
     """Generate every sample of ``request``, write the files and ``results.json``; returns the results dict.
@@ -907,9 +439,5 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
     write_json_atomically(out_dir / RESULTS_FILE, results)
     logger.info("wrote %d sample(s) to %s (%.1f ms per motion)", len(specs), out_dir,
                 results["timing"]["ms_per_motion"])
-    try:  # index.html to browse the motions (pipeline/browse.py): a failure is logged, never fatal
-        from pipeline.browse import write_sample_index
-        write_sample_index(out_dir)
-    except Exception as exc:
-        logger.warning("index.html not written: %s", exc)
+    write_index_page(out_dir)
     return results

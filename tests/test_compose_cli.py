@@ -14,17 +14,24 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image
-
-import pipeline.sampling as sampling_module
 from conftest import REPO_ROOT
+from PIL import Image
+from test_sample_cli import (
+    _train_once,
+    files_described,
+    files_on_disk,
+    sample,
+    sample_entry,
+    text_run,
+)
+from test_trainer import build_dataset_once, clean_env
+
+import pipeline.outputs as outputs_module
 from mfm.composition import HUMANML3D_SWITCH, BoundInputs, compose, read_prompt_file
 from mfm.diffusion_sampling import sample_diffusion, smooth_over_time
 from mfm.export import read_bvh
 from pipeline.inference import load_trained_model
-from pipeline.sampling import sample_seed
-from test_sample_cli import _train_once, files_described, files_on_disk, sample, sample_entry, text_run
-from test_trainer import build_dataset_once, clean_env
+from pipeline.integration import sample_seed
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_thread")]
 
@@ -91,13 +98,13 @@ def features_file(out: Path, results: dict, index: int = 0) -> np.ndarray:
 
 def test_three_segments_compose_into_one_sequence_with_changing_captions(bpe_run, tmp_path, monkeypatch):
     titles = []
-    real_render = sampling_module.render_motion
+    real_render = outputs_module.render_motion
 
     def recording_render(*args, **kwargs):
         titles.append(kwargs["title"])
         return real_render(*args, **kwargs)
 
-    monkeypatch.setattr(sampling_module, "render_motion", recording_render)
+    monkeypatch.setattr(outputs_module, "render_motion", recording_render)
     out = tmp_path / "out"
     results = sample(bpe_run, out, "--compose", str(prompt_file(tmp_path, THREE_SEGMENTS)), "--video-format", "gif",
                      "--seed", "3")

@@ -3,13 +3,14 @@ end on the tiny text checkpoint test_sample_cli.py trains, generated and ground-
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
+from conftest import load_launch_script
 from matplotlib.colors import to_rgb
 from PIL import Image
+from test_export import synthetic_clip
+from test_sample_cli import text_run  # noqa: F401  (the session's tiny checkpoint, a fixture)
 
-from conftest import load_launch_script
 from mfm.export import render_contact_sheet
 from mfm.export.contact_sheet import HEADER_PX, ROW_TITLE_PX, sheet_frames
 from mfm.export.stick import SIDE_COLORS, bone_sides
@@ -23,9 +24,8 @@ from pipeline.contact_sheet import (
 )
 from pipeline.data import open_manifest
 from pipeline.inference import load_trained_model
-from pipeline.sampling import SamplingError, max_sample_length
-from test_export import synthetic_clip
-from test_sample_cli import text_run  # noqa: F401  (the session's tiny checkpoint, a fixture)
+from pipeline.request import SamplingError
+from pipeline.sampling import max_sample_length
 
 
 def pixels(path) -> np.ndarray:

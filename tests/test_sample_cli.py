@@ -9,18 +9,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import embedded_dataset_once, load_launch_script
 from matplotlib import rcParams
 from PIL import Image
+from test_trainer import build_dataset_once, train_entry
 
-from conftest import embedded_dataset_once, load_launch_script
 from mfm import metrics
 from mfm.export import read_bvh
 from mfm.features import features_to_joints, features_to_joints_rigid, rigid_joints
 from mfm.layout import FeatureLayout
 from pipeline.inference import load_trained_model
-from pipeline.sampling import edited_joints, max_sample_length
+from pipeline.outputs import edited_joints
+from pipeline.sampling import max_sample_length
 from preprocess.processing import single_threaded_torch
-from test_trainer import build_dataset_once, train_entry
 
 # Tiny models on a shared CPU: a second intra-op thread only adds spin-waiting.
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_thread")]

@@ -1,0 +1,396 @@
+"""What a sampling, editing or composition run is asked to do: :class:`SampleRequest`, a typed config.
+
+A request is given as a YAML file (``--config FILE``), command-line flags (``--text``, ``--steps``, ... : the
+:data:`FLAGS` table, each a shorthand for one key) and dotted overrides (``key=value``, e.g. ``steps=20
+'texts=[a person walks]'``), applied in that order, validated as the training and evaluation configs are
+(pipeline.config.load_config); ``--print-config`` lists every key with its value, default and meaning. The request
+is run by :func:`pipeline.sampling.run_sampling` (samples and edits) or :func:`pipeline.composing.run_composition`
+(composition, extrapolation); what they write is described in pipeline/outputs.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from mfm.composition import BABEL_SWITCH, HUMANML3D_SWITCH
+from mfm.diffusion_sampling import SAMPLERS
+from mfm.editing import (
+    DEFAULT_EDIT_SETTINGS,
+    EDIT_SETTINGS,
+    EditSettings,
+)
+from mfm.solvers import (
+    FIXED_STEP_SOLVERS,
+)
+from pipeline.config import field_docs, load_config
+from pipeline.inference import TrainedModel
+
+# Command-line preset name -> mfm.editing preset (None: the custom joints/frames mask built here).
+EDIT_PRESETS: dict[str, str | None] = {
+    "prediction": "prediction",
+    "inbetween": "inbetween",
+    "interpolate": "interpolation",
+    "upper-body": "upper_body",
+    "joints": None,
+}
+
+# ``--keep KEY=VALUE`` options each preset accepts, with their parsers.
+KEEP_OPTIONS: dict[str, dict[str, type]] = {
+    "prediction": {"prefix": float},
+    "inbetween": {"prefix": float, "suffix": float},
+    "interpolate": {"every": int},
+    "upper-body": {},
+    "joints": {"joints": str, "frames": str},
+}
+
+class SamplingError(ValueError):
+    """A request that cannot be served (bad option combination, unknown name, unreadable source motion)."""
+
+def known_solvers() -> list[str]:
+    """Fixed-step solvers of mfm.solvers, then the torchdiffeq methods it hands on (e.g. dopri5)."""
+    # torchdiffeq has no public list of its methods; mfm.solvers reads the same table.
+    from torchdiffeq._impl.odeint import SOLVERS
+
+    return sorted(FIXED_STEP_SOLVERS) + sorted(set(SOLVERS) - set(FIXED_STEP_SOLVERS))
+
+DEFAULT_FLOW_SOLVER = "euler"
+
+DEFAULT_FLOW_STEPS = 10
+
+DEFAULT_GUIDANCE = 2.5  # MFM's sampling scale (its generate.py and evaluation)
+
+DEFAULT_DIFFUSION_SAMPLER = "ddpm"  # FLAME's and FlowMDM's sampler; its default steps are the training steps
+
+# How joints.npy (and the video) are decoded from the features, as results.json describes them.
+JOINT_DECODES = {
+    "ric": "features_to_joints (recover_from_ric)",
+    "rigid": "features_to_joints_rigid (recover_from_ric fitted onto the skeleton's fixed bone lengths)",
+}
+
+def _positive_int(name: str, value: Any) -> None:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise SamplingError(f"{name} must be a positive int, got {value!r}")
+
+@dataclasses.dataclass
+class SampleRequest:
+    """Everything one sampling, editing or composition run needs (module docstring: how it is given)."""
+
+    checkpoint: str | Path
+    """A step-XXXXXXXX folder, a run folder (its newest complete checkpoint) or an exported folder."""
+    out_dir: str | Path
+    """Output folder (must be empty unless overwrite)."""
+    texts: tuple[str, ...] = ()
+    """Prompts (text models)."""
+    prompts: str | None = None
+    """A file with one prompt per line (blank and # lines skipped), appended to texts."""
+    actions: tuple[str, ...] = ()
+    """Action class names (action models)."""
+    lengths: tuple[int, ...] = ()
+    """Frames: one for every prompt or one per prompt; empty: drawn from the training lengths (edits: the source's)."""
+    seconds: tuple[float, ...] = ()
+    """Like lengths, in seconds (converted with the dataset's fps)."""
+    num_samples: int = 1
+    """Samples per prompt (without prompts: in total, unconditional); composition: sequences."""
+    steps: int | None = None
+    """Solver steps; null: 10 (flow), the edit settings' 30 (flow edits), every training step (diffusion)."""
+    solver: str | None = None
+    """Flow: euler (default), midpoint, heun, rk4 or a torchdiffeq method such as dopri5; diffusion: ddpm
+    (default) or ddim."""
+    guidance: float | None = None
+    """Classifier-free guidance scale; null: 2.5, a flow edit's settings' 1.0, a FLAME-preset model's 8.0."""
+    smoothing: float | None = None
+    """Gaussian smoothing of the output over time, σ in frames; null: the diffusion baseline's own (FLAME: 1), else
+    none."""
+    seed: int = 0
+    """Noise seed (sample i uses SeedSequence([seed, i]))."""
+    batch_size: int = 64
+    """Motions per batch (does not change flow samples)."""
+    weights: str = "ema"
+    """ema (falls back to the raw weights when the run kept none) or model."""
+    device: str = "auto"
+    """auto (cuda when available), cpu, cuda, cuda:1, ..."""
+    text_weights: str | None = None
+    """CLIP datasets: the text encoder weights file, checked against the checkpoint's hash."""
+    edit: str | None = None
+    """Edit source_motion instead of sampling from noise: a key of EDIT_PRESETS."""
+    source_motion: str | Path | None = None
+    """Edits: .npy of un-normalised features (T, D) or joint positions (T, J, 3)."""
+    keep: dict[str, Any] = dataclasses.field(default_factory=dict)
+    """Edit mask options (KEEP_OPTIONS): prefix=F / suffix=F (prediction, inbetween), every=K (interpolate),
+    joints=A,B[,..] frames=S:E (joints)."""
+    rewrite_until: float | None = None
+    """Flow edits: rewrite the kept part up to this time ς; null: the edit settings'."""
+    edit_settings: str = DEFAULT_EDIT_SETTINGS
+    """Flow edits: paper (N = 30 steps, ς = 0.2, guidance 1.0) or reference-debug (MFM edit.py's debug presets)."""
+    mdm_results: bool = False
+    """Also write MDM's results.npy (+ results.txt, results_len.txt) for MDM's render/SMPL scripts."""
+    video: bool = True
+    """Write motion.mp4 / motion.gif per sample."""
+    video_format: str = "auto"
+    """auto (MP4 if ffmpeg is found, else GIF), mp4 or gif."""
+    bvh: bool = True
+    """Write motion.bvh per sample."""
+    plot_trajectory: bool = False
+    """Also plot the x̂1 estimates along the trajectory."""
+    decode: str = "ric"
+    """joints.npy and the video: ric (positions as recovered) or rigid (fitted onto the skeleton's bone lengths;
+    the BVH always is)."""
+    overwrite: bool = False
+    """Replace an earlier run's outputs in out_dir."""
+    progress: bool | None = None
+    """Progress bars; null: when stderr is a terminal."""
+    # Composition (pipeline/composing.py): one sequence made of (text, frames) segments.
+    compose_file: str | Path | None = None
+    """FlowMDM prompt file {"text": [...], "lengths": [...]}: one sequence of all segments per sample."""
+    extrapolate: bool = False
+    """One text (or action) repeated over segments; also chosen when the file's texts agree."""
+    num_segments: int | None = None
+    """Extrapolation without a file: the one length repeated this many times."""
+    switch: int | float | str | None = None
+    """bpe models: the flow time of the absolute-to-relative switch (float), a number of leading absolute steps
+    (int), or a name (humanml3d, babel); null: humanml3d."""
+    attention_chunk: int | None = None
+    """bpe models: attention block size; null: the attention horizon for sequences longer than it; 0: dense."""
+
+    def __post_init__(self) -> None:
+        if self.prompts is not None:  # read once: the request then holds the prompts themselves
+            self.texts = (*self.texts, *read_prompts(self.prompts))
+            self.prompts = None
+        if isinstance(self.switch, str):
+            try:
+                self.switch = parse_switch(self.switch)
+            except ValueError as err:
+                raise SamplingError(str(err)) from None
+        if self.texts and self.actions:
+            raise SamplingError("give texts or actions, not both")
+        if self.lengths and self.seconds:
+            raise SamplingError("give lengths (frames) or seconds, not both")
+        for name in ("num_samples", "batch_size"):
+            _positive_int(name, getattr(self, name))
+        if self.steps is not None:
+            _positive_int("steps", self.steps)
+        if self.smoothing is not None and not self.smoothing >= 0:
+            raise SamplingError(f"smoothing must be a σ >= 0 (frames; 0: none), got {self.smoothing}")
+        if self.weights not in ("ema", "model"):
+            raise SamplingError(f"weights must be 'ema' or 'model', got {self.weights!r}")
+        if self.solver is not None and self.solver not in known_solvers() + list(SAMPLERS):
+            raise SamplingError(f"unknown solver {self.solver!r}; known: {known_solvers()} for flow models, "
+                                f"{list(SAMPLERS)} for diffusion models")
+        if self.video_format not in ("auto", "mp4", "gif"):
+            raise SamplingError(f"video_format must be 'auto', 'mp4' or 'gif', got {self.video_format!r}")
+        if self.decode not in JOINT_DECODES:
+            raise SamplingError(f"decode must be one of {sorted(JOINT_DECODES)}, got {self.decode!r}")
+        if self.composes:
+            self._check_composition()
+        elif self.num_segments is not None or self.switch is not None or self.attention_chunk is not None:
+            raise SamplingError("num_segments, switch and attention_chunk only apply to a composition "
+                                "(compose_file / extrapolate)")
+        if self.edit is None:
+            if self.source_motion is not None or self.keep or self.rewrite_until is not None:
+                raise SamplingError("source motion, keep options and rewrite_until only apply to an edit")
+            return
+        if self.edit not in EDIT_PRESETS:
+            raise SamplingError(f"unknown edit {self.edit!r}; known: {sorted(EDIT_PRESETS)}")
+        if self.source_motion is None:
+            raise SamplingError(f"edit {self.edit!r} needs a source motion (.npy features (T, D) or joints (T, J, 3))")
+        if self.solver is not None and self.solver not in FIXED_STEP_SOLVERS and self.solver not in SAMPLERS:
+            raise SamplingError(f"editing rewrites the trajectory between fixed steps: use a solver in "
+                                f"{sorted(FIXED_STEP_SOLVERS)} (flow) or {list(SAMPLERS)} (diffusion), "
+                                f"not {self.solver!r}")
+        unknown = sorted(set(self.keep) - set(KEEP_OPTIONS[self.edit]))
+        if unknown:
+            raise SamplingError(f"edit {self.edit!r} takes keep options {sorted(KEEP_OPTIONS[self.edit]) or 'none'}, "
+                                f"got {unknown}")
+        if self.edit == "joints" and "joints" not in self.keep:
+            raise SamplingError("edit 'joints' needs keep joints=NAME,NAME,... (the joints taken from the source)")
+        if self.rewrite_until is not None and not 0.0 <= self.rewrite_until <= 1.0:
+            raise SamplingError(f"rewrite_until must be in [0, 1], got {self.rewrite_until}")
+        if self.edit_settings not in EDIT_SETTINGS:
+            raise SamplingError(f"unknown edit settings {self.edit_settings!r}; known: {', '.join(EDIT_SETTINGS)}")
+
+    @property
+    def composes(self) -> bool:
+        """A composition request (pipeline/composing.py) rather than independent samples or edits."""
+        return self.compose_file is not None or self.extrapolate
+
+    def _check_composition(self) -> None:
+        if self.edit is not None:
+            raise SamplingError("a composition cannot also be an edit")
+        if self.compose_file is not None:
+            if self.texts or self.actions or self.lengths or self.seconds or self.num_segments is not None:
+                raise SamplingError(f"{self.compose_file}: the composition's texts and lengths come from the file; "
+                                    "do not also give texts, actions, lengths, seconds or num_segments")
+        else:
+            if len(self.texts) + len(self.actions) != 1:
+                raise SamplingError("extrapolation without a prompt file repeats one text (or action): give exactly "
+                                    "one")
+            if not (self.lengths or self.seconds):
+                raise SamplingError("extrapolation without a prompt file needs the segment lengths (one per segment, "
+                                    "or one with num_segments)")
+            if self.num_segments is not None:
+                _positive_int("num_segments", self.num_segments)
+                if len(self.lengths) + len(self.seconds) != 1:
+                    raise SamplingError("num_segments repeats one length: give exactly one length (or seconds)")
+        if self.switch is not None:
+            if isinstance(self.switch, bool) or not isinstance(self.switch, (int, float)):
+                raise SamplingError(f"switch must be a flow time (float) or a step count (int), got {self.switch!r}")
+        if self.attention_chunk is not None and (isinstance(self.attention_chunk, bool)
+                                                 or not isinstance(self.attention_chunk, int)
+                                                 or self.attention_chunk < 0):
+            raise SamplingError(f"attention_chunk must be an int >= 0 (0: dense attention), got "
+                                f"{self.attention_chunk!r}")
+
+    @property
+    def settings(self) -> EditSettings:
+        """The flow edit's settings (``edit_settings``); explicit steps, guidance and ς override them."""
+        return EDIT_SETTINGS[self.edit_settings]
+
+    @property
+    def rewrite_time(self) -> float:
+        if self.rewrite_until is not None:
+            return float(self.rewrite_until)
+        return self.settings.rewrite_time(EDIT_PRESETS[self.edit] or "joints")
+
+    def guidance_for(self, trained: TrainedModel) -> float:
+        """The guidance scale: as given, else the edit settings' for a flow edit, else the diffusion baseline's own
+        (FLAME: 8.0, mfm.diffusion_sampling.BASELINE_SAMPLING), else DEFAULT_GUIDANCE."""
+        if self.guidance is not None:
+            return float(self.guidance)
+        if self.edit is not None and trained.objective == "flow":
+            return self.settings.guidance
+        baseline = trained.baseline_sampling
+        return baseline.guidance if baseline is not None else DEFAULT_GUIDANCE
+
+    def smoothing_for(self, trained: TrainedModel) -> float:
+        """σ (frames) of the output's Gaussian smoothing over time: as given, else the diffusion baseline's own
+        (FLAME: 1.0), else 0 (none)."""
+        if self.smoothing is not None:
+            return float(self.smoothing)
+        baseline = trained.baseline_sampling
+        return baseline.smoothing_sigma if baseline is not None else 0.0
+
+SWITCH_PRESETS = {"humanml3d": HUMANML3D_SWITCH, "babel": BABEL_SWITCH}
+"""FlowMDM's ``bpe_denoising_step`` per dataset (60 HumanML3D, 125 Babel) as flow times."""
+
+
+def parse_switch(text: str) -> float | int:
+    """``--switch``: a preset name (humanml3d, babel), an int (leading absolute solver steps) or a float flow time."""
+    name = text.strip().lower()
+    if name in SWITCH_PRESETS:
+        return SWITCH_PRESETS[name]
+    try:
+        return int(name)
+    except ValueError:
+        pass
+    try:
+        return float(name)
+    except ValueError:
+        raise ValueError(f"switch must be {' or '.join(SWITCH_PRESETS)}, an int step count or a float flow time, "
+                         f"got {text!r}") from None
+
+
+def read_prompts(path: str | Path) -> list[str]:
+    """One prompt per line; blank lines and lines starting with ``#`` are skipped."""
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as err:
+        raise SamplingError(f"{path}: cannot read the prompts file ({err})") from err
+    prompts = [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
+    if not prompts:
+        raise SamplingError(f"{path}: the prompts file holds no prompt")
+    return prompts
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the command line: the flags users already type, each a shorthand for one request key
+
+
+@dataclasses.dataclass(frozen=True)
+class Flag:
+    """``--name`` on the command line, setting request key ``key``; ``kind``: 'value' (one value), 'append'
+    (repeatable, a list), 'true' / 'false' (a switch setting the key to True / False). Help: the key's doc."""
+
+    name: str
+    key: str
+    kind: str = "value"
+    type: Callable[[str], Any] = str
+    choices: tuple[str, ...] | None = None
+    metavar: str | None = None
+
+
+def _key_value(text: str) -> tuple[str, str]:
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    return key, value
+
+
+FLAGS: tuple[Flag, ...] = (
+    Flag("--checkpoint", "checkpoint"),
+    Flag("--out", "out_dir"),
+    Flag("--text", "texts", "append"),
+    Flag("--prompts", "prompts"),
+    Flag("--action", "actions", "append"),
+    Flag("--length", "lengths", "append", int),
+    Flag("--seconds", "seconds", "append", float),
+    Flag("--num-samples", "num_samples", type=int),
+    Flag("--steps", "steps", type=int),
+    Flag("--solver", "solver"),
+    Flag("--guidance", "guidance", type=float),
+    Flag("--smoothing", "smoothing", type=float),
+    Flag("--seed", "seed", type=int),
+    Flag("--batch-size", "batch_size", type=int),
+    Flag("--edit", "edit", choices=tuple(sorted(EDIT_PRESETS))),
+    Flag("--source-motion", "source_motion"),
+    Flag("--keep", "keep", "append", _key_value, metavar="KEY=VALUE"),
+    Flag("--rewrite-until", "rewrite_until", type=float),
+    Flag("--edit-settings", "edit_settings", choices=tuple(sorted(EDIT_SETTINGS))),
+    Flag("--compose", "compose_file", metavar="FILE.json"),
+    Flag("--extrapolate", "extrapolate", "true"),
+    Flag("--num-segments", "num_segments", type=int),
+    Flag("--switch", "switch"),
+    Flag("--attention-chunk", "attention_chunk", type=int),
+    Flag("--plot-trajectory", "plot_trajectory", "true"),
+    Flag("--no-video", "video", "false"),
+    Flag("--video-format", "video_format", choices=("auto", "mp4", "gif")),
+    Flag("--no-bvh", "bvh", "false"),
+    Flag("--mdm-results", "mdm_results", "true"),
+    Flag("--decode", "decode", choices=tuple(sorted(JOINT_DECODES))),
+    Flag("--device", "device"),
+    Flag("--model-weights", "weights", choices=("ema", "model")),
+    Flag("--text-weights", "text_weights"),
+    Flag("--overwrite", "overwrite", "true"),
+)
+
+
+def add_request_flags(parser: argparse.ArgumentParser) -> None:
+    """Declare :data:`FLAGS` on ``parser`` (defaults None: an unset flag leaves the config's value)."""
+    docs = field_docs(SampleRequest)
+    for flag in FLAGS:
+        help_text = docs.get(flag.key, "")
+        if flag.kind in ("true", "false"):
+            parser.add_argument(flag.name, dest=flag.key, action=f"store_{flag.kind}", default=None, help=help_text)
+        else:
+            parser.add_argument(flag.name, dest=flag.key, type=flag.type, choices=flag.choices, metavar=flag.metavar,
+                                action="append" if flag.kind == "append" else "store", default=None,
+                                help=help_text)
+
+
+def flag_values(args: argparse.Namespace) -> dict[str, Any]:
+    """The request keys the flags in ``args`` set (``--keep`` pairs become the keep mapping)."""
+    values = {flag.key: getattr(args, flag.key) for flag in FLAGS if getattr(args, flag.key, None) is not None}
+    if "keep" in values:
+        values["keep"] = dict(values["keep"])
+    return values
+
+
+def load_sample_request(preset: str | Path | None = None, overrides: Sequence[str] = (),
+                        values: Mapping[str, Any] | None = None) -> SampleRequest:
+    """A validated request: ``preset`` (a YAML file), then ``values`` (the flags'), then ``key=value``
+    overrides. A bad key or value is a ConfigError or SamplingError naming it."""
+    return load_config(SampleRequest, preset, overrides, values=values or {})
