@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from mfm.text import RANDOM_INIT_SHA256, TextEncoding
-from pipeline.data import LoaderOptions, MotionLoader, open_manifest
+from pipeline.data.stream import LoaderOptions, MotionLoader, open_manifest
 
 
 class HashedTextEncoder:

@@ -4,7 +4,7 @@
     python benchmarks/bench_eval.py --items 64 --model-preset tiny --batch-size 32 --threads 1   # CPU smoke run
     python benchmarks/bench_eval.py --items 4384 --protocol full --replications 20 ...  # the whole published run
 
-What runs: the job's own code (pipeline.eval_replications.PointRun and ground_truth_embeddings) on an in-memory
+What runs: the job's own code (pipeline.evaluation.replications.PointRun and ground_truth_embeddings) on an in-memory
 test set of ``--items`` motions (lengths uniform in [40, 196] frames, rounded down to multiples of 4, as the
 HumanML3D test split), a model of ``--model-preset`` (configs/*.yaml, random weights: speed does not depend on
 their values) and a randomly initialised contrastive evaluator of the default size. Phases (seconds, summed over
@@ -34,16 +34,26 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
-from mfm.evaluators import ContrastiveEvaluator, ContrastiveEvaluatorConfig, save_evaluator  # noqa: E402
+from mfm.evaluators import (  # noqa: E402
+    ContrastiveEvaluator,
+    ContrastiveEvaluatorConfig,
+    save_evaluator,
+)
 from mfm.model import MotionFlowTransformer  # noqa: E402
 from pipeline.config import TrainConfig, load_config  # noqa: E402
-from pipeline.data import Manifest  # noqa: E402
+from pipeline.data.stream import Manifest  # noqa: E402
 from pipeline.distributed import Dist  # noqa: E402
-from pipeline.eval_config import SamplingPoint, load_eval_config  # noqa: E402
-from pipeline.eval_replications import (CheckpointContext, PhaseTimer, PointRun, ground_truth_embeddings,  # noqa: E402
-                                        ground_truth_plausibility, plan_protocol)
-from pipeline.eval_spaces import ContrastiveSpace, GroundTruthSet  # noqa: E402
-from pipeline.inference import TrainedModel  # noqa: E402
+from pipeline.evaluation.config import SamplingPoint, load_eval_config  # noqa: E402
+from pipeline.evaluation.replications import (  # noqa: E402
+    CheckpointContext,
+    PhaseTimer,
+    PointRun,
+    ground_truth_embeddings,
+    ground_truth_plausibility,
+    plan_protocol,
+)
+from pipeline.evaluation.spaces import ContrastiveSpace, GroundTruthSet  # noqa: E402
+from pipeline.generation.inference import TrainedModel  # noqa: E402
 
 DIM, TEXT_DIM = 263, 384
 EDITING_TASKS = ("prediction", "inbetween", "upper_body")

@@ -75,7 +75,7 @@ def compiled_for_sampling(model: torch.nn.Module, device: str) -> torch.nn.Modul
 
 def build_model(args: argparse.Namespace) -> tuple[torch.nn.Module, ModelConfig, str]:
     if args.checkpoint:
-        from pipeline.inference import load_trained_model
+        from pipeline.generation.inference import load_trained_model
 
         trained = load_trained_model(args.checkpoint, device=args.device)
         return trained.model, trained.model_config, str(trained.checkpoint)

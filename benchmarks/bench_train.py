@@ -36,7 +36,7 @@ import torch
 
 from pipeline.config import TrainConfig, load_config
 from pipeline.distributed import Dist
-from pipeline.trainer import Trainer
+from pipeline.training.trainer import Trainer
 
 SOURCES = ("random", "loader")
 

@@ -1,4 +1,4 @@
-"""Start-up verification time (pipeline.data.verify_shards, strict) of a dataset, every split, both backends.
+"""Start-up verification time (pipeline.data.stream.verify_shards, strict) of a dataset, every split, both backends.
 
     python benchmarks/bench_verify.py data/synthetic-minilm/manifest.json --cache DIR|off [--evict] [--runs N]
 
@@ -34,7 +34,7 @@ def main() -> None:
     parser.add_argument("--backends", default="webdataset,parquet")
     args = parser.parse_args()
 
-    from pipeline.data import open_manifest, verify_shards
+    from pipeline.data.stream import open_manifest, verify_shards
 
     kwargs = {}
     if "cache" in inspect.signature(verify_shards).parameters:

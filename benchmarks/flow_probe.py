@@ -7,9 +7,9 @@ import dataclasses
 
 import torch
 
-from pipeline.contact_sheet import DatasetCaption, first_captions
-from pipeline.data import open_manifest
-from pipeline.inference import TrainedModel, load_trained_model
+from pipeline.data.stream import open_manifest
+from pipeline.generation.contact_sheet import DatasetCaption, first_captions
+from pipeline.generation.inference import TrainedModel, load_trained_model
 
 
 @dataclasses.dataclass(frozen=True)

@@ -9,7 +9,7 @@ Full size is the HumanML3D preset (configs/humanml3d.yaml: 8 layers, width 512, 
 512-D text embeddings; batch 128 of 196-frame windows); ``--smoke`` is configs/tiny.yaml's model (2 layers, width
 64), batch 4 of 24-frame windows, 2 timed steps. Figures (each a JSON object with ``figure``, ``value``, ``unit``):
 
-* ``train_fp32`` / ``train_optimised``: the real training step (``pipeline.trainer.Trainer.train_step``: the
+* ``train_fp32`` / ``train_optimised``: the real training step (``pipeline.training.trainer.Trainer.train_step``: the
   flow-matching loss of ``mfm.flow``, backward, clipping, AdamW, EMA) on random batches, timed by
   ``benchmarks/bench_train.py``. fp32 = no autocast, eager. Optimised = bf16 autocast where the device has it,
   ``torch.compile`` (``--compile``, default on CUDA only) and fused AdamW (the trainer's choice on CUDA, for both
@@ -21,7 +21,7 @@ Full size is the HumanML3D preset (configs/humanml3d.yaml: 8 layers, width 512, 
   halves in one batched pass), ms per motion for one motion and per motion at batch 256 (smoke: 8), timed by
   ``benchmarks/bench_sampling.py`` (CUDA synchronised before each clock read; compiled with CUDA graphs under
   ``--compile``).
-* ``data_loader``: ``pipeline.data.MotionLoader`` streaming a throwaway synthetic dataset with HumanML3D shapes
+* ``data_loader``: ``pipeline.data.stream.MotionLoader`` streaming a throwaway synthetic dataset with HumanML3D shapes
   (built by the real shard builder, ``benchmarks/bench_data.py``), samples/s and batches/s with ``--workers``.
 * ``data_wait``: the optimised step fed by that loader; value = share of the wall time spent waiting for batches.
 * ``evaluator``: the evaluation job's replication (``benchmarks/bench_eval.py``: generation, evaluator embeddings,
@@ -72,10 +72,10 @@ import bench_train  # noqa: E402
 
 from mfm.model import ModelConfig, count_parameters  # noqa: E402
 from pipeline.config import TrainConfig, load_config  # noqa: E402
-from pipeline.data import LoaderOptions, open_manifest  # noqa: E402
+from pipeline.data.stream import LoaderOptions, open_manifest  # noqa: E402
 from pipeline.distributed import Dist  # noqa: E402
-from pipeline.eval_config import load_eval_config  # noqa: E402
-from pipeline.trainer import Trainer, draw_for_batch, model_config_for  # noqa: E402
+from pipeline.evaluation.config import load_eval_config  # noqa: E402
+from pipeline.training.trainer import Trainer, draw_for_batch, model_config_for  # noqa: E402
 
 FIGURES = ("train_fp32", "train_optimised", "equal_loss", "sampling_one", "sampling_batch", "data_loader",
            "data_wait", "evaluator")
@@ -360,7 +360,7 @@ def data_wait_figure(run: TrainingRun, workers: int) -> dict[str, Any]:
     return {"figure": "data_wait", "value": timing["data_wait_frac"], "unit": "fraction of wall time",
             "num_workers": workers, "s_per_step": timing["step_s_median"],
             "samples_per_s_with_loader": timing["samples_per_s"], "steps": timing["steps"],
-            "note": "the optimised step fed by pipeline.data.MotionLoader; waiting for batches over the timed span"}
+            "note": "the optimised step fed by pipeline.data.stream.MotionLoader; waiting for batches over the timed span"}
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""(Re)build the browsable ``index.html`` of an output folder; engine in pipeline/browse.py. Sampling and evaluation
+"""(Re)build the browsable ``index.html`` of an output folder; engine in pipeline/generation/browse.py. Sampling and evaluation
 runs write it themselves; this is for folders written before, or after copying one elsewhere.
 
     python launch/browse.py out/walk          # launch/sample.py --out out/walk: animated stick figures, captions,
@@ -19,7 +19,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.browse import MAX_MOTIONS, write_index
+from pipeline.generation.browse import MAX_MOTIONS, write_index
 
 
 def main(argv: list[str] | None = None) -> int:

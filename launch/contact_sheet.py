@@ -1,6 +1,6 @@
 """One PNG with one row per prompt: the caption, then evenly spaced frames of the motion sampled for it (the same
 sampling as launch/sample.py), or of the dataset clip of that caption (--ground-truth); engine in
-pipeline/contact_sheet.py, drawing in mfm/export/contact_sheet.py.
+pipeline/generation/contact_sheet.py, drawing in mfm/export/contact_sheet.py.
 
     python launch/contact_sheet.py --checkpoint runs/default --text "a person does a cartwheel." \\
         --text "someone walks forward." --out sheet.png
@@ -24,8 +24,8 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.contact_sheet import ContactSheetRequest, run_contact_sheet
-from pipeline.request import JOINT_DECODES, SamplingError, read_prompts
+from pipeline.generation.contact_sheet import ContactSheetRequest, run_contact_sheet
+from pipeline.generation.request import JOINT_DECODES, SamplingError, read_prompts
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

@@ -11,7 +11,7 @@ The file is read with torch.load(weights_only=True) (one that needs pickle code 
 The architecture comes from the tensor shapes (width, layers, FF size, feature size, text or action conditioning);
 the heads from the file's metadata or MDM/MFM's fixed 4 (--num-heads). --behaviour reference (default) reproduces the
 reference forward pass (time on its 1/1000 grid, attention over padded frames, its stored positional table);
---behaviour ours uses our model's defaults. See pipeline/convert.py for what the folder records.
+--behaviour ours uses our model's defaults. See pipeline/training/convert.py for what the folder records.
 Exit code: 0 done, 2 refused (one line on stderr: unreadable file, keys that do not map, missing Mean/Std, an output
 folder that is not new), 1 other errors.
 """
@@ -28,7 +28,7 @@ if __package__ in (None, ""):  # run as a script: make the project importable fr
 
 from mfm.reference_weights import REFERENCE_KINDS, ReferenceCheckpointError
 from pipeline.config import ConfigError
-from pipeline.convert import (
+from pipeline.training.convert import (
     REFERENCE_DATASETS,
     ConversionError,
     ConversionRequest,
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ConversionError, ReferenceCheckpointError, ConfigError) as err:
         print(f"convert_checkpoint: {err}", file=sys.stderr)
         return 2
-    from pipeline.inference import load_trained_model
+    from pipeline.generation.inference import load_trained_model
 
     trained = load_trained_model(folder)  # what every downstream job does: proves the folder loads
     print(f"{folder}: {describe(trained.model_config)}; objective {trained.objective}")

@@ -15,7 +15,7 @@ plausibility figures (bone lengths, floor penetration, foot skating, jerk vs gro
         composition.switch=[relative,humanml3d,0.25,0.5,absolute]                # FlowMDM composition, bpe+pccat
 
 Settings: configs/eval_{full,fast,mdm}.yaml (--protocol) or --config YAML, then ``key.sub=value`` overrides
-(pipeline/eval_config.py EvalConfig). Diffusion baselines (train.objective=diffusion) take --solver ddpm|ddim and
+(pipeline/evaluation/config.py EvalConfig). Diffusion baselines (train.objective=diffusion) take --solver ddpm|ddim and
 --steps respaced from their training steps (e.g. 1000 or 50); a sweep listing both kinds runs each checkpoint's own
 (flow: ODE solvers, diffusion: ddpm/ddim). ``--steps SOLVER=a,b`` gives one solver its own step counts; adaptive
 solvers (dopri5) run once whatever the steps. The evaluator defaults to the one launch/train_evaluator.py trained on the
@@ -31,7 +31,7 @@ Exit code: 0 all done (every unit evaluated, now or before), 3 some units skippe
 and have not finished them (run again later), 2 bad settings, a missing evaluator or checkpoint, 143 on SIGTERM
 (claims released), 1 other errors. Pruned checkpoints are reported, not an error (they cannot be evaluated again).
 
-Composition (``tasks.composition=true``, pipeline/eval_composition.py): FlowMDM's protocol on a bpe + pccat model,
+Composition (``tasks.composition=true``, pipeline/evaluation/composition.py): FlowMDM's protocol on a bpe + pccat model,
 one result per switch point (``composition.switch``: flow times, 'absolute' = 1.0 the absolute-only baseline,
 'relative' = 0.0, 'humanml3d' = FlowMDM's 60 steps); ``composition.segments_per_sequence`` (32),
 ``composition.num_sequences`` (0: cover the test set), ``composition.scenario`` / ``composition.length_bins``,
@@ -51,9 +51,18 @@ if __package__ in (None, ""):  # run as a script: make the project importable fr
 
 from pipeline.config import ConfigError, describe_config
 from pipeline.distributed import Dist
-from pipeline.eval_config import PROTOCOL_PRESETS, load_eval_config, sweep_overrides
-from pipeline.eval_spaces import EvaluationError, EvaluatorUnavailable
-from pipeline.evaluation import EvaluationJob, JobSummary, result_label, summary_line
+from pipeline.evaluation.config import (
+    PROTOCOL_PRESETS,
+    load_eval_config,
+    sweep_overrides,
+)
+from pipeline.evaluation.job import (
+    EvaluationJob,
+    JobSummary,
+    result_label,
+    summary_line,
+)
+from pipeline.evaluation.spaces import EvaluationError, EvaluatorUnavailable
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,7 +5,7 @@
 
 Then, in Python::
 
-    from pipeline.pretrained import MotionPipeline
+    from pipeline.generation.pretrained import MotionPipeline
     pipe = MotionPipeline.from_pretrained("exported/default")
     out = pipe(["a person walks in a circle"], seconds=4.0, seed=0)
     out.save("samples/circle")
@@ -23,7 +23,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.pretrained import PretrainedError, export_pretrained
+from pipeline.generation.pretrained import PretrainedError, export_pretrained
 
 
 def main(argv: list[str] | None = None) -> int:

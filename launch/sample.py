@@ -1,5 +1,5 @@
 """Sample, edit or compose motions with a trained checkpoint (text- or action-conditioned, flow or diffusion);
-outputs in pipeline/outputs.py. The request is a typed config (pipeline/request.py SampleRequest): ``--config
+outputs in pipeline/generation/outputs.py. The request is a typed config (pipeline/generation/request.py SampleRequest): ``--config
 FILE.yaml``, then the flags below (each a shorthand for one key), then ``key=value`` overrides
 (``steps=20 'texts=[a person walks]'``); ``--print-config`` lists every key.
 
@@ -40,10 +40,15 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.composing import run_composition
 from pipeline.config import ConfigError, describe_config
-from pipeline.request import SamplingError, add_request_flags, flag_values, load_sample_request
-from pipeline.sampling import run_sampling
+from pipeline.generation.composing import run_composition
+from pipeline.generation.request import (
+    SamplingError,
+    add_request_flags,
+    flag_values,
+    load_sample_request,
+)
+from pipeline.generation.sampling import run_sampling
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--print-config", action="store_true", help="print every key with its value, default and "
                         "meaning, then exit")
     add_request_flags(parser)
-    parser.add_argument("overrides", nargs="*", metavar="key=value", help="request overrides (pipeline/request.py)")
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help="request overrides (pipeline/generation/request.py)")
     args = parser.parse_intermixed_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:

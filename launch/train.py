@@ -32,7 +32,7 @@ from pipeline.config import (
     load_config,
 )
 from pipeline.distributed import Dist, MixedPrecisionError
-from pipeline.trainer import CheckpointSaveError, Trainer
+from pipeline.training.trainer import CheckpointSaveError, Trainer
 from preprocess.shards import BuildConfig, ManifestError, build_dataset, default_out_dir
 
 EMBEDDED_MANIFEST = default_out_dir("deepmimic", "minilm") / "manifest.json"

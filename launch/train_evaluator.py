@@ -4,7 +4,7 @@
     python launch/train_evaluator.py data.manifest=/data/hml/manifest.json optim.steps=20000 model.out_dim=512
     torchrun --standalone --nproc_per_node 2 launch/train_evaluator.py data.manifest=...
 
-Settings: pipeline/evaluator_training.py EvaluatorTrainConfig (``--config YAML`` then ``key.sub=value``). The
+Settings: pipeline/evaluation/evaluator_training.py EvaluatorTrainConfig (``--config YAML`` then ``key.sub=value``). The
 evaluator is saved with its data manifest id under runs/evaluators/<dataset id>/ (``out_dir=``), where
 launch/evaluate.py finds it by default; report.json holds its held-out retrieval accuracy.
 Exit code: 0 done, 2 bad settings.
@@ -22,7 +22,7 @@ if __package__ in (None, ""):  # run as a script: make the project importable fr
 
 from pipeline.config import ConfigError, describe_config, load_config
 from pipeline.distributed import Dist
-from pipeline.evaluator_training import EvaluatorTrainConfig, train_evaluator
+from pipeline.evaluation.evaluator_training import EvaluatorTrainConfig, train_evaluator
 from preprocess.shards import ManifestError
 
 
@@ -40,7 +40,7 @@ def format_report(report: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", help="a YAML file of settings (defaults: pipeline/evaluator_training.py)")
+    parser.add_argument("--config", help="a YAML file of settings (defaults: pipeline/evaluation/evaluator_training.py)")
     parser.add_argument("--out", help="the output folder (the same as out_dir=...)")
     parser.add_argument("--print-config", action="store_true", help="print every key with its value, default and "
                         "meaning, then exit")

@@ -31,7 +31,11 @@ import torch
 import torch.distributed as torch_dist
 from accelerate import Accelerator
 from accelerate.state import AcceleratorState, GradientState
-from accelerate.utils import DistributedDataParallelKwargs, InitProcessGroupKwargs, convert_outputs_to_fp32
+from accelerate.utils import (
+    DistributedDataParallelKwargs,
+    InitProcessGroupKwargs,
+    convert_outputs_to_fp32,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -95,7 +99,7 @@ def resolve_mixed_precision(setting: str, launcher: str | None = None, *, loss_s
     overrides the config. A launcher's ``bf16`` or ``fp16`` is: with ``auto`` it is honoured, against an explicit
     different setting it is refused. ``auto`` otherwise: bf16 on a CUDA device that supports it, else no autocast
     (never fp16 on its own: its overflow steps are skipped, so it is asked for by name). fp16 needs dynamic loss
-    scaling (:class:`pipeline.loss_scaling.LossScaler`), which only the generator's trainer does: a program without
+    scaling (:class:`pipeline.training.loss_scaling.LossScaler`), which only the generator's trainer does: a program without
     it (``loss_scaling=False``) refuses fp16 rather than train with gradients that underflow to zero.
     """
     if setting not in ("no", "bf16", "fp16", "auto"):
@@ -128,7 +132,7 @@ class Dist:
     or ACCELERATE_USE_CPU is set. ``mixed_precision`` is the config's ``train.mixed_precision``, resolved with
     ``accelerate launch --mixed_precision`` by :func:`resolve_mixed_precision` (honoured, or refused when they
     disagree); ``loss_scaling=True`` says the caller scales its loss for fp16 (the trainer's
-    :class:`pipeline.loss_scaling.LossScaler`), without it fp16 is refused.
+    :class:`pipeline.training.loss_scaling.LossScaler`), without it fp16 is refused.
 
     fp16 is done here, not by accelerate: accelerate's fp16 is CUDA-only (on a CPU it silently runs in fp32) and
     its prepared optimizer would step through its own GradScaler, deciding alone, per rank, whether a step is

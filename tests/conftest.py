@@ -12,7 +12,7 @@ os.environ.setdefault("WANDB_MODE", "disabled")
 # Tiny models on 2 cores: one intra-op thread per process is faster than two fighting over the cores, and the
 # multi-rank tests start several processes (they inherit this).
 os.environ.setdefault("OMP_NUM_THREADS", "1")
-# The shard-verification cache (pipeline/shard_cache.py) of the test runs stays out of the user's ~/.cache.
+# The shard-verification cache (pipeline/data/shard_cache.py) of the test runs stays out of the user's ~/.cache.
 os.environ.setdefault("MFM_VERIFY_CACHE", tempfile.mkdtemp(prefix="mfm-verify-cache-"))
 
 torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))

@@ -15,7 +15,7 @@ import sys
 
 import torch.distributed as dist
 
-from pipeline.data import LoaderOptions, MotionLoader
+from pipeline.data.stream import LoaderOptions, MotionLoader
 
 
 def read_epoch(manifest: str, num_workers: int, rank: int, world_size: int) -> dict:

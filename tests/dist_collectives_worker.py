@@ -12,7 +12,13 @@ from pathlib import Path
 
 import torch
 
-from pipeline.checkpoint import capture_rng_state, load_checkpoint, resolve_resume, restore_rng_state, save_checkpoint
+from pipeline.checkpoint import (
+    capture_rng_state,
+    load_checkpoint,
+    resolve_resume,
+    restore_rng_state,
+    save_checkpoint,
+)
 from pipeline.distributed import Dist
 
 

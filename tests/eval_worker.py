@@ -41,7 +41,7 @@ def train_tiny_model(manifest: Path, run_dir: Path, *overrides: str, steps: int 
     """A few steps of the tiny preset in this process; returns the run folder (checkpoints at every step)."""
     from pipeline.config import TrainConfig, load_config
     from pipeline.distributed import Dist
-    from pipeline.trainer import Trainer
+    from pipeline.training.trainer import Trainer
 
     cfg = load_config(TrainConfig, "tiny", [f"data.manifest={manifest}", f"train.out_dir={run_dir}",
                                             f"train.max_steps={steps}", "train.save_every=1", "train.keep_last=0",
@@ -53,8 +53,12 @@ def train_tiny_model(manifest: Path, run_dir: Path, *overrides: str, steps: int 
 
 def random_contrastive_evaluator(manifest: Path, path: Path) -> Path:
     """An untrained (seeded) evaluator saved for ``manifest``: enough to test the job's plumbing quickly."""
-    from mfm.evaluators import ContrastiveEvaluator, ContrastiveEvaluatorConfig, save_evaluator
-    from pipeline.data import open_manifest
+    from mfm.evaluators import (
+        ContrastiveEvaluator,
+        ContrastiveEvaluatorConfig,
+        save_evaluator,
+    )
+    from pipeline.data.stream import open_manifest
 
     data = open_manifest(manifest)
     config = ContrastiveEvaluatorConfig(feature_dim=data.record_spec.feature_dim, text_dim=data.record_spec.text_dim,
@@ -66,8 +70,8 @@ def random_contrastive_evaluator(manifest: Path, path: Path) -> Path:
 
 def main(checkpoint: str, evaluator: str, out_dir: str) -> int:
     from pipeline.distributed import Dist
-    from pipeline.eval_config import load_eval_config
-    from pipeline.evaluation import EvaluationJob
+    from pipeline.evaluation.config import load_eval_config
+    from pipeline.evaluation.job import EvaluationJob
 
     torch.set_num_threads(1)  # the same kernels on every rank and in the 1-rank reference run
     overrides = [*SMALL_PROTOCOL, "sampling.steps=[2]", f"evaluator.path={evaluator}", f"output.dir={out_dir}"]

@@ -1,4 +1,4 @@
-"""pipeline/browse.py: the index.html pages beside sampling and evaluation outputs (launch/browse.py).
+"""pipeline/generation/browse.py: the index.html pages beside sampling and evaluation outputs (launch/browse.py).
 
 Fast tests build the pages of hand-made output folders (results.json + joints.npy, results.jsonl + plots) and read
 the HTML; the slow ones play a page in headless Chromium (it must animate, with no script error) and check that
@@ -22,8 +22,13 @@ from PIL import Image
 
 from mfm.export.stick import CHAIN_COLORS
 from mfm.skeleton import HUMANML3D
-from pipeline import browse
-from pipeline.browse import PAGE_FILE, write_eval_index, write_index, write_sample_index
+from pipeline.generation import browse
+from pipeline.generation.browse import (
+    PAGE_FILE,
+    write_eval_index,
+    write_index,
+    write_sample_index,
+)
 
 browse_entry = load_launch_script("browse")
 
@@ -57,7 +62,7 @@ def walking_figure(frames: int, phase: float = 0.0) -> np.ndarray:
 
 def fake_sampling_output(out: Path, captions=CAPTIONS, frames=(40, 33, 27), mode: str = "sample",
                          segments=None) -> dict:
-    """What pipeline.sampling writes, less the files the page does not read: results.json and joints.npy."""
+    """What pipeline.generation.sampling writes, less the files the page does not read: results.json and joints.npy."""
     samples = []
     for index, (text, length) in enumerate(zip(captions, frames)):
         folder = out / f"sample_{index:03d}"
@@ -307,7 +312,7 @@ def test_sampling_and_composition_write_their_page_and_its_failure_is_not_fatal(
         raise RuntimeError("disk full")
 
     monkeypatch.setattr(browse, "write_sample_index", broken)
-    with caplog.at_level(logging.WARNING, logger="pipeline.sampling"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.generation.sampling"):
         sample(tiny_text_run, tmp_path / "c", "--text", "a person walks", "--length", "20", "--no-video",
                "--no-bvh")
     assert "index.html not written: disk full" in caplog.text and not (tmp_path / "c" / PAGE_FILE).exists()

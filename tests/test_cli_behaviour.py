@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from conftest import load_launch_script
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

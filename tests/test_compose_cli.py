@@ -26,12 +26,12 @@ from test_sample_cli import (
 )
 from test_trainer import build_dataset_once, clean_env
 
-import pipeline.outputs as outputs_module
+import pipeline.generation.outputs as outputs_module
 from mfm.composition import HUMANML3D_SWITCH, BoundInputs, compose, read_prompt_file
 from mfm.diffusion_sampling import sample_diffusion, smooth_over_time
 from mfm.export import read_bvh
-from pipeline.inference import load_trained_model
-from pipeline.integration import sample_seed
+from pipeline.generation.inference import load_trained_model
+from pipeline.generation.integration import sample_seed
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_thread")]
 

@@ -15,17 +15,17 @@ from mfm.export import render_contact_sheet
 from mfm.export.contact_sheet import HEADER_PX, ROW_TITLE_PX, sheet_frames
 from mfm.export.stick import SIDE_COLORS, bone_sides
 from mfm.skeleton import HUMANML3D, KIT, get_skeleton
-from pipeline.contact_sheet import (
+from pipeline.data.stream import open_manifest
+from pipeline.generation.contact_sheet import (
     ContactSheetRequest,
     compare_with_clips,
     first_captions,
     mean_joint_error,
     run_contact_sheet,
 )
-from pipeline.data import open_manifest
-from pipeline.inference import load_trained_model
-from pipeline.request import SamplingError
-from pipeline.sampling import max_sample_length
+from pipeline.generation.inference import load_trained_model
+from pipeline.generation.request import SamplingError
+from pipeline.generation.sampling import max_sample_length
 
 
 def pixels(path) -> np.ndarray:

@@ -225,7 +225,7 @@ def golden_conversion(out: Path, clip_weights: Path, kind: str = "mfm") -> list[
 
 @needs_golden
 def test_conversion_writes_a_complete_checkpoint_and_refuses_bad_requests(tmp_path, clip_weights, capsys):
-    from pipeline.inference import load_trained_model
+    from pipeline.generation.inference import load_trained_model
 
     out = tmp_path / "mfm-golden"
     assert convert(*golden_conversion(out, clip_weights)) == 0
@@ -303,7 +303,7 @@ def test_a_converted_checkpoint_samples_edits_and_is_evaluated(tmp_path, clip_we
 
 def test_a_kit_state_dict_converts_with_the_kit_feature_spec_and_its_step(tmp_path):
     from mfm.text import OPENAI_VIT_B_32_SHA256
-    from pipeline.inference import load_trained_model
+    from pipeline.generation.inference import load_trained_model
 
     state = reference_key_set(251, 64, 128, 2)
     for key, value in state.items():

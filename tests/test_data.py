@@ -1,4 +1,4 @@
-"""The training data stream (pipeline/data.py, pipeline/stages.py): stages alone, exactly-once per epoch,
+"""The training data stream (pipeline/data/stream.py, pipeline/data/stages.py): stages alone, exactly-once per epoch,
 equal batch counts, bit-exact resume, shard verification, Parquet backend, normalisation.
 
 Shards are written here exactly as docs/dataset-format.md says, with payloads that encode the motion
@@ -22,7 +22,20 @@ import pytest
 import torch
 from conftest import flip_byte as flip_one_byte
 
-from pipeline.data import (
+from pipeline.data.stages import (
+    Collate,
+    CropToWindow,
+    DecodeParquetRow,
+    DecodeTarRecord,
+    Normalize,
+    ParquetRow,
+    PickCaption,
+    RecordError,
+    RecordSpec,
+    TrainingSample,
+    shuffle_buffer_order,
+)
+from pipeline.data.stream import (
     LoaderOptions,
     MotionLoader,
     ShardReadError,
@@ -36,19 +49,6 @@ from pipeline.data import (
     shard_order,
     split_shards,
     verify_shards,
-)
-from pipeline.stages import (
-    Collate,
-    CropToWindow,
-    DecodeParquetRow,
-    DecodeTarRecord,
-    Normalize,
-    ParquetRow,
-    PickCaption,
-    RecordError,
-    RecordSpec,
-    TrainingSample,
-    shuffle_buffer_order,
 )
 
 DIM, TEXT_DIM, MAX_TOKENS = 5, 4, 3
@@ -709,7 +709,7 @@ def test_manifest_totals_and_duplicate_ids_are_checked(tmp_path):
 def test_ground_truth_from_a_tampered_test_shard_is_refused(tmp_path):
     """Issue 12.2: the evaluator read ground truth without any check; features x 50 (same byte size, only the
     sha256 differs) changed FID under the same dataset id."""
-    from pipeline.eval_spaces import UnverifiedGroundTruth, build_ground_truth
+    from pipeline.evaluation.spaces import UnverifiedGroundTruth, build_ground_truth
 
     sizes = (3, 4)
     manifest = write_fixture_dataset(tmp_path, sizes, split="test")

@@ -11,7 +11,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from test_data import UNEVEN, motion_id, write_fixture_dataset
 
 WORKER = Path(__file__).with_name("data_multirank_worker.py")

@@ -1,8 +1,8 @@
 """Data where people keep it (issue 18, item 4): shards and manifests streamed through fsspec from a local HTTP
 server and from fsspec's in-memory filesystem, with injected transient failures (HTTP 503, a connection cut
 mid-body, a ConnectionResetError mid-read), retries with back-off, permanent errors (404) named, the exact-resume
-guarantee over a remote source, and the verification cache (pipeline/locations.py, pipeline/shard_cache.py,
-pipeline/data.py). No real bucket is reachable from the tests: s3:// and gs:// are only checked for the error
+guarantee over a remote source, and the verification cache (pipeline/data/locations.py, pipeline/data/shard_cache.py,
+pipeline/data/stream.py). No real bucket is reachable from the tests: s3:// and gs:// are only checked for the error
 that names the ``remote`` extra when their package is missing."""
 
 from __future__ import annotations
@@ -35,9 +35,16 @@ from test_data import (
     write_fixture_dataset,
 )
 
-import pipeline.data as data_module
+import pipeline.data.stream as data_module
 from pipeline.config import ConfigError, DataConfig
-from pipeline.data import (
+from pipeline.data.locations import (
+    RemoteSupportMissing,
+    RetriesExhausted,
+    RetryPolicy,
+    is_transient,
+    resolve_location,
+)
+from pipeline.data.stream import (
     MotionLoader,
     ShardReadError,
     ShardVerificationError,
@@ -47,13 +54,6 @@ from pipeline.data import (
     split_shards,
     verified_split,
     verify_shards,
-)
-from pipeline.locations import (
-    RemoteSupportMissing,
-    RetriesExhausted,
-    RetryPolicy,
-    is_transient,
-    resolve_location,
 )
 from preprocess.shards import ManifestError
 
@@ -315,7 +315,7 @@ def test_http_stream_is_the_local_stream_through_transient_failures(dataset, htt
     root, base, server = http_root
     # One 503 at the open of one shard, one connection cut half way through another (records already yielded).
     server.faults = {"/train/shard-00003.tar": [503], "/train/shard-00006.tar": ["cut"]}
-    caplog.set_level("WARNING", logger="pipeline.locations")
+    caplog.set_level("WARNING", logger="pipeline.data.locations")
     options = opts(num_workers=num_workers, **FAST)
     local = list(MotionLoader(dataset, "train", opts(num_workers=num_workers)).iter_epoch())
     remote = list(MotionLoader(f"{base}/manifest.json", "train", options).iter_epoch())
@@ -335,7 +335,7 @@ def test_http_reads_every_record_once_in_local_order(dataset, http_root, backend
     root, base, server = http_root
     name = "shard-00002.tar" if backend == "webdataset" else "part-00002.parquet"
     server.faults = {f"/train/{name}": [503, "cut"]}  # while it is verified (hashed)
-    caplog.set_level("WARNING", logger="pipeline.locations")
+    caplog.set_level("WARNING", logger="pipeline.data.locations")
     local = list(iter_motions(dataset, "train", backend, verify="off"))
     source = verified_split(f"{base}/manifest.json", "train", backend, retry=RetryPolicy(3, 0.01))
     assert source.report.verified and server.faults[f"/train/{name}"] == []
@@ -369,7 +369,7 @@ def test_http_404_fails_strict_naming_the_url_and_is_not_retried(dataset, http_r
 def test_http_403_is_permanent_and_named(dataset, http_root, caplog):
     root, base, server = http_root
     server.faults = {"/train/shard-00001.tar": [403] * 5}
-    caplog.set_level("WARNING", logger="pipeline.locations")
+    caplog.set_level("WARNING", logger="pipeline.data.locations")
     with pytest.raises(ShardVerificationError, match=rf"{re.escape(base)}/train/shard-00001\.tar: bad shard "
                                                      r"\(unreadable: ClientResponseError \(HTTP 403\)"):
         verify_shards(f"{base}/manifest.json", "train", mode="strict", retry=RetryPolicy(3, 0.01))
@@ -383,7 +383,7 @@ def test_http_403_is_permanent_and_named(dataset, http_root, caplog):
 def test_a_shard_that_keeps_failing_gives_up_after_the_retries_naming_it(dataset, http_root, caplog):
     root, base, server = http_root
     server.faults = {"/train/shard-00001.tar": [503] * 20}
-    caplog.set_level("WARNING", logger="pipeline.locations")
+    caplog.set_level("WARNING", logger="pipeline.data.locations")
     shard = split_shards(open_manifest(f"{base}/manifest.json"), "train")[1]
     with pytest.raises(ShardReadError, match=rf"{re.escape(base)}/train/shard-00001\.tar: cannot read shard: still "
                                              r"failing after 2 retries"):
@@ -404,7 +404,7 @@ def test_memory_stream_with_a_reset_mid_read_is_the_local_stream(dataset, memory
     url, arm = memory_dataset
     arm("train/shard-00002.tar", shard_size(dataset, "train/shard-00002.tar") // 2)
     arm("train/part-00005.parquet", 0)
-    caplog.set_level("WARNING", logger="pipeline.locations")
+    caplog.set_level("WARNING", logger="pipeline.data.locations")
     assert verify_shards(url, "train", mode="strict", retry=RetryPolicy(3, 0.01)).verified  # through a reset
     assert [name.split("/", 2)[2] for name in arm.fired()] == ["train/shard-00002.tar"]
     arm("train/shard-00002.tar", shard_size(dataset, "train/shard-00002.tar") // 2)
@@ -544,7 +544,7 @@ def test_cache_over_http_uses_last_modified(dataset, http_root, monkeypatch, sho
 
 def test_manifest_digest_of_the_cache_key_is_the_location(tmp_path):
     """One cache file per manifest location (the file name is a digest of it)."""
-    from pipeline.shard_cache import VerificationCache
+    from pipeline.data.shard_cache import VerificationCache
 
     cache = VerificationCache.for_manifest("s3://bucket/ds/manifest.json", tmp_path)
     assert Path(cache.path).name == hashlib.sha256(b"s3://bucket/ds/manifest.json").hexdigest()[:32] + ".json"

@@ -14,10 +14,16 @@ from mfm.diffusion import (
     normal_kl,
     space_timesteps,
 )
-from mfm.diffusion_sampling import ddim_sample, ddpm_sample, replacement_edit, reverse_diffusion, sample_diffusion
+from mfm.diffusion_sampling import (
+    ddim_sample,
+    ddpm_sample,
+    replacement_edit,
+    reverse_diffusion,
+    sample_diffusion,
+)
 from mfm.editing import edit_mask
-from mfm.guidance import classifier_free_guidance
 from mfm.flow import masked_mse
+from mfm.guidance import classifier_free_guidance
 from mfm.layout import FeatureLayout
 from mfm.model import ModelConfig, valid_frame_mask
 from mfm.skeleton import HUMANML3D

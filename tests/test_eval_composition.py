@@ -1,4 +1,4 @@
-"""FlowMDM's composition evaluation in the evaluator job (pipeline/eval_composition.py): the composition set, the
+"""FlowMDM's composition evaluation in the evaluator job (pipeline/evaluation/composition.py): the composition set, the
 transition windows, FlowMDM's R-precision with repeated captions, and a switch sweep end to end on CPU with the tiny
 BPE + PCCAT model of tests/test_compose_cli.py (trained once per session on test_trainer.py's synthetic dataset) and
 an untrained seeded evaluator (enough for the plumbing; the numbers are not meaningful)."""
@@ -14,23 +14,23 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-
 from eval_worker import random_contrastive_evaluator
+from test_sample_cli import _train_once
+from test_trainer import LAUNCH_VARS, build_dataset_once
+
 from mfm import metrics
 from mfm.features import features_to_joints
 from mfm.skeleton import get_skeleton
 from pipeline.config import ConfigError
-from pipeline.eval_composition import (
+from pipeline.evaluation.composition import (
     build_composition_set,
     concatenated_windows,
     crop_windows,
     transition_crops,
 )
-from pipeline.eval_config import CompositionConfig, load_eval_config
-from pipeline.eval_spaces import build_ground_truth
-from pipeline.eval_store import ResultsStore
-from test_sample_cli import _train_once
-from test_trainer import LAUNCH_VARS, build_dataset_once
+from pipeline.evaluation.config import CompositionConfig, load_eval_config
+from pipeline.evaluation.spaces import build_ground_truth
+from pipeline.evaluation.store import ResultsStore
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.usefixtures("single_thread")

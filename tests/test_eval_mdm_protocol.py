@@ -15,17 +15,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from eval_worker import (
+    SMALL_PROTOCOL,
+    build_synthetic_dataset,
+    random_contrastive_evaluator,
+    train_tiny_model,
+)
 
-from eval_worker import SMALL_PROTOCOL, build_synthetic_dataset, random_contrastive_evaluator, train_tiny_model
 from mfm import metrics
 from mfm.evaluators import T2MEvaluator, WordVectorizer
 from mfm.evaluators.t2m import caption_length
 from pipeline.config import ConfigError
-from pipeline.eval_config import MDM_RULES, OUR_RULES, SamplingPoint, load_eval_config
-from pipeline.eval_replications import _TAG, generate, plan_protocol, rng_of
-from pipeline.eval_spaces import read_ground_truth_pool
-from pipeline.eval_store import ResultsStore
-from pipeline.evaluation import protocol_key
+from pipeline.evaluation.config import (
+    MDM_RULES,
+    OUR_RULES,
+    SamplingPoint,
+    load_eval_config,
+)
+from pipeline.evaluation.job import protocol_key
+from pipeline.evaluation.replications import _TAG, generate, plan_protocol, rng_of
+from pipeline.evaluation.spaces import read_ground_truth_pool
+from pipeline.evaluation.store import ResultsStore
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -48,8 +58,8 @@ def evaluator(manifest, tmp_path_factory) -> Path:
 def _context(protocol: str, checkpoint: Path, evaluator: Path, out: Path, *overrides: str):
     """An evaluation job's scorer and the checkpoint's context under ``protocol`` made small (one process)."""
     from pipeline.distributed import Dist
-    from pipeline.eval_replications import PhaseTimer
-    from pipeline.evaluation import EvaluationJob
+    from pipeline.evaluation.job import EvaluationJob
+    from pipeline.evaluation.replications import PhaseTimer
 
     cfg = load_eval_config(protocol, overrides=[*SMALL_PROTOCOL, "sampling.steps=[1]", "tasks.editing=[]",
                                                 "tasks.flame=false", f"evaluator.path={evaluator}",
@@ -119,7 +129,7 @@ def test_ground_truth_fid_under_mdm_is_that_of_two_independent_draws(checkpoint,
     """Default: the GT row's FID is a bootstrap resample of the replication's draw against it (as before). mdm: the
     GT row is a pass of its own, scored against FID statistics from another pass: non-zero, and it changes with the
     seed; each replication draws other passes, the same ones when the context is built again."""
-    from pipeline.eval_replications import PhaseTimer
+    from pipeline.evaluation.replications import PhaseTimer
 
     results, contexts = {}, {}
     for name, protocol, seed in (("ours", "fast", 0), ("mdm", "mdm", 0), ("mdm-seed1", "mdm", 1), ("again", "mdm", 0)):
@@ -155,7 +165,7 @@ def test_generated_and_multimodality_motions_reach_the_evaluator_as_the_rules_sa
     """Ours: every generated motion zero past its length, in the evaluator's normalisation. mdm: the main and
     MultiModality motions with what the sampler left past the length; MultiModality ones in the model's
     normalisation (the evaluator's own skipped); edits as ours."""
-    from pipeline.eval_replications import PhaseTimer, PointRun
+    from pipeline.evaluation.replications import PhaseTimer, PointRun
 
     class Recorder:
         def __init__(self):
@@ -223,7 +233,7 @@ def test_padding_rule_what_the_evaluator_sees_past_the_length(checkpoint):
     changed = evaluator.encode_motions(other, lengths, keep_padding=True)
     assert not torch.allclose(changed[0], evaluator.encode_motions(raw, lengths, keep_padding=True)[0])
 
-    from pipeline.inference import load_trained_model
+    from pipeline.generation.inference import load_trained_model
 
     trained = load_trained_model(checkpoint, use_ema=True, device="cpu")
     sampling = load_eval_config("mdm").sampling
@@ -265,9 +275,9 @@ def test_caption_length_rule_on_a_hand_made_caption():
 def test_results_record_the_protocol_its_loop_and_rules(checkpoint, evaluator, tmp_path, monkeypatch):
     """results.json and the table name the protocol and the loop it ran; mdm's rules are all recorded. The
     generated row's retrieval reads the captions embedded with the padded length, the GT row the sentence one."""
-    import pipeline.eval_replications as replications
+    import pipeline.evaluation.replications as replications
     from launch.evaluate import main
-    from pipeline.eval_spaces import ContrastiveSpace
+    from pipeline.evaluation.spaces import ContrastiveSpace
 
     encode_texts = ContrastiveSpace.encode_texts
 

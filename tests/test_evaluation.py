@@ -21,7 +21,6 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
-
 from conftest import embedded_dataset_once
 from eval_worker import (
     SMALL_PROTOCOL,
@@ -30,12 +29,18 @@ from eval_worker import (
     random_contrastive_evaluator,
     train_tiny_model,
 )
+
 from mfm.model import valid_frame_mask
 from pipeline.config import ConfigError
-from pipeline.eval_config import load_eval_config, sweep_overrides
-from pipeline.eval_replications import my_batches, plan_protocol, plan_repeats, plan_rows
-from pipeline.eval_spaces import build_ground_truth, read_ground_truth_pool
-from pipeline.eval_store import ResultsStore, Unit, this_pid_namespace
+from pipeline.evaluation.config import load_eval_config, sweep_overrides
+from pipeline.evaluation.replications import (
+    my_batches,
+    plan_protocol,
+    plan_repeats,
+    plan_rows,
+)
+from pipeline.evaluation.spaces import build_ground_truth, read_ground_truth_pool
+from pipeline.evaluation.store import ResultsStore, Unit, this_pid_namespace
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 EVALUATE = REPO_ROOT / "launch" / "evaluate.py"
@@ -167,7 +172,7 @@ def test_claims_are_exclusive_until_released_done_or_stale(tmp_path):
 # dies at once without releasing them (kill -9) or stays alive holding them.
 _CLAIMING_JOB = """
 import os, signal, sys, time
-from pipeline.eval_store import ResultsStore, Unit
+from pipeline.evaluation.store import ResultsStore, Unit
 store = ResultsStore(sys.argv[1])
 assert all(store.try_claim(Unit(*spec.split("|"))) for spec in sys.argv[3:])
 print("claimed", flush=True)
@@ -201,7 +206,7 @@ def test_a_dead_jobs_claim_on_this_host_is_stale_at_once_others_keep_the_heartbe
         claim = json.loads(store.claim_path(foreign).read_text())
         assert (claim["host"], claim["pid"]) == (socket.gethostname(), corpse.pid)
         store.claim_path(foreign).write_text(json.dumps({**claim, "host": f"not-{socket.gethostname()}"}))
-        with caplog.at_level("WARNING", logger="pipeline.eval_store"):
+        with caplog.at_level("WARNING", logger="pipeline.evaluation.store"):
             assert store.try_claim(dead)  # fresh claim, but its job is dead: taken over without waiting an hour
         assert f"pid {corpse.pid} on this host" in caplog.text and "taking over" in caplog.text
         assert claim.get("pid_ns") == this_pid_namespace()  # pids are compared within one pid namespace only
@@ -287,8 +292,8 @@ def test_ground_truth_items_are_redrawn_per_replication_from_seeds(manifest):
 def _scored_context(checkpoint: Path, evaluator: Path, out: Path, *overrides: str):
     """An evaluation job's scorer and the context of ``checkpoint`` under the small protocol (one process)."""
     from pipeline.distributed import Dist
-    from pipeline.eval_replications import PhaseTimer
-    from pipeline.evaluation import EvaluationJob
+    from pipeline.evaluation.job import EvaluationJob
+    from pipeline.evaluation.replications import PhaseTimer
 
     cfg = load_eval_config("fast", overrides=[*SMALL_PROTOCOL, "sampling.steps=[1]", f"evaluator.path={evaluator}",
                                               f"output.dir={out}", *overrides])
@@ -306,8 +311,8 @@ def test_each_replication_generates_edits_and_scores_its_own_draw(text_run, mani
     """Default protocol: replication r generates for its own items (their captions as conditions, their lengths;
     MultiModality texts and edits too) and scores against them; the same items when the plan is built again; one
     fixed set for every replication with protocol.redraw_items=false."""
-    import pipeline.eval_replications as replications
-    from pipeline.eval_replications import PhaseTimer
+    import pipeline.evaluation.replications as replications
+    from pipeline.evaluation.replications import PhaseTimer
 
     evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
     checkpoint = text_run / "checkpoints" / "step-00000001"
@@ -582,9 +587,9 @@ def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, text_ru
     assert (tmp_path / "e" / "plots" / "fid_vs_nfe_all.png").is_file()  # both runs in one plot
 
     # Both methods leave the kept part as their sampler made it (FLAME's rule); copying it back is an option.
-    from pipeline.eval_config import SamplingConfig, SamplingPoint
-    from pipeline.eval_replications import generate
-    from pipeline.inference import load_trained_model
+    from pipeline.evaluation.config import SamplingConfig, SamplingPoint
+    from pipeline.evaluation.replications import generate
+    from pipeline.generation.inference import load_trained_model
 
     lengths = torch.tensor([12, 9])
     known = torch.randn(2, 12, 263) * valid_frame_mask(lengths, 12).unsqueeze(-1)
@@ -660,8 +665,8 @@ def _units_of(checkpoint: Path, args: list[str]) -> list[Unit]:
     """The units an evaluation job with these arguments works on for ``checkpoint`` (their keys need the context:
     model, evaluator, ground truth; the ground-truth embeddings it caches are reused by the job under test)."""
     from pipeline.distributed import Dist
-    from pipeline.eval_replications import PhaseTimer
-    from pipeline.evaluation import EvaluationJob
+    from pipeline.evaluation.job import EvaluationJob
+    from pipeline.evaluation.replications import PhaseTimer
 
     cfg = load_eval_config("fast", overrides=[a for a in args if not a.startswith("--") and a != "fast"])
     with Dist(mixed_precision="no", cpu=True) as dist:
@@ -679,7 +684,7 @@ def test_a_killed_evaluators_claim_is_taken_over_at_once_and_its_unit_evaluated(
     units = _units_of(checkpoint, args)
     _claiming_job(out, units, "die")  # claimed, then kill -9: its claim files stay, fresh, with a dead pid
     assert all(ResultsStore(out).claim_path(u).is_file() for u in units)
-    with caplog.at_level("WARNING", logger="pipeline.eval_store"):
+    with caplog.at_level("WARNING", logger="pipeline.evaluation.store"):
         assert evaluate("--checkpoint", str(checkpoint), *args) == 0
     assert "taking over claim" in caplog.text and "is no longer running" in caplog.text
     printed = capsys.readouterr().out
@@ -688,7 +693,7 @@ def test_a_killed_evaluators_claim_is_taken_over_at_once_and_its_unit_evaluated(
 
 
 def test_units_held_by_a_live_job_are_reported_with_a_distinct_exit_status(text_run, manifest, tmp_path, capsys):
-    from pipeline.evaluation import EXIT_HELD_BY_OTHERS
+    from pipeline.evaluation.job import EXIT_HELD_BY_OTHERS
 
     evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
     checkpoint, out = text_run / "checkpoints" / "step-00000002", tmp_path / "eval"
@@ -722,7 +727,7 @@ def test_a_checkpoint_pruned_before_evaluation_is_reported(text_run, manifest, t
         holder.wait(timeout=30)
     shutil.rmtree(first)  # which training deletes meanwhile (train.keep_last)
     capsys.readouterr()
-    with caplog.at_level("WARNING", logger="pipeline.evaluation"):
+    with caplog.at_level("WARNING", logger="pipeline.evaluation.job"):
         assert evaluate("--watch", str(run), "--once", *args) == 0  # nothing left to evaluate: all done, but ...
     printed = capsys.readouterr().out
     assert "0 unit(s) evaluated" in printed and "pruned_before_evaluation: [1]" in printed  # ... not silently
@@ -736,7 +741,7 @@ def test_a_checkpoint_saved_and_pruned_between_two_jobs_is_reported(text_run, ma
     line in checkpoints/saved.jsonl (no folder, no result) makes it ``pruned_before_evaluation``; a checkpoint
     training set aside (kept, renamed) is not reported, nor one that has a result."""
     from pipeline import checkpoint as ckpt
-    from pipeline.evaluation import checkpoint_id
+    from pipeline.evaluation.job import checkpoint_id
 
     evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
     run, out = tmp_path / "run", tmp_path / "eval"
@@ -747,7 +752,7 @@ def test_a_checkpoint_saved_and_pruned_between_two_jobs_is_reported(text_run, ma
     shutil.rmtree(root / "step-00000001")  # pruned by train.keep_last before any evaluator job ran
     ckpt.move_aside(root / "step-00000002", "discarded")  # train.resume_discard_newer: kept under another name
     args = _quick_eval_args(evaluator, out)
-    with caplog.at_level("WARNING", logger="pipeline.evaluation"):
+    with caplog.at_level("WARNING", logger="pipeline.evaluation.job"):
         assert evaluate("--watch", str(run), "--once", *args) == 0
     printed = capsys.readouterr().out
     assert "0 unit(s) evaluated" in printed and "pruned_before_evaluation: [1]" in printed

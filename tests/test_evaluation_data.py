@@ -15,8 +15,12 @@ import tarfile
 from pathlib import Path
 
 import numpy as np
-
-from eval_worker import SMALL_PROTOCOL, build_synthetic_dataset, random_contrastive_evaluator, train_tiny_model
+from eval_worker import (
+    SMALL_PROTOCOL,
+    build_synthetic_dataset,
+    random_contrastive_evaluator,
+    train_tiny_model,
+)
 
 
 def evaluate(*args: str) -> int:

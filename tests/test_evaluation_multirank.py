@@ -12,8 +12,11 @@ import sys
 from pathlib import Path
 
 import pytest
-
-from eval_worker import build_synthetic_dataset, random_contrastive_evaluator, train_tiny_model
+from eval_worker import (
+    build_synthetic_dataset,
+    random_contrastive_evaluator,
+    train_tiny_model,
+)
 
 WORKER = Path(__file__).with_name("eval_worker.py")
 

@@ -30,7 +30,6 @@ from mfm.evaluators import (
 )
 from mfm.evaluators.t2m import build_t2m_networks, sentence_tokens
 
-
 # Small tensors: one thread avoids OpenMP spin-waits on a shared 2-core machine (3x faster there).
 pytestmark = pytest.mark.usefixtures("single_thread")
 

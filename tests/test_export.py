@@ -262,7 +262,7 @@ def test_blender_imports_the_bvh_at_the_input_positions(reference_data, tmp_path
 
 def test_bvh_of_the_rigid_decode_of_noisy_features_reparses_to_it(reference_data, tmp_path, caplog):
     """Generated-like features (the real clip + 0.1 Std of noise): their ric bones stretch, the rigid decode's do
-    not, so its BVH reproduces it exactly (what pipeline/sampling.py writes)."""
+    not, so its BVH reproduces it exactly (what pipeline/generation/sampling.py writes)."""
     folder = reference_data / "humanml3d"
     features = np.load(folder / "new_joint_vecs_012314.npy")[:60]
     noisy = features + 0.1 * np.load(folder / "Std.npy") * np.random.default_rng(1).standard_normal(features.shape)

@@ -20,7 +20,14 @@ from mfm.model import (
     segment_runs,
     sinusoidal_embedding,
 )
-from pipeline.config import DataConfig, TrainConfig, from_dict, load_config, to_dict, to_yaml
+from pipeline.config import (
+    DataConfig,
+    TrainConfig,
+    from_dict,
+    load_config,
+    to_dict,
+    to_yaml,
+)
 
 D, FEATURES, COND, TOKEN_DIM, LAYERS = 32, 7, 5, 6, 2
 NEW_DEFAULTS = dict(head_dim=0, attention_bias=True, attention_dropout=None, ff_dropout=None, residual_dropout=None,
@@ -107,7 +114,7 @@ def test_options_at_their_defaults_are_bit_identical(variant):
 def test_old_checkpoint_without_the_keys_loads_with_defaults(tmp_path):
     """A checkpoint whose saved configs predate the options (no such keys) loads into today's architecture."""
     from pipeline import checkpoint as ckpt
-    from pipeline.inference import load_trained_model
+    from pipeline.generation.inference import load_trained_model
 
     config = tiny_config(positional="bpe", conditioning="pccat")
     model = MotionFlowTransformer(config)
@@ -414,8 +421,9 @@ TINY_FLOWMDM = ["model.latent_dim=32", "model.ff_dim=64", "model.num_layers=2", 
 @pytest.mark.slow
 @pytest.mark.usefixtures("single_thread")
 def test_preset_trains_and_its_checkpoint_keeps_the_options(tmp_path_factory, tmp_path):
-    from pipeline.inference import load_trained_model
     from test_trainer import build_dataset_once, train_entry
+
+    from pipeline.generation.inference import load_trained_model
 
     manifest = build_dataset_once(tmp_path_factory)
     run = tmp_path / "run"

@@ -1,4 +1,4 @@
-"""fp16 mixed precision with dynamic loss scaling (pipeline/loss_scaling.py), CPU, the tiny preset:
+"""fp16 mixed precision with dynamic loss scaling (pipeline/training/loss_scaling.py), CPU, the tiny preset:
 
 * ``accelerate launch --mixed_precision fp16`` (and train.mixed_precision=fp16) resolves to fp16, a conflicting
   explicit setting is refused in one line, and a program without loss scaling refuses fp16;
@@ -23,13 +23,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-
 from conftest import load_launch_script
-from pipeline import checkpoint as ckpt
-from pipeline.config import TrainConfig, TrainLoopConfig, load_config
-from pipeline.distributed import Dist, MixedPrecisionError, resolve_mixed_precision
-from pipeline.loss_scaling import LossScaler
-from pipeline.trainer import NonFiniteLossError, Trainer
 from test_trainer import (
     REPO_ROOT,
     NaNAtSteps,
@@ -47,6 +41,12 @@ from test_trainer import (
     run_worker,
     train_entry,
 )
+
+from pipeline import checkpoint as ckpt
+from pipeline.config import TrainConfig, TrainLoopConfig, load_config
+from pipeline.distributed import Dist, MixedPrecisionError, resolve_mixed_precision
+from pipeline.training.loss_scaling import LossScaler
+from pipeline.training.trainer import NonFiniteLossError, Trainer
 
 INIT_SCALE = 65536.0  # GradScaler's default initial scale, train.fp16_init_scale's default
 TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]

@@ -18,8 +18,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
-
 from conftest import embedded_dataset_once
+
 from mfm.features import features_to_joints
 from mfm.flow import flow_matching_loss
 from mfm.metrics import plausibility

@@ -91,7 +91,7 @@ def test_equal_loss_fp32_vs_bf16_autocast_on_cpu(tmp_path):
     if not torch.amp.is_autocast_available("cpu"):
         pytest.skip("this torch has no CPU autocast")
     from pipeline.distributed import Dist
-    from pipeline.trainer import Trainer
+    from pipeline.training.trainer import Trainer
 
     manifest = suite.bench_data.build_synthetic(16, tmp_path / "ds", text_dim=suite.TEXT_DIM, formats=("tar",))
     size = dataclasses.replace(suite.SMOKE, name="test", preset="humanml3d", batch_size=2, window=48)

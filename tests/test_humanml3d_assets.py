@@ -14,6 +14,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import webdataset as wds
+from test_features import PUBLISHED_TOLERANCE, kit_skeleton_and_clip
 
 from mfm import features as F
 from mfm.layout import FeatureLayout
@@ -23,7 +24,6 @@ from preprocess.clip import Clip
 from preprocess.processing import process_clip
 from preprocess.shards import BadInputError, BuildConfig, build_dataset, load_manifest
 from preprocess.sources import build_source
-from test_features import PUBLISHED_TOLERANCE, kit_skeleton_and_clip
 
 CLIP = "012314"
 COPY = "000001"  # the same files under a second id, in the test split

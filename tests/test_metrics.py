@@ -10,7 +10,6 @@ from scipy import linalg
 from mfm import metrics
 from mfm.skeleton import HUMANML3D
 
-
 # ------------------------------------------------------------------------------------------------ FID
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-
 from eval_worker import build_synthetic_dataset, train_tiny_model
+
 from mfm.text import build_text_encoder
-from pipeline.inference import load_trained_model
+from pipeline.generation.inference import load_trained_model
 
 
 def test_training_stores_the_empty_caption_encoding_and_the_checkpoint_carries_it(tmp_path_factory, tmp_path):

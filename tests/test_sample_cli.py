@@ -18,9 +18,9 @@ from mfm import metrics
 from mfm.export import read_bvh
 from mfm.features import features_to_joints, features_to_joints_rigid, rigid_joints
 from mfm.layout import FeatureLayout
-from pipeline.inference import load_trained_model
-from pipeline.outputs import edited_joints
-from pipeline.sampling import max_sample_length
+from pipeline.generation.inference import load_trained_model
+from pipeline.generation.outputs import edited_joints
+from pipeline.generation.sampling import max_sample_length
 from preprocess.processing import single_threaded_torch
 
 # Tiny models on a shared CPU: a second intra-op thread only adds spin-waiting.
@@ -292,7 +292,7 @@ def test_mdm_results_npy_holds_the_written_joints_in_mdms_order(text_run, tmp_pa
 
 
 def test_export_then_from_pretrained_generates_what_sampling_the_checkpoint_does(text_run, tmp_path, capsys):
-    from pipeline.pretrained import MotionPipeline
+    from pipeline.generation.pretrained import MotionPipeline
 
     export = load_launch_script("export").main
     exported = tmp_path / "exported"

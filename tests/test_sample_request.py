@@ -6,8 +6,9 @@ from __future__ import annotations
 import argparse
 
 import pytest
-
 from conftest import load_launch_script
+
+from mfm.composition import HUMANML3D_SWITCH
 from pipeline.config import ConfigError
 from pipeline.generation.request import (
     FLAGS,
@@ -17,7 +18,6 @@ from pipeline.generation.request import (
     flag_values,
     load_sample_request,
 )
-from mfm.composition import HUMANML3D_SWITCH
 
 
 def parse(argv: list[str]) -> dict:

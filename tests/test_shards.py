@@ -19,7 +19,12 @@ from mfm.features import FeatureStats, joints_to_features
 from mfm.layout import FeatureLayout
 from mfm.skeleton import HUMANML3D
 from preprocess.clip import Caption, Clip, SkippedInput
-from preprocess.processing import Record, RecordCaption, process_clip, split_into_windows
+from preprocess.processing import (
+    Record,
+    RecordCaption,
+    process_clip,
+    split_into_windows,
+)
 from preprocess.shards import (
     BadInputError,
     BuildConfig,

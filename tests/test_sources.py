@@ -4,9 +4,9 @@ DeepMimic clips, the synthetic generator, and the registry."""
 from __future__ import annotations
 
 import json
-import sys
 import math
 import pickle
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +15,13 @@ import pytest
 from mfm.skeleton import HUMANML3D, KIT
 from preprocess.clip import Caption, Clip, SkippedInput
 from preprocess.sources import SOURCES, Source, build_source
-from preprocess.sources.amass import TRANS_MATRIX, AMASSSource, load_body_model, mirror_left_right, to_humanml3d_axes
+from preprocess.sources.amass import (
+    TRANS_MATRIX,
+    AMASSSource,
+    load_body_model,
+    mirror_left_right,
+    to_humanml3d_axes,
+)
 from preprocess.sources.humanml3d import hash_split, motion_id, parse_caption_line
 from preprocess.sources.synthetic import ACTIONS, CORRUPTIONS, SyntheticSource
 
@@ -586,7 +592,11 @@ def test_deepmimic_is_a_human_sized_figure_on_the_floor(deepmimic: dict[str, Cli
 def test_deepmimic_forward_kinematics_matches_pybullet() -> None:
     pybullet = pytest.importorskip("pybullet")
     from preprocess.sources.deepmimic import (
-        default_motions_dir, default_urdf_path, link_frames, parse_frames, read_humanoid_urdf,
+        default_motions_dir,
+        default_urdf_path,
+        link_frames,
+        parse_frames,
+        read_humanoid_urdf,
     )
 
     model = read_humanoid_urdf(default_urdf_path())
@@ -733,7 +743,13 @@ def test_registry(humanml3d_root: Path) -> None:
 
 
 def test_deepmimic_options_and_bad_files(tmp_path: Path) -> None:
-    from preprocess.sources.deepmimic import default_motions_dir, default_urdf_path, humanml3d_joints, parse_frames, read_humanoid_urdf
+    from preprocess.sources.deepmimic import (
+        default_motions_dir,
+        default_urdf_path,
+        humanml3d_joints,
+        parse_frames,
+        read_humanoid_urdf,
+    )
 
     assert len(build_source("deepmimic", None, held_out=False).list_items()) == 15
     untiled = build_source("deepmimic", None, min_seconds=0).load("walk")

@@ -11,16 +11,16 @@ import struct
 from pathlib import Path
 
 import pytest
-
-import pipeline.train_logging as train_logging
 from conftest import flip_byte, load_launch_script
-from pipeline import checkpoint as ckpt
-from pipeline.config import ConfigError, TrainConfig, load_config
-from pipeline.data import ShardVerificationError
-from pipeline.distributed import Dist
-from pipeline.trainer import Trainer
 from test_trainer import assert_identical, build_dataset_once, metrics_by_step
 from test_trainer_bad_data import copy_dataset
+
+import pipeline.training.reporting as train_logging
+from pipeline import checkpoint as ckpt
+from pipeline.config import ConfigError, TrainConfig, load_config
+from pipeline.data.stream import ShardVerificationError
+from pipeline.distributed import Dist
+from pipeline.training.trainer import Trainer
 
 STEPS = 6
 VAL_EVERY = 2

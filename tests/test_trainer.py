@@ -13,8 +13,8 @@ import json
 import os
 import re
 import shutil
-import socket
 import signal
+import socket
 import subprocess
 import sys
 import tarfile
@@ -24,16 +24,15 @@ from typing import Any
 import pytest
 import torch
 import yaml
-
-import pipeline.trainer as trainer_module
 from conftest import REPO_ROOT, flip_byte, load_launch_script
+
+import pipeline.training.trainer as trainer_module
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, from_dict, load_config, to_dict
-from pipeline.data import ShardVerificationError
+from pipeline.data.stream import ShardVerificationError
 from pipeline.distributed import Dist
-from pipeline.run_folder import RunFolderError, check_run_folder
-from pipeline.trainer import NonFiniteLossError, Trainer
-
+from pipeline.training.run_folder import RunFolderError, check_run_folder
+from pipeline.training.trainer import NonFiniteLossError, Trainer
 
 train_entry = load_launch_script("train")  # launch/train.py, whose main() the in-process tests call
 
@@ -430,7 +429,7 @@ def test_tolerant_verification_skips_the_shard_and_reports_it(corrupted_dataset,
 
 def test_learning_rate_schedules():
     """Warm-up is linear to 1; 'constant' stays there (MFM), 'cosine' falls to min_ratio exactly at total_steps."""
-    from pipeline.trainer import lr_lambda
+    from pipeline.training.trainer import lr_lambda
 
     constant = lr_lambda(4, "constant", total_steps=100)
     assert [constant(s) for s in range(5)] == [0.25, 0.5, 0.75, 1.0, 1.0] and constant(10_000) == 1.0

@@ -25,12 +25,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from pipeline import checkpoint as ckpt
-from pipeline.config import TrainConfig, load_config
-from pipeline.data import LoaderOptions, MotionLoader, ShardVerificationError, backend_for_format
-from pipeline.stages import RecordError
-from pipeline.trainer import Trainer
 from test_trainer import (
     MAX_STEPS,
     SignalAtStep,
@@ -43,6 +37,17 @@ from test_trainer import (
     resume_overrides,
     train_entry,
 )
+
+from pipeline import checkpoint as ckpt
+from pipeline.config import TrainConfig, load_config
+from pipeline.data.stages import RecordError
+from pipeline.data.stream import (
+    LoaderOptions,
+    MotionLoader,
+    ShardVerificationError,
+    backend_for_format,
+)
+from pipeline.training.trainer import Trainer
 
 NEVER = 10**9  # a SignalAtStep that never fires: the same hooked loss in every run that is compared
 

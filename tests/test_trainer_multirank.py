@@ -24,11 +24,6 @@ from typing import Any
 
 import pytest
 import torch
-
-from pipeline import checkpoint as ckpt
-from pipeline.config import TrainConfig, load_config
-from pipeline.distributed import Dist
-from pipeline.trainer import Trainer
 from test_trainer import (
     KILL_STEP,
     MAX_STEPS,
@@ -43,11 +38,16 @@ from test_trainer import (
     ids_by_step,
     metrics_by_step,
     output_of,
-    resume_overrides,
     results,
+    resume_overrides,
     run_worker,
 )
 from test_trainer_bad_data import copy_dataset, planned_batches, write_nan_into
+
+from pipeline import checkpoint as ckpt
+from pipeline.config import TrainConfig, load_config
+from pipeline.distributed import Dist
+from pipeline.training.trainer import Trainer
 
 pytestmark = [pytest.mark.multirank, pytest.mark.slow]
 

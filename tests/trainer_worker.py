@@ -49,11 +49,11 @@ from typing import Any
 import torch
 import torch.distributed as torch_dist
 
-import pipeline.trainer as trainer_module
+import pipeline.training.trainer as trainer_module
 from pipeline.config import TrainConfig, load_config
-from pipeline.data import LoaderOptions, MotionLoader
+from pipeline.data.stream import LoaderOptions, MotionLoader
 from pipeline.distributed import Dist
-from pipeline.trainer import Draws, Trainer, draw_for_batch
+from pipeline.training.trainer import Draws, Trainer, draw_for_batch
 
 REAL_BUILD_OBJECTIVE = trainer_module.build_objective
 

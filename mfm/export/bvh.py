@@ -21,7 +21,7 @@ What ``write_bvh`` writes
   therefore re-parse to their input positions exactly (to the 1e-6 printed precision); for a clip whose
   bone lengths drift (raw network output decoded from the ric block) the bone *directions* are kept
   and a warning reports the largest position deviation. Fit such a clip onto fixed bone lengths first
-  (``mfm.features.rigid_joints``, as pipeline/sampling.py does) to get a BVH that reproduces it.
+  (``mfm.features.rigid_joints``, as pipeline/generation/sampling.py does) to get a BVH that reproduces it.
 * Leaf joints get an ``End Site`` half a bone further along their rest direction (display only).
 
 Why there are extra ``*_to_*`` joints

@@ -5,7 +5,7 @@ A :class:`SampleRequest` says what to generate; :func:`run_sampling` loads the c
 in batches of ``batch_size`` and writes, into ``out_dir``::
 
     index.html                   the motions to browse: animated stick figures, captions, lengths, plausibility
-                                 (pipeline/browse.py; self-contained, opens from disk)
+                                 (pipeline/generation/browse.py; self-contained, opens from disk)
     results.json                 describes every file below (and nothing else) plus the settings and timings, and
                                  each sample's plausibility figures (mfm.metrics.plausibility of its joints:
                                  bone-length range / deviation, floor penetration, foot skating, mean jerk)
@@ -42,7 +42,7 @@ a batch's initial and per-step noise from one generator seeded with the batch's 
 unlike flow samples they depend on ``batch_size``. Editing a diffusion model is FLAME's replacement editing (the kept
 part is re-noised onto the chain before every step; ``rewrite_until`` does not apply) with the same mask presets.
 
-Composition (FlowMDM, one long sequence from several (text, length) segments) lives in pipeline/composing.py; it
+Composition (FlowMDM, one long sequence from several (text, length) segments) lives in pipeline/generation/composing.py; it
 shares this module's request, outputs and checkpoint loading.
 """
 
@@ -79,15 +79,15 @@ from mfm.solvers import (
     solve,
     zero_padded_frames,
 )
-from pipeline.inference import TrainedModel
-from pipeline.integration import (
+from pipeline.generation.inference import TrainedModel
+from pipeline.generation.integration import (
     Integrator,
     load_for_request,
     resolve_integrator,
     sample_seed,
     synchronize,
 )
-from pipeline.outputs import (
+from pipeline.generation.outputs import (
     RESULTS_FILE,
     SampleWriter,
     frame_ranges,
@@ -97,7 +97,12 @@ from pipeline.outputs import (
     write_json_atomically,
     write_mdm_layout,
 )
-from pipeline.request import EDIT_PRESETS, KEEP_OPTIONS, SampleRequest, SamplingError
+from pipeline.generation.request import (
+    EDIT_PRESETS,
+    KEEP_OPTIONS,
+    SampleRequest,
+    SamplingError,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -374,7 +379,7 @@ def generated_batches(request: SampleRequest, trained: TrainedModel, integrator:
                       options: Mapping[str, Any]) -> Iterator[tuple[list[SampleSpec], BatchResult, np.ndarray, float]]:
     """Generate ``specs`` batch by batch: ``(specs of the batch, its BatchResult, its un-normalised features
     (B, T, D) as numpy, generation seconds)``. Shared by the command line (which writes each batch as it comes) and
-    the Python API (:class:`pipeline.pretrained.MotionPipeline`)."""
+    the Python API (:class:`pipeline.generation.pretrained.MotionPipeline`)."""
     for chunk in batches(specs, request.batch_size):
         synchronize(trained.device)
         tick = time.perf_counter()
@@ -386,9 +391,9 @@ def generated_batches(request: SampleRequest, trained: TrainedModel, integrator:
 
 def run_sampling(request: SampleRequest) -> dict[str, Any]:
     """Generate every sample of ``request``, write the files and ``results.json``; returns the results dict.
-    Composition requests go to :func:`pipeline.composing.run_composition`."""
+    Composition requests go to :func:`pipeline.generation.composing.run_composition`."""
     if request.composes:
-        raise SamplingError("a composition request is run by pipeline.composing.run_composition")
+        raise SamplingError("a composition request is run by pipeline.generation.composing.run_composition")
     out_dir = Path(request.out_dir)
     trained = load_for_request(request)
     integrator = resolve_integrator(request, trained)

@@ -5,7 +5,7 @@ switch point (the flow time from which the model runs in relative mode; 1.0 = ne
 the same model; 0.0 = relative-only) is one unit with its own result JSON and table rows (``task='composition'``,
 column ``switch``). Only the switch changes between units: the same sequences, the same noise.
 
-Composition set. From the ground-truth items of the test split (pipeline.eval_spaces.build_ground_truth: caption
+Composition set. From the ground-truth items of the test split (pipeline.evaluation.spaces.build_ground_truth: caption
 and crop length per item) the items whose length lies in the scenario's bin (``composition.length_bins``; 'all' = no
 bin) and that are at least the transition window's right half long are eligible. A seeded generator
 (``composition.seed``) chains random permutations of them (every item once before any is reused; never the same item
@@ -76,12 +76,23 @@ import torch
 from torch import Tensor
 
 from mfm import metrics
-from mfm.composition import SWITCH_TOLERANCE, check_composition_budget, compose, resolve_switch
+from mfm.composition import (
+    SWITCH_TOLERANCE,
+    check_composition_budget,
+    compose,
+    resolve_switch,
+)
 from mfm.features import features_to_joints
 from pipeline.config import to_dict
+from pipeline.data.stages import stable_id_hash
 from pipeline.distributed import Dist
-from pipeline.eval_config import MDM_RULES, CompositionConfig, EvalConfig, SamplingPoint
-from pipeline.eval_replications import (
+from pipeline.evaluation.config import (
+    MDM_RULES,
+    CompositionConfig,
+    EvalConfig,
+    SamplingPoint,
+)
+from pipeline.evaluation.replications import (
     CheckpointContext,
     PhaseTimer,
     derive_seed,
@@ -91,10 +102,14 @@ from pipeline.eval_replications import (
     rng_of,
     summarise,
 )
-from pipeline.eval_spaces import EmbeddingSpace, EvaluationError, GroundTruthSet, digest
-from pipeline.eval_store import Unit, atomic_write_text
-from pipeline.inference import TrainedModel
-from pipeline.stages import stable_id_hash
+from pipeline.evaluation.spaces import (
+    EmbeddingSpace,
+    EvaluationError,
+    GroundTruthSet,
+    digest,
+)
+from pipeline.evaluation.store import Unit, atomic_write_text
+from pipeline.generation.inference import TrainedModel
 
 logger = logging.getLogger(__name__)
 

@@ -1,9 +1,9 @@
 """The verification cache: shards already hashed and checked, so that strict verification does not re-read
-every shard on every start (``pipeline.data.verify_shards``; docs/dataset-format.md, "Verification").
+every shard on every start (``pipeline.data.stream.verify_shards``; docs/dataset-format.md, "Verification").
 
 An entry says: the file at ``url`` was read in full, its size, sha256 and record count matched the manifest
 entry ``(bytes, sha256, num_motions)``, its records are ``record_ids``, and its metadata was ``fingerprint``
-(:class:`pipeline.locations.Fingerprint`) before and after that read. A later check whose manifest entry and
+(:class:`pipeline.data.locations.Fingerprint`) before and after that read. A later check whose manifest entry and
 fingerprint are the same takes the verdict and the ids from the entry instead of reading the file; anything
 different (another manifest entry, a changed size / mtime / ctime / inode / ETag / generation, another
 backend) reads and hashes the file again. Only good shards are remembered, and only when the fingerprint can be
@@ -26,7 +26,7 @@ import threading
 import time
 from typing import Any, Iterable, Sequence
 
-from pipeline.locations import Fingerprint
+from pipeline.data.locations import Fingerprint
 
 logger = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@ cached caption embeddings) and, when the dataset has action labels, an action cl
 
     python launch/train_evaluator.py data.manifest=data/deepmimic-minilm/manifest.json
 
-Data: the training stream of pipeline.data (MotionLoader: random caption, MDM crop to ``data.window`` frames,
+Data: the training stream of pipeline.data.stream (MotionLoader: random caption, MDM crop to ``data.window`` frames,
 manifest normalisation), the same as the motion model sees. Distributed: one process, or several ranks under
 torchrun / accelerate (DDP; each rank's InfoNCE uses its own batch's negatives).
 
@@ -14,7 +14,7 @@ Outputs (``out_dir``, default runs/evaluators/<dataset id>, where launch/evaluat
     report.json                             held-out retrieval R@1/2/3 (batches of 32, or the split's size when
                                             smaller, recorded) and classifier accuracy on val/test ground truth
 
-Held-out items are built exactly as the evaluation job builds its ground truth (pipeline.evaluation).
+Held-out items are built exactly as the evaluation job builds its ground truth (pipeline.evaluation.job).
 """
 
 from __future__ import annotations
@@ -31,14 +31,25 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mfm.evaluators import ActionClassifier, ContrastiveEvaluator, ContrastiveEvaluatorConfig, save_evaluator
+from mfm.evaluators import (
+    ActionClassifier,
+    ContrastiveEvaluator,
+    ContrastiveEvaluatorConfig,
+    save_evaluator,
+)
 from mfm.evaluators.contrastive import retrieval_accuracy
 from mfm.metrics import R_PRECISION_BATCH_SIZE, action_accuracy
 from pipeline.config import ConfigError, coerce_fields, to_dict
-from pipeline.data import LoaderOptions, Manifest, MotionLoader, backend_for_format, open_manifest, verify_shards
+from pipeline.data.stream import (
+    LoaderOptions,
+    Manifest,
+    MotionLoader,
+    backend_for_format,
+    open_manifest,
+    verify_shards,
+)
 from pipeline.distributed import Dist
-from pipeline.eval_store import atomic_write_text
-from pipeline.eval_spaces import (
+from pipeline.evaluation.spaces import (
     CLASSIFIER_FILE,
     EVALUATOR_FILE,
     EvaluationError,
@@ -47,6 +58,7 @@ from pipeline.eval_spaces import (
     build_ground_truth,
     default_evaluator_dir,
 )
+from pipeline.evaluation.store import atomic_write_text
 
 logger = logging.getLogger(__name__)
 

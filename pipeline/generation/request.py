@@ -4,8 +4,8 @@ A request is given as a YAML file (``--config FILE``), command-line flags (``--t
 :data:`FLAGS` table, each a shorthand for one key) and dotted overrides (``key=value``, e.g. ``steps=20
 'texts=[a person walks]'``), applied in that order, validated as the training and evaluation configs are
 (pipeline.config.load_config); ``--print-config`` lists every key with its value, default and meaning. The request
-is run by :func:`pipeline.sampling.run_sampling` (samples and edits) or :func:`pipeline.composing.run_composition`
-(composition, extrapolation); what they write is described in pipeline/outputs.py.
+is run by :func:`pipeline.generation.sampling.run_sampling` (samples and edits) or :func:`pipeline.generation.composing.run_composition`
+(composition, extrapolation); what they write is described in pipeline/generation/outputs.py.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from mfm.solvers import (
     FIXED_STEP_SOLVERS,
 )
 from pipeline.config import field_docs, load_config
-from pipeline.inference import TrainedModel
+from pipeline.generation.inference import TrainedModel
 
 # Command-line preset name -> mfm.editing preset (None: the custom joints/frames mask built here).
 EDIT_PRESETS: dict[str, str | None] = {
@@ -143,7 +143,7 @@ class SampleRequest:
     """Replace an earlier run's outputs in out_dir."""
     progress: bool | None = None
     """Progress bars; null: when stderr is a terminal."""
-    # Composition (pipeline/composing.py): one sequence made of (text, frames) segments.
+    # Composition (pipeline/generation/composing.py): one sequence made of (text, frames) segments.
     compose_file: str | Path | None = None
     """FlowMDM prompt file {"text": [...], "lengths": [...]}: one sequence of all segments per sample."""
     extrapolate: bool = False
@@ -214,7 +214,7 @@ class SampleRequest:
 
     @property
     def composes(self) -> bool:
-        """A composition request (pipeline/composing.py) rather than independent samples or edits."""
+        """A composition request (pipeline/generation/composing.py) rather than independent samples or edits."""
         return self.compose_file is not None or self.extrapolate
 
     def _check_composition(self) -> None:

@@ -1,6 +1,6 @@
 """The training data stream: exactly once per epoch, equal batch counts on every rank, bit-exact resume.
 
-Stages, in order (each a named function or class; the per-sample ones live in ``pipeline.stages``)::
+Stages, in order (each a named function or class; the per-sample ones live in ``pipeline.data.stages``)::
 
     split_shards(manifest, split)              shard list from the manifest (paths resolved against its location)
     plan_epoch(...)                            per-epoch shuffle of the shards from (seed, epoch), then every
@@ -13,7 +13,7 @@ Stages, in order (each a named function or class; the per-sample ones live in ``
     PickCaption                                one caption, motion cut to its span
     CropToWindow                               MDM/MFM random crop (multiple of unit_length, ≤ window frames)
     Normalize                                  manifest Mean/Std
-    Collate                                    padded batch + masks (keys: see ``pipeline.stages.Collate``)
+    Collate                                    padded batch + masks (keys: see ``pipeline.data.stages.Collate``)
 
 The per-reader part runs as a ``webdataset.DataPipeline`` inside each DataLoader worker (or in the main
 process with ``num_workers=0``). Unlike open_clip, the shuffle buffer acts before decoding: its order is
@@ -45,12 +45,12 @@ checks them first with :func:`verify_shards`: the split's totals against its sha
 every shard's size, sha256, real record count and record ids (unique in the split), in one read per shard.
 ``strict`` refuses a bad shard or an inconsistent manifest naming the file and the reason; ``tolerant``
 leaves bad shards out (``exclude_shards``) and counts everything it found in the report. A shard read and
-found good is remembered in a small cache (``pipeline.shard_cache``: manifest entry, record ids, and the file's
+found good is remembered in a small cache (``pipeline.data.shard_cache``: manifest entry, record ids, and the file's
 size + mtime/ctime/inode, or ETag/generation/Last-Modified for a URL); a later start takes an unchanged shard's
 verdict from it without reading it (``VerificationReport.num_from_cache``).
 
 Where data lives. Shard and manifest locations are local paths or any fsspec URL (``s3://``, ``gs://``,
-``https://``, ``memory://``, ...; ``pipeline.locations``; the cloud packages are the ``remote`` extra). Shard paths
+``https://``, ``memory://``, ...; ``pipeline.data.locations``; the cloud packages are the ``remote`` extra). Shard paths
 in the manifest are relative to the manifest's own location. Transient errors (connection reset, timeout, HTTP
 5xx/429) are retried with exponential back-off (``LoaderOptions.retries``/``retry_backoff_s``); a shard read that
 fails half way is re-opened and the records already yielded are passed over (:func:`read_shard`), so the stream,
@@ -65,7 +65,7 @@ an empty batch (zero rows, ``ids == []``; counted in ``empty_batches``), so ever
 planned batch per step and all ranks agree on the number of batches per epoch and on the data position (a
 rank that passed it over would run one batch ahead of the others and could run out of batches a step before
 them, which hangs a collective). The trainer steps through an empty batch with zero weight in the loss
-(``pipeline.trainer.Trainer.train_step``). Shards excluded
+(``pipeline.training.trainer.Trainer.train_step``). Shards excluded
 since the checkpoint (a shard that went bad after it; or readmitted, repaired ones): the checkpoint's epoch
 is finished with the plan it started with, so the batches still due are the ones that were due, except that
 the records of newly excluded shards are left out of their batches (counted as skipped records, their files
@@ -100,23 +100,7 @@ import webdataset as wds
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from webdataset.tariterators import group_by_keys, tar_file_expander
 
-from pipeline.stages import (
-    Collate,
-    CropToWindow,
-    DecodeParquetRow,
-    DecodeTarRecord,
-    MotionRecord,
-    Normalize,
-    ParquetRow,
-    CAPTION_POLICIES,
-    PickCaption,
-    RecordSpec,
-    SKIPPED_RECORDS_KEY,
-    SkipBadRecords,
-    SkippedRecord,
-    shuffle_buffer_order,
-)
-from pipeline.locations import (  # noqa: F401  (is_url, resolve_location, open_binary: part of this module's API)
+from pipeline.data.locations import (  # noqa: F401  (is_url, resolve_location, open_binary: part of this module's API)
     DEFAULT_RETRY,
     RemoteSupportMissing,
     RetriesExhausted,
@@ -134,8 +118,29 @@ from pipeline.locations import (  # noqa: F401  (is_url, resolve_location, open_
     resolve_location,
     wait_before_retry,
 )
-from pipeline.shard_cache import RACY_S, VerificationCache
-from preprocess.shards import FORMAT_VERSION, MANIFEST_NAME, ManifestError, load_manifest
+from pipeline.data.shard_cache import RACY_S, VerificationCache
+from pipeline.data.stages import (
+    CAPTION_POLICIES,
+    SKIPPED_RECORDS_KEY,
+    Collate,
+    CropToWindow,
+    DecodeParquetRow,
+    DecodeTarRecord,
+    MotionRecord,
+    Normalize,
+    ParquetRow,
+    PickCaption,
+    RecordSpec,
+    SkipBadRecords,
+    SkippedRecord,
+    shuffle_buffer_order,
+)
+from preprocess.shards import (
+    FORMAT_VERSION,
+    MANIFEST_NAME,
+    ManifestError,
+    load_manifest,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -154,7 +159,7 @@ STATE_VERSION = 1
 
 
 # Locations (local paths and fsspec URLs: is_url, resolve_location, open_binary, ...), retries (RetryPolicy) and
-# file fingerprints live in pipeline.locations, imported above; the verification cache in pipeline.shard_cache.
+# file fingerprints live in pipeline.data.locations, imported above; the verification cache in pipeline.data.shard_cache.
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -438,7 +443,7 @@ class VerificationReport:
     shard counts, which verification has checked against the shards themselves)."""
     num_from_cache: int = 0
     """Shards of ``num_checked`` whose verdict came from the verification cache: hashed by an earlier check, and
-    unchanged since by their size and fingerprint (``pipeline.shard_cache``)."""
+    unchanged since by their size and fingerprint (``pipeline.data.shard_cache``)."""
 
     @property
     def bad_paths(self) -> tuple[str, ...]:
@@ -586,7 +591,7 @@ def check_shard(shard: ShardInfo, backend: str = "webdataset", *, retry: RetryPo
     ctime, inode; ETag / generation / Last-Modified for URLs) are unchanged is taken as verified without reading
     it; a shard that is read and passes is remembered, when its fingerprint can be trusted. Transient errors
     (connection reset, timeout, HTTP 5xx/429) are retried per ``retry``; one that outlasts the retries raises
-    :class:`~pipeline.locations.RetriesExhausted` (it says nothing about the shard). 404 / missing is
+    :class:`~pipeline.data.locations.RetriesExhausted` (it says nothing about the shard). 404 / missing is
     ``missing``, 403 / permission ``unreadable``."""
     started = time.time()
     try:
@@ -671,9 +676,9 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
     repeat ids of an earlier good shard is bad: sample ids seed every random draw and name evaluation items.
 
     ``cache``: where verdicts are remembered so that an unchanged shard is not hashed again on the next start
-    (``pipeline.shard_cache``): None → ``$MFM_VERIFY_CACHE`` or the user's cache folder, False → no cache (hash
+    (``pipeline.data.shard_cache``): None → ``$MFM_VERIFY_CACHE`` or the user's cache folder, False → no cache (hash
     everything), a folder. ``retry``: transient errors (network) are retried; one that outlasts the retries raises
-    :class:`~pipeline.locations.RetriesExhausted` naming the URL, in both modes (an unreachable shard is not a bad
+    :class:`~pipeline.data.locations.RetriesExhausted` naming the URL, in both modes (an unreachable shard is not a bad
     one, and tolerant mode must not drop data for a network outage).
     """
     if mode not in VERIFY_MODES:

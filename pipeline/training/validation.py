@@ -37,7 +37,13 @@ import torch
 
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig
-from pipeline.data import LoaderOptions, Manifest, MotionLoader, backend_for_format, split_shards
+from pipeline.data.stream import (
+    LoaderOptions,
+    Manifest,
+    MotionLoader,
+    backend_for_format,
+    split_shards,
+)
 from pipeline.distributed import Dist
 from preprocess.shards import ManifestError
 

@@ -46,7 +46,7 @@ from mfm.skeleton import get_skeleton
 from mfm.text import MDM_CONTEXT_LENGTH, OPENAI_VIT_B_32_SHA256
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
-from pipeline.run_folder import check_run_folder
+from pipeline.training.run_folder import check_run_folder
 from preprocess.shards import feature_spec
 
 logger = logging.getLogger(__name__)

@@ -2,7 +2,7 @@
 
     python launch/export.py runs/default --out exported/default        # a checkpoint -> an inference folder
 
-    from pipeline.pretrained import MotionPipeline
+    from pipeline.generation.pretrained import MotionPipeline
     pipe = MotionPipeline.from_pretrained("exported/default")
     out = pipe(["a person walks in a circle"], seconds=4.0, seed=0)
     out.joints[0].shape                   # (80, 22, 3): metres, y up, at out.fps
@@ -13,9 +13,9 @@ An exported folder holds ``model.safetensors`` (the EMA weights by default, noth
 preset, training window and step, and the dataset identity: feature spec, text encoder id and weights hash, action
 classes, training lengths; written last, so a folder without it is incomplete) and ``README.md``, a model card (data,
 steps, recipe, and the evaluator's metrics for this checkpoint when its run folder has any). ``launch/sample.py
---checkpoint`` takes an exported folder as it takes a checkpoint (:func:`pipeline.inference.load_trained_model`
+--checkpoint`` takes an exported folder as it takes a checkpoint (:func:`pipeline.generation.inference.load_trained_model`
 recognises it); the evaluator scores checkpoints (its results are keyed by a checkpoint's COMPLETE marker). :class:`MotionPipeline` generates through the same
-functions as ``launch/sample.py`` (:func:`pipeline.sampling.generated_batches`), so the same seed gives the same motion.
+functions as ``launch/sample.py`` (:func:`pipeline.generation.sampling.generated_batches`), so the same seed gives the same motion.
 """
 
 from __future__ import annotations
@@ -34,7 +34,11 @@ import torch
 from mfm.features import features_to_joints
 from mfm.model import ModelConfig, MotionFlowTransformer
 from pipeline import checkpoint as ckpt
-from pipeline.inference import TrainedModel, load_trained_model, training_objective
+from pipeline.generation.inference import (
+    TrainedModel,
+    load_trained_model,
+    training_objective,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -221,7 +225,7 @@ class GeneratedMotions:
              overwrite: bool = False) -> Path:
         """Write every motion (sample_NNN/ with features.npy, joints.npy, motion.mp4|gif, motion.bvh) and
         results.json into ``out_dir``; ``mdm_results`` also MDM's results.npy."""
-        from pipeline import outputs
+        from pipeline.generation import outputs
 
         out_dir = Path(out_dir)
         request = dataclasses.replace(self._request, out_dir=str(out_dir), video=video, bvh=bvh,
@@ -234,7 +238,7 @@ class GeneratedMotions:
             samples.append({**record, **writer.write(record["index"], features, title)})
         results = {**outputs.results_header(request, self._trained, self._integrator, "sample",
                                              bool(request.texts or request.actions)),
-                   "api": "pipeline.pretrained.MotionPipeline", "samples": samples}
+                   "api": "pipeline.generation.pretrained.MotionPipeline", "samples": samples}
         if mdm_results:
             results["mdm_results"] = outputs.write_mdm_layout(out_dir, samples, request.num_samples)
         outputs.write_json_atomically(out_dir / outputs.RESULTS_FILE, results)
@@ -253,7 +257,7 @@ class MotionPipeline:
                         text_weights: str | None = None) -> MotionPipeline:
         """``folder``: an exported folder, a checkpoint or a run folder. ``text_weights``: CLIP datasets' weights
         file (checked against the recorded hash)."""
-        from pipeline.integration import resolve_device
+        from pipeline.generation.integration import resolve_device
 
         trained = load_trained_model(folder, use_ema=weights == "ema", device=resolve_device(device))
         return cls(trained, text_weights=text_weights)
@@ -269,8 +273,8 @@ class MotionPipeline:
         """Motions for ``texts`` (or ``actions``), ``num_samples`` each, ``seconds`` or ``lengths`` long (one value
         or one per prompt; default: drawn from the training lengths). The same arguments give the same motions as
         ``launch/sample.py``."""
-        from pipeline import integration, sampling
-        from pipeline.request import SampleRequest
+        from pipeline.generation import integration, sampling
+        from pipeline.generation.request import SampleRequest
 
         texts = [texts] if isinstance(texts, str) else list(texts)
         request = SampleRequest(

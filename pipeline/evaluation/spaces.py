@@ -40,9 +40,14 @@ from mfm.evaluators import (
 )
 from mfm.integrity import sha256_file
 from mfm.model import valid_frame_mask
-from pipeline.data import Manifest, ShardVerificationError, open_manifest, verified_split
-from pipeline.eval_config import EvaluatorConfig
-from pipeline.stages import MotionRecord, stable_id_hash
+from pipeline.data.stages import MotionRecord, stable_id_hash
+from pipeline.data.stream import (
+    Manifest,
+    ShardVerificationError,
+    open_manifest,
+    verified_split,
+)
+from pipeline.evaluation.config import EvaluatorConfig
 
 GT_FORMAT = 1
 REDRAW_FORMAT = 1

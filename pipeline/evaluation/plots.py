@@ -1,4 +1,4 @@
-"""Plots of the results table (pipeline.eval_store): metrics against training step, FID against NFE.
+"""Plots of the results table (pipeline.evaluation.store): metrics against training step, FID against NFE.
 
 * ``metrics_vs_step.png``: one panel per metric, one line per sampling setting (solver, steps, guidance, evaluator,
   protocol), mean with its 95 % interval as error bars; the ground-truth value as a dashed line.

@@ -1,7 +1,7 @@
 """Contact sheets of a checkpoint's samples, or of the dataset clips of the same captions: the engine behind
 ``launch/contact_sheet.py`` (the drawing is :func:`mfm.export.render_contact_sheet`).
 
-Generated rows come from :func:`pipeline.sampling.run_sampling` itself (into a temporary folder, without video or
+Generated rows come from :func:`pipeline.generation.sampling.run_sampling` itself (into a temporary folder, without video or
 BVH), so a sheet shows what ``launch/sample.py`` writes for the same prompts, lengths, solver, steps, guidance and
 seed: row i is sample i of a request with one sample per prompt, its joints decoded as ``decode`` says.
 
@@ -28,10 +28,10 @@ from mfm.export import render_contact_sheet
 from mfm.features import features_to_joints, features_to_joints_rigid
 from mfm.metrics import plausibility, plausibility_settings, plausibility_side_by_side
 from mfm.skeleton import Skeleton, get_skeleton
-from pipeline.data import Manifest, iter_motions, open_manifest
-from pipeline.inference import load_trained_model, skeleton_from_spec
-from pipeline.request import JOINT_DECODES, SampleRequest, SamplingError
-from pipeline.sampling import run_sampling
+from pipeline.data.stream import Manifest, iter_motions, open_manifest
+from pipeline.generation.inference import load_trained_model, skeleton_from_spec
+from pipeline.generation.request import JOINT_DECODES, SampleRequest, SamplingError
+from pipeline.generation.sampling import run_sampling
 
 DECODERS = {"ric": features_to_joints, "rigid": features_to_joints_rigid}  # the keys of JOINT_DECODES
 
@@ -53,7 +53,7 @@ class ContactSheetRequest:
     solver: str | None = None
     guidance: float = 2.5
     seed: int = 0
-    decode: str = "ric"  # a key of pipeline.sampling.JOINT_DECODES
+    decode: str = "ric"  # a key of pipeline.generation.sampling.JOINT_DECODES
     device: str = "auto"
     weights: str = "ema"
     text_weights: str | None = None

@@ -12,8 +12,8 @@ import torch
 
 from mfm.diffusion import GaussianDiffusion
 from mfm.diffusion_sampling import SAMPLERS
-from pipeline.inference import TrainedModel, load_trained_model
-from pipeline.request import (
+from pipeline.generation.inference import TrainedModel, load_trained_model
+from pipeline.generation.request import (
     DEFAULT_DIFFUSION_SAMPLER,
     DEFAULT_FLOW_SOLVER,
     DEFAULT_FLOW_STEPS,

@@ -47,10 +47,10 @@ from pipeline.checkpoint import run_dir_of
 logger = logging.getLogger(__name__)
 
 PAGE_FILE = "index.html"
-SAMPLE_RESULTS = "results.json"  # pipeline.sampling.RESULTS_FILE
-EVAL_TABLE = "results.jsonl"  # pipeline.eval_store.TABLE_JSONL
-EVAL_RESULTS_DIR = "results"  # pipeline.eval_store.RESULTS_SUBDIR
-EVAL_PLOTS_DIR = "plots"  # pipeline.eval_store.PLOTS_SUBDIR
+SAMPLE_RESULTS = "results.json"  # pipeline.generation.sampling.RESULTS_FILE
+EVAL_TABLE = "results.jsonl"  # pipeline.evaluation.store.TABLE_JSONL
+EVAL_RESULTS_DIR = "results"  # pipeline.evaluation.store.RESULTS_SUBDIR
+EVAL_PLOTS_DIR = "plots"  # pipeline.evaluation.store.PLOTS_SUBDIR
 GRID_SPACING_MM = 500  # mfm.export.render.GRID_SPACING_M
 CANVAS_PX = 320
 MAX_MOTIONS = 200  # motions embedded in a sample page (about 0.3 kB per frame each); the rest listed without a player
@@ -192,7 +192,7 @@ def page(title: str, body: str, script: str = "") -> str:
 
 
 def _sample_caption(results: Mapping[str, Any], sample: Mapping[str, Any]) -> str:
-    """As pipeline.sampling.caption: the text or action, 'unconditional', and the edit preset."""
+    """As pipeline.generation.sampling.caption: the text or action, 'unconditional', and the edit preset."""
     words = sample.get("text") or sample.get("action") or "unconditional"
     edit = sample.get("edit")
     return f"{words} [{edit.get('preset')} edit]" if isinstance(edit, Mapping) and edit.get("preset") else words
@@ -217,7 +217,7 @@ def _edited_flags(out_dir: Path, sample: Mapping[str, Any], skeleton: Skeleton, 
     if path is None or not (out_dir / path).is_file():
         return None
     from mfm.layout import FeatureLayout
-    from pipeline.outputs import edited_joints
+    from pipeline.generation.outputs import edited_joints
 
     keep = np.load(out_dir / path)
     edited = edited_joints(keep, FeatureLayout(skeleton))[:frames]
@@ -336,7 +336,7 @@ def _sample_header(out_dir: Path, results: Mapping[str, Any]) -> str:
 
 
 def _switch_text(switch: Any) -> str | None:
-    """pipeline.composing.switch_record in a few words."""
+    """pipeline.generation.composing.switch_record in a few words."""
     if not isinstance(switch, Mapping):
         return None if switch is None else str(switch)
     if not switch.get("applies"):
@@ -555,7 +555,7 @@ def write_sample_index(out_dir: str | Path, max_motions: int | None = MAX_MOTION
     body = (f"{_sample_header(out_dir, results)}<main class=\"grid\">{cards}</main>"
             f"<footer>Plausibility figures: mfm.metrics.plausibility of each joints.npy ({notes}); hover a figure "
             f"for its meaning. Joints shown in mm, orthographic camera following the root, floor grid "
-            f"{GRID_SPACING_MM / 1000:g} m, the root's path in grey. Written by pipeline/browse.py; rebuild with "
+            f"{GRID_SPACING_MM / 1000:g} m, the root's path in grey. Written by pipeline/generation/browse.py; rebuild with "
             f"<code>python launch/browse.py {esc(out_dir)}</code>.</footer>")
     script = (f"<script type=\"application/json\" id=\"motion-data\">{script_json(data)}</script>\n"
               f"<script>{PLAYER_JS}</script>")
@@ -717,7 +717,7 @@ def write_eval_index(out_dir: str | Path) -> Path:
             "scored against; values are mean ± 95 % CI over the replications (R). The setting links to the "
             "result JSON.</p></header>"
             f"{''.join(sections)}<footer>From {esc(EVAL_TABLE)} and {esc(EVAL_PLOTS_DIR)}/; written by "
-            f"pipeline/browse.py; rebuild with <code>python launch/browse.py {esc(root)}</code>.</footer>")
+            f"pipeline/generation/browse.py; rebuild with <code>python launch/browse.py {esc(root)}</code>.</footer>")
     path = write_page(root / PAGE_FILE, page(f"evaluation: {root.resolve().name}", body))
     logger.info("wrote %s (%d rows, %d plots)", path, len(rows), len(plots))
     return path

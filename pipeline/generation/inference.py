@@ -155,13 +155,16 @@ class TrainedModel:
 
 
 def load_trained_model(path: str | Path, *, use_ema: bool = True, device: str | torch.device = "cpu") -> TrainedModel:
-    """Load a checkpoint (or a run folder's newest complete one, or an exported folder: pipeline.pretrained) for
+    """Load a checkpoint (or a run folder's newest complete one, or an exported folder: pipeline.generation.pretrained) for
     sampling/evaluation, EMA weights by default.
 
     The model is built with the saved (resolved) model config, output width included; a diffusion checkpoint
     also gets its GaussianDiffusion (``TrainedModel.diffusion``) from the saved ``train.diffusion`` preset.
     """
-    from pipeline.pretrained import is_pretrained_folder, load_pretrained  # imports this module
+    from pipeline.generation.pretrained import (  # imports this module
+        is_pretrained_folder,
+        load_pretrained,
+    )
 
     if is_pretrained_folder(path):  # an exported folder (launch/export.py): one set of weights, no optimizer
         return load_pretrained(path, device=device)

@@ -1,6 +1,6 @@
 """The per-sample stages of the training stream, each a small callable that can be tested alone.
 
-Order in the stream (see ``pipeline.data`` for the shard-level stages that come before):
+Order in the stream (see ``pipeline.data.stream`` for the shard-level stages that come before):
 
     raw record ─► DecodeTarRecord / DecodeParquetRow ─► PickCaption ─► CropToWindow ─► Normalize ─► Collate
                   (MotionRecord: all captions)          (one caption,   (MFM crop)     (manifest    (padded batch
@@ -348,7 +348,7 @@ class Collate:
     than the batch size): their reasons are under ``SKIPPED_RECORDS_KEY``. When every record was skipped the
     batch is EMPTY, not missing: every key is there with zero rows (``features`` (0, W, D), ``ids`` [], ...;
     the sizes come from ``record_spec``), so that the batch still takes its place in the stream and the trainer
-    steps through it in lockstep with the other ranks (see ``pipeline.trainer.Trainer.train_step``).
+    steps through it in lockstep with the other ranks (see ``pipeline.training.trainer.Trainer.train_step``).
     """
 
     def __init__(self, window: int, action_classes: Sequence[str], record_spec: RecordSpec | None = None):

@@ -1,4 +1,4 @@
-"""What sampling, editing and composition write, shared by pipeline/sampling.py and pipeline/composing.py: the
+"""What sampling, editing and composition write, shared by pipeline/generation/sampling.py and pipeline/generation/composing.py: the
 output folder's rules, each sample's files (:class:`SampleWriter`), results.json's common header, MDM's
 results.npy layout and the browsable index.html.
 
@@ -27,15 +27,15 @@ from mfm.export.render import Captions
 from mfm.features import features_to_joints, rigid_joints
 from mfm.layout import FeatureLayout
 from mfm.skeleton import Skeleton
-from pipeline.inference import TrainedModel
-from pipeline.integration import Integrator
-from pipeline.request import JOINT_DECODES, SampleRequest, SamplingError
+from pipeline.generation.inference import TrainedModel
+from pipeline.generation.integration import Integrator
+from pipeline.generation.request import JOINT_DECODES, SampleRequest, SamplingError
 
 logger = logging.getLogger(__name__)
 
 RESULTS_FILE = "results.json"
 
-BROWSE_PAGE = "index.html"  # pipeline/browse.py's page of the outputs, written last
+BROWSE_PAGE = "index.html"  # pipeline/generation/browse.py's page of the outputs, written last
 
 RESULTS_VERSION = 1
 
@@ -176,10 +176,10 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
 
 
 def write_index_page(out_dir: Path) -> None:
-    """index.html to browse the written motions (pipeline/browse.py), written last; a failure is logged, never
+    """index.html to browse the written motions (pipeline/generation/browse.py), written last; a failure is logged, never
     fatal: the motions and results.json are already complete."""
     try:
-        from pipeline.browse import (
+        from pipeline.generation.browse import (
             write_sample_index,  # browse reads this module's file names
         )
         write_sample_index(out_dir)

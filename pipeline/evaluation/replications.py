@@ -18,7 +18,7 @@ per set, so later sampling points and checkpoints read them).
 Generation uses the sampling code: ``mfm.solvers.solve`` over ``guided_velocity`` with padded frames zeroed (what
 ``mfm.solvers.sample`` does, with per-motion noise), and ``mfm.editing.edit`` for the editing tasks.
 
-The ``mdm`` protocol's rules (pipeline.eval_config.MDM_RULES) change four places here: :func:`plan_protocol` (whole
+The ``mdm`` protocol's rules (pipeline.evaluation.config.MDM_RULES) change four places here: :func:`plan_protocol` (whole
 batches, MultiModality replications), :class:`GroundTruthPasses` (the ground-truth row and FID statistics from two
 further passes), :func:`generate` with ``window`` and :meth:`PointRun.encode_generated` (what the evaluator sees past
 a motion's length, MultiModality's normalisation), and the generated row's captions (``text_padded``).
@@ -49,17 +49,36 @@ from mfm.diffusion_sampling import (
     smooth_over_time,
 )
 from mfm.editing import edit, edit_mask
-from mfm.guidance import classifier_free_guidance
 from mfm.features import features_to_joints
+from mfm.guidance import classifier_free_guidance
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
 from mfm.skeleton import Skeleton
-from mfm.solvers import FIXED_STEP_SOLVERS, draw_noise, guided_velocity, seeded_generators, solve, zero_padded_frames
-from pipeline.data import Manifest
+from mfm.solvers import (
+    FIXED_STEP_SOLVERS,
+    draw_noise,
+    guided_velocity,
+    seeded_generators,
+    solve,
+    zero_padded_frames,
+)
+from pipeline.data.stream import Manifest
 from pipeline.distributed import Dist
-from pipeline.eval_config import EDIT_PRESETS, OUR_RULES, EvalConfig, SamplingConfig, SamplingPoint
-from pipeline.eval_spaces import ClassifierSpace, EmbeddingSpace, EvaluationError, GroundTruthPool, GroundTruthSet
-from pipeline.inference import TrainedModel
+from pipeline.evaluation.config import (
+    EDIT_PRESETS,
+    OUR_RULES,
+    EvalConfig,
+    SamplingConfig,
+    SamplingPoint,
+)
+from pipeline.evaluation.spaces import (
+    ClassifierSpace,
+    EmbeddingSpace,
+    EvaluationError,
+    GroundTruthPool,
+    GroundTruthSet,
+)
+from pipeline.generation.inference import TrainedModel
 
 logger = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """Settings of the evaluation job (launch/evaluate.py): typed sections, presets configs/eval_{full,fast,mdm}.yaml,
-dotted overrides, and the sweep flags ``--solver/--steps/--guidance`` (comma lists). See pipeline.evaluation.
+dotted overrides, and the sweep flags ``--solver/--steps/--guidance`` (comma lists). See pipeline.evaluation.job.
 """
 
 from __future__ import annotations
@@ -201,7 +201,7 @@ class TasksConfig:
     text_to_motion: bool = True
     """The T2M protocol units (one per sampling point; with flame / editing below). false: composition only."""
     composition: bool = False
-    """FlowMDM's composition protocol (section ``composition``; pipeline.eval_composition): bpe + pccat models."""
+    """FlowMDM's composition protocol (section ``composition``; pipeline.evaluation.composition): bpe + pccat models."""
     flame: bool = True
     """APE/AVE, mCLIP, MID and per-text joint variance (FLAME / TEMOS)."""
     ape_floor: Literal["temos", "given"] = "temos"
@@ -264,7 +264,7 @@ relative from the start (0.0), FlowMDM's HumanML3D / Babel ``bpe_denoising_step`
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class CompositionConfig:
-    """FlowMDM's composition evaluation (pipeline.eval_composition); runs with ``tasks.composition=true``."""
+    """FlowMDM's composition evaluation (pipeline.evaluation.composition); runs with ``tasks.composition=true``."""
 
     switch: tuple[float | str, ...] = ("relative", "humanml3d", "absolute")
     """Flow times from which the bpe model runs in relative mode, one unit each; or names of SWITCH_NAMES.

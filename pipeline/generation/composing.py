@@ -1,7 +1,7 @@
 """FlowMDM composition and extrapolation from a trained flow checkpoint: the engine behind
 ``launch/sample.py --compose`` / ``--extrapolate``.
 
-A :class:`pipeline.sampling.SampleRequest` with ``compose_file`` (FlowMDM's ``{"text": [...], "lengths": [...]}``)
+A :class:`pipeline.generation.sampling.SampleRequest` with ``compose_file`` (FlowMDM's ``{"text": [...], "lengths": [...]}``)
 or ``extrapolate`` (one text, or action, repeated over segments) is generated as ONE sequence of Σ lengths frames
 per sample by :func:`mfm.composition.compose` / :func:`mfm.composition.extrapolate`, and written as::
 
@@ -10,10 +10,10 @@ per sample by :func:`mfm.composition.compose` / :func:`mfm.composition.extrapola
     sample_000/features.npy      (Σ L, D) float32 features of the whole sequence, un-normalised
     sample_000/joints.npy        (Σ L, J, 3) float32 joint positions
     sample_000/motion.mp4|.gif   one video of the whole sequence; the caption changes at every segment start
-    sample_000/motion.bvh        BVH of the whole sequence (as pipeline/sampling.py)
+    sample_000/motion.bvh        BVH of the whole sequence (as pipeline/generation/sampling.py)
     sample_000/trajectory.png    on request: x̂1 estimates along the ODE trajectory
 
-``num_samples`` > 1 gives sample_001, ... (noise seeds as pipeline/sampling.py). Lengths are NOT capped at the
+``num_samples`` > 1 gives sample_001, ... (noise seeds as pipeline/generation/sampling.py). Lengths are NOT capped at the
 training window: making sequences longer than any training sample is the point of composition.
 
 What a model can do:
@@ -58,15 +58,15 @@ from mfm.composition import (
     segment_boundaries,
 )
 from mfm.model import ModelConfig
-from pipeline.inference import TrainedModel
-from pipeline.integration import (
+from pipeline.generation.inference import TrainedModel
+from pipeline.generation.integration import (
     Integrator,
     load_for_request,
     resolve_integrator,
     sample_seed,
     synchronize,
 )
-from pipeline.outputs import (
+from pipeline.generation.outputs import (
     RESULTS_FILE,
     SampleWriter,
     prepare_out_dir,
@@ -74,7 +74,7 @@ from pipeline.outputs import (
     write_index_page,
     write_json_atomically,
 )
-from pipeline.request import SampleRequest, SamplingError
+from pipeline.generation.request import SampleRequest, SamplingError
 
 logger = logging.getLogger(__name__)
 

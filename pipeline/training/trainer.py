@@ -7,12 +7,12 @@ versioned resume state saved atomically by :mod:`pipeline.checkpoint`. ``fit`` r
     resume → write run files → for each optimizer step: stop requested? → train_step → maybe_log (+ maybe_validate)
     → maybe_save
 
-What rank 0 shows (metrics.jsonl, W&B, TensorBoard, loss.png at the end) is :mod:`pipeline.train_logging`; the
+What rank 0 shows (metrics.jsonl, W&B, TensorBoard, loss.png at the end) is :mod:`pipeline.training.reporting`; the
 validation loss every ``train.val_every`` steps (fixed val batches and draws, separate RNG streams, all-reduced
-over ranks) is :mod:`pipeline.validation`.
+over ranks) is :mod:`pipeline.training.validation`.
 
 Nothing is written into the run folder before the resume decision: rank 0 first checks train.out_dir
-(:mod:`pipeline.run_folder`), removes unfinished checkpoint folders of dead processes and resolves train.resume
+(:mod:`pipeline.training.run_folder`), removes unfinished checkpoint folders of dead processes and resolves train.resume
 (auto skips, and sets aside, corrupt checkpoints; an explicit older one is refused while newer ones exist). A save
 that fails (a full disk) stops the run on every rank with :class:`CheckpointSaveError`; the same command continues
 from the newest complete checkpoint once there is space.
@@ -32,7 +32,7 @@ micro-batch still runs forward and backward, on a zero stand-in with weight 0, s
 happens on every rank. A step with no sample on any rank makes no update (see :meth:`Trainer.train_step`).
 
 fp16 (``train.mixed_precision=fp16`` or ``accelerate launch --mixed_precision fp16``): the loss is scaled
-before each backward pass and the gradients unscaled once after the last (:mod:`pipeline.loss_scaling`), before
+before each backward pass and the gradients unscaled once after the last (:mod:`pipeline.training.loss_scaling`), before
 they are measured, clipped or applied. A step whose gradients overflow is a normal fp16 event, not bad data: each
 rank's overflow flag travels in the same per-step flag all-reduce, so every rank skips that update alike (no
 optimizer, scheduler or EMA step), the loss scale backs off on every rank, and the step is counted in
@@ -79,7 +79,8 @@ from mfm.model import (
 from mfm.skeleton import get_skeleton
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
-from pipeline.data import (
+from pipeline.data.locations import RetryPolicy
+from pipeline.data.stream import (
     DataResumeError,
     LoaderOptions,
     Manifest,
@@ -89,11 +90,10 @@ from pipeline.data import (
     verify_shards,
 )
 from pipeline.distributed import Dist
-from pipeline.locations import RetryPolicy
-from pipeline.loss_scaling import LossScaler
-from pipeline.run_folder import RunFolderError, check_run_folder
-from pipeline.train_logging import MetricsSink, require_tensorboard
-from pipeline.validation import Validator, build_validator, has_val_split
+from pipeline.training.loss_scaling import LossScaler
+from pipeline.training.reporting import MetricsSink, require_tensorboard
+from pipeline.training.run_folder import RunFolderError, check_run_folder
+from pipeline.training.validation import Validator, build_validator, has_val_split
 
 logger = logging.getLogger(__name__)
 
@@ -116,7 +116,7 @@ class CheckpointSaveError(RuntimeError):
 # Small parts of a run
 # ---------------------------------------------------------------------------------------------------------------
 
-# The loader state entries a resume must keep (pipeline.data._PLAN_STATE_KEYS), as the settings that set them.
+# The loader state entries a resume must keep (pipeline.data.stream._PLAN_STATE_KEYS), as the settings that set them.
 DATA_STATE_SETTINGS = {
     "batch_size": "data.batch_size", "num_workers": "data.num_workers", "seed": "data.seed",
     "shuffle_buffer": "data.shuffle_buffer", "window": "data.window", "unit_length": "data.unit_length",
@@ -397,7 +397,7 @@ class Trainer:
                 caption_policy=cfg.data.caption_policy,
                 backend=backend_for_format(cfg.data.format),
                 # tolerant: skip (count, log) records that fail to decode, and on a resume whose excluded shards
-                # changed finish the checkpoint's epoch with its plan (pipeline.data, "Tolerant mode at run time")
+                # changed finish the checkpoint's epoch with its plan (pipeline.data.stream, "Tolerant mode at run time")
                 tolerate_bad_data=cfg.data.verify == "tolerant",
                 retries=cfg.data.retries,
                 retry_backoff_s=cfg.data.retry_backoff_s,
@@ -863,7 +863,7 @@ class Trainer:
         return record
 
     def validate(self, read_only: bool = False) -> dict[str, Any] | None:
-        """The validation loss of the current weights (:mod:`pipeline.validation`) as the record
+        """The validation loss of the current weights (:mod:`pipeline.training.validation`) as the record
         ``{val_loss, val_samples, val_weights, val_time_s}``; None when the manifest has no usable val split. A
         collective: every rank calls it at the same step. The first call reads the validation batches (rank 0
         verifies the val shards first, as data.verify says); ``read_only`` stops there."""

@@ -17,7 +17,7 @@ HTTP 408/429/5xx, anywhere in its chain of causes; it is retried ``retries`` tim
 then twice as long each time (at most :data:`MAX_BACKOFF_S`), and every retry is logged as a warning. A
 permanent error (404/missing, 403/permission, any other 4xx, a damaged file, anything not known to be
 transient) is never retried. How a shard read that failed half way resumes: see
-``pipeline.data.read_shard``.
+``pipeline.data.stream.read_shard``.
 """
 
 from __future__ import annotations
@@ -320,7 +320,7 @@ def call_with_retries(fn: Callable[[], T], location: str, what: str, policy: Ret
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Fingerprints: has a file changed since it was hashed? (the verification cache, pipeline.data)
+# Fingerprints: has a file changed since it was hashed? (the verification cache, pipeline.data.stream)
 # ----------------------------------------------------------------------------------------------------------
 
 # Metadata that changes whenever an object's content does: a content hash or a version id.

@@ -32,7 +32,7 @@ rules: 1,024 motions in whole batches, three independent ground-truth passes per
 is that of two draws, caption length 22 for the generated row, the sampler's 196-frame window seen by the evaluator,
 MultiModality in the model's normalisation over 5 replications); results record the loop ('ours', 'mdm', 'mixed').
 With ``tasks.composition=true`` (a bpe + pccat model), FlowMDM's composition protocol adds one unit per sampling
-point and ``composition.switch`` point (pipeline.eval_composition); ``tasks.text_to_motion=false`` runs only those.
+point and ``composition.switch`` point (pipeline.evaluation.composition); ``tasks.text_to_motion=false`` runs only those.
 
 Identity. A unit's key hashes the checkpoint id (its COMPLETE marker, which lists every file's sha256), the
 evaluator id, the ground-truth identity (dataset id, split, crops; with the protocol's seed and redraw_items, every
@@ -56,17 +56,17 @@ import numpy as np
 
 from pipeline import checkpoint as ckpt
 from pipeline.config import ConfigError, parse_yaml, to_dict
-from pipeline.data import Manifest, backend_for_format, open_manifest
+from pipeline.data.stream import Manifest, backend_for_format, open_manifest
 from pipeline.distributed import Dist
-from pipeline.eval_composition import (
+from pipeline.evaluation.composition import (
     CompositionContext,
     composition_rows,
     composition_unit,
     evaluate_switch,
     prepare_composition,
 )
-from pipeline.eval_config import OUR_RULES, EvalConfig, SamplingPoint
-from pipeline.eval_replications import (
+from pipeline.evaluation.config import OUR_RULES, EvalConfig, SamplingPoint
+from pipeline.evaluation.replications import (
     CheckpointContext,
     GroundTruthDraws,
     PhaseTimer,
@@ -76,7 +76,7 @@ from pipeline.eval_replications import (
     plan_protocol,
     points_for,
 )
-from pipeline.eval_spaces import (
+from pipeline.evaluation.spaces import (
     CLASSIFIER_FILE,
     EVALUATOR_FILE,
     ClassifierSpace,
@@ -89,8 +89,18 @@ from pipeline.eval_spaces import (
     read_ground_truth_pool,
     resolve_evaluator_file,
 )
-from pipeline.eval_store import ClaimHolder, ResultsStore, SeenCheckpoint, Unit, log_to_wandb
-from pipeline.inference import TrainedModel, load_trained_model, resolve_checkpoint
+from pipeline.evaluation.store import (
+    ClaimHolder,
+    ResultsStore,
+    SeenCheckpoint,
+    Unit,
+    log_to_wandb,
+)
+from pipeline.generation.inference import (
+    TrainedModel,
+    load_trained_model,
+    resolve_checkpoint,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -592,7 +602,7 @@ class EvaluationJob:
                      # embeddings came from the cache; gt_key above is the fixed set's (the items' identity).
                      "redraw_items": ctx.plan.redraw_items, "ground_truth_sets": sets,
                      "gt_embeddings_from_cache": bool(sets) and all(t["embeddings_from_cache"] for t in sets),
-                     # The ground truth was read only after its shards verified (pipeline.data.verify_shards).
+                     # The ground truth was read only after its shards verified (pipeline.data.stream.verify_shards).
                      "data_verified": bool(gt.verification.get("verified")), "verification": dict(gt.verification)},
             "protocol": {**ctx.plan.as_dict(), "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(point), "use_ema": self.cfg.sampling.use_ema,
@@ -618,7 +628,7 @@ class EvaluationJob:
         log_to_wandb(run_dir, mode, project, int(result["checkpoint"]["step"]), scalars,
                      {"protocol": result["protocol"]["name"], "evaluator_id": result["evaluator"]["id"]})
         if self.cfg.output.plots:
-            from pipeline.eval_plots import plot_composition_switch, update_plots
+            from pipeline.evaluation.plots import plot_composition_switch, update_plots
 
             try:
                 rows = store.table_rows()
@@ -627,8 +637,8 @@ class EvaluationJob:
                 plot_composition_switch(rows, store.plots_dir / "composition_switch.png")
             except Exception as exc:  # a plotting problem must not lose an evaluation
                 logger.warning("plots not updated: %s", exc)
-        try:  # index.html: the table and plots to browse (pipeline/browse.py); a failure is logged, never fatal
-            from pipeline.browse import write_eval_index
+        try:  # index.html: the table and plots to browse (pipeline/generation/browse.py); a failure is logged, never fatal
+            from pipeline.generation.browse import write_eval_index
             write_eval_index(store.root)
         except Exception as exc:
             logger.warning("index.html not written: %s", exc)
