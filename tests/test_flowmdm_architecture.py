@@ -446,3 +446,26 @@ def test_preset_trains_and_its_checkpoint_keeps_the_options(tmp_path_factory, tm
     with torch.no_grad():
         out = loaded.model(x, torch.rand(2), torch.randn(2, config.cond_dim), torch.tensor([20, 11]))
     assert torch.isfinite(out).all()
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("single_thread")
+def test_layer_dropout_draws_replay_exactly_on_resume(tmp_path_factory, tmp_path):
+    """The skipped blocks come from the trainer's per-rank generator (saved in the checkpoint), so a run resumed
+    half-way logs the same losses as one run straight through; with layer dropout on, the losses differ from a run
+    without it (the draws reach the model)."""
+    from test_trainer import build_dataset_once, metrics_by_step, train_entry
+
+    manifest = build_dataset_once(tmp_path_factory)
+
+    def run(out, steps, *extra):
+        overrides = [f"data.manifest={manifest}", f"train.out_dir={out}", f"train.max_steps={steps}",
+                     "train.save_every=2", "train.log_every=1", "train.keep_last=0", *TINY_FLOWMDM, *extra]
+        assert train_entry.main(["--config", "flowmdm", *overrides]) == 0
+        return {step: record["loss"] for step, record in metrics_by_step(out).items()}
+
+    straight = run(tmp_path / "straight", 4, "model.layer_dropout=0.5")
+    run(tmp_path / "resumed", 2, "model.layer_dropout=0.5")
+    resumed = run(tmp_path / "resumed", 4, "model.layer_dropout=0.5")
+    assert resumed == straight
+    assert run(tmp_path / "none", 4, "model.layer_dropout=0") != straight

@@ -73,6 +73,7 @@ from mfm.model import (
     ModelConfig,
     MotionFlowTransformer,
     count_parameters,
+    draw_block_drop_mask,
     draw_cond_drop_mask,
     draw_positional_mode,
 )
@@ -462,8 +463,8 @@ class Trainer:
                           generator: torch.Generator | None = None, model: Callable[..., Any] | None = None
                           ) -> torch.Tensor:
         """The objective's loss on one micro-batch. Draw order from the per-rank generator (replayed exactly on
-        resume; ``generator`` replaces it): dropped conditions, the BPE positional mode (BPE models), then the
-        objective's own draws. ``model`` replaces the prepared training model (validation)."""
+        resume; ``generator`` replaces it): dropped conditions, the BPE positional mode (BPE models), the skipped
+        blocks (model.layer_dropout > 0, in training mode), then the objective's own draws. ``model`` replaces the prepared training model (validation)."""
         device, config = self.dist.device, self.model_config
         generator = self.generator if generator is None else generator
         features = batch["features"].to(device, non_blocking=True)
@@ -481,6 +482,10 @@ class Trainer:
             if config.positional == "bpe":
                 model_kwargs["positional_mode"] = draw_positional_mode(
                     features.shape[0], config.bpe_train_relative_prob, generator).to(device)
+            if config.layer_dropout > 0 and (self.model if model is None else model).training:
+                # From this generator, not the global RNG: replayed exactly on resume like the other draws.
+                model_kwargs["block_drop_mask"] = draw_block_drop_mask(
+                    config.num_layers, config.blocks_per_layer, config.layer_dropout, generator, device)
         else:
             draws = draws.to(device)
             cond_mask, overrides = draws.cond_mask, {"t": draws.t, "x0": draws.x0}
