@@ -2,11 +2,11 @@
 
 One *unit* of work is a checkpoint at one sampling point (solver, steps, guidance) with fixed settings::
 
-    claim (eval_store) -> load the model (EMA weights) -> the test split, verified and read once (eval_spaces)
-      -> R replications (eval_replications), each: its ground-truth items (re-drawn captions and crops, or the
+    claim (store) -> load the model (EMA weights) -> the test split, verified and read once (spaces)
+      -> R replications (replications), each: its ground-truth items (re-drawn captions and crops, or the
          fixed set) and their evaluator embeddings (cached on disk per evaluator and set) -> generate for those
          items with the sampling code -> embeddings / joints -> metrics
-      -> mean ± 95 % CI -> result JSON + table rows (eval_store) -> W&B under the training run, plots (eval_plots)
+      -> mean ± 95 % CI -> result JSON + table rows (store) -> W&B under the training run, plots (plots)
 
 Protocol (text-to-motion, Guo et al. / MDM / MFM): FID against the whole ground-truth set, R-precision top-1/2/3
 among batches of 32, MM-Dist, Diversity (300 pairs), MultiModality (30 generations per text, 10 pairs, 100

@@ -15,7 +15,7 @@ from conftest import flip_byte, load_launch_script
 from test_trainer import assert_identical, build_dataset_once, metrics_by_step
 from test_trainer_bad_data import copy_dataset
 
-import pipeline.training.reporting as train_logging
+import pipeline.training.reporting as reporting
 from pipeline import checkpoint as ckpt
 from pipeline.config import ConfigError, TrainConfig, load_config
 from pipeline.data.stream import ShardVerificationError
@@ -53,7 +53,7 @@ def runs(dataset, tmp_path_factory) -> dict[str, Path]:
 def scalars(run: Path) -> dict[str, list[tuple[int, float]]]:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    folder = run / train_logging.TENSORBOARD_SUBDIR
+    folder = run / reporting.TENSORBOARD_SUBDIR
     assert list(folder.glob("events.out.tfevents.*")), f"no TensorBoard event file in {folder}"
     accumulator = EventAccumulator(str(folder))
     accumulator.Reload()
@@ -162,11 +162,11 @@ def test_tensorboard_holds_the_scalars_of_metrics_jsonl(runs):
 
 def test_tensorboard_can_be_turned_off(dataset, tmp_path):
     run = fit(dataset, tmp_path / "run", "train.tensorboard=false")
-    assert not (run / train_logging.TENSORBOARD_SUBDIR).exists()
+    assert not (run / reporting.TENSORBOARD_SUBDIR).exists()
 
 
 def test_tensorboard_without_its_package_is_refused_before_training(dataset, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(train_logging, "tensorboard_available", lambda: False)
+    monkeypatch.setattr(reporting, "tensorboard_available", lambda: False)
     train_entry = load_launch_script("train")
     run = tmp_path / "run"
     code = train_entry.main(["--config", "tiny", f"data.manifest={dataset}", f"train.out_dir={run}"])
@@ -179,7 +179,7 @@ def test_tensorboard_without_its_package_is_refused_before_training(dataset, tmp
 def test_scalar_tags():
     record = {"step": 4, "loss": 1.5, "grad_norm": None, "epoch": 0, "val_loss": 2.0, "val_weights": "ema",
               "val_samples": 3, "nan": float("nan"), "flag": True}
-    assert train_logging.scalar_tags(record) == {"train/loss": 1.5, "train/epoch": 0.0, "val/loss": 2.0,
+    assert reporting.scalar_tags(record) == {"train/loss": 1.5, "train/epoch": 0.0, "val/loss": 2.0,
                                                  "val/samples": 3.0}
 
 
@@ -196,7 +196,7 @@ def png_size(path: Path) -> tuple[int, int]:
 
 def test_loss_png_is_written_when_the_run_ends(runs):
     for name in ("val", "no_val"):
-        png = runs[name] / train_logging.LOSS_PLOT
+        png = runs[name] / reporting.LOSS_PLOT
         width, height = png_size(png)
         assert width >= 400 and height >= 300 and png.stat().st_size > 10_000
 
@@ -208,11 +208,11 @@ def test_loss_plot_reads_the_whole_metrics_file(tmp_path):
     lines = [json.dumps({"step": s, "loss": 10.0 / s, **({"val_loss": 12.0 / s} if s % 20 == 0 else {})})
              for s in range(1, 201)]
     metrics.write_text("\n".join(lines) + '\n{"step": 201, "lo')
-    png = train_logging.write_loss_plot(metrics, tmp_path / "loss.png")
+    png = reporting.write_loss_plot(metrics, tmp_path / "loss.png")
     assert png == tmp_path / "loss.png" and png_size(png)[0] >= 400
     assert not list(tmp_path.glob(".*.png"))  # written atomically, no temporary file left
     metrics.write_text(json.dumps({"step": 1, "loss": None}) + "\n")
-    assert train_logging.write_loss_plot(metrics, tmp_path / "none.png") is None
+    assert reporting.write_loss_plot(metrics, tmp_path / "none.png") is None
     assert not (tmp_path / "none.png").exists()
 
 
@@ -220,7 +220,7 @@ def test_a_plotting_failure_is_logged_and_never_fatal(dataset, tmp_path, monkeyp
     def broken(*args, **kwargs):
         raise RuntimeError("no fonts")
 
-    monkeypatch.setattr(train_logging, "write_loss_plot", broken)
+    monkeypatch.setattr(reporting, "write_loss_plot", broken)
     with caplog.at_level(logging.WARNING):
         run = fit(dataset, tmp_path / "run")
     assert "could not draw" in caplog.text and "no fonts" in caplog.text
