@@ -34,24 +34,14 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
-from mfm.evaluators import (  # noqa: E402
-    ContrastiveEvaluator,
-    ContrastiveEvaluatorConfig,
-    save_evaluator,
-)
+from mfm.evaluators import ContrastiveEvaluator, ContrastiveEvaluatorConfig, save_evaluator  # noqa: E402
 from mfm.model import MotionFlowTransformer  # noqa: E402
 from pipeline.config import TrainConfig, load_config  # noqa: E402
 from pipeline.data.stream import Manifest  # noqa: E402
 from pipeline.distributed import Dist  # noqa: E402
 from pipeline.evaluation.config import SamplingPoint, load_eval_config  # noqa: E402
 from pipeline.evaluation.replications import (  # noqa: E402
-    CheckpointContext,
-    PhaseTimer,
-    PointRun,
-    ground_truth_embeddings,
-    ground_truth_plausibility,
-    plan_protocol,
-)
+    CheckpointContext, PhaseTimer, PointRun, ground_truth_embeddings, ground_truth_plausibility, plan_protocol)
 from pipeline.evaluation.spaces import ContrastiveSpace, GroundTruthSet  # noqa: E402
 from pipeline.generation.inference import TrainedModel  # noqa: E402
 

@@ -30,12 +30,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from mfm.features import (
-    features_to_joints,
-    features_to_joints_fk,
-    joints_to_features,
-    resample_joints,
-)
+from mfm.features import features_to_joints, features_to_joints_fk, joints_to_features, resample_joints
 from mfm.rotations import axis_angle_to_matrix
 from mfm.skeleton import HUMANML3D
 

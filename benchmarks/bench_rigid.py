@@ -21,11 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mfm.features import (
-    features_to_joints,
-    features_to_joints_fk,
-    features_to_joints_rigid,
-)
+from mfm.features import features_to_joints, features_to_joints_fk, features_to_joints_rigid
 from mfm.skeleton import HUMANML3D
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

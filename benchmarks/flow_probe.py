@@ -7,8 +7,8 @@ import dataclasses
 
 import torch
 
-from pipeline.data.stream import open_manifest
 from pipeline.generation.contact_sheet import DatasetCaption, first_captions
+from pipeline.data.stream import open_manifest
 from pipeline.generation.inference import TrainedModel, load_trained_model
 
 

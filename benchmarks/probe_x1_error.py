@@ -24,6 +24,7 @@ import json
 
 import numpy as np
 import torch
+
 from flow_probe import load_probe_clips  # benchmarks/, on sys.path when run as a script
 
 

@@ -21,9 +21,9 @@ import argparse
 import json
 
 import torch
-from flow_probe import load_probe_clips  # benchmarks/, on sys.path when run as a script
 
 from mfm.path import SIGMA_MIN
+from flow_probe import load_probe_clips  # benchmarks/, on sys.path when run as a script
 
 
 def main() -> None:

@@ -39,13 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from mfm.flow import SIGMA_MIN
-from mfm.solvers import (
-    FIXED_STEP_SOLVERS,
-    SolveResult,
-    guided_velocity,
-    initial_noise,
-    solve,
-)
+from mfm.solvers import FIXED_STEP_SOLVERS, SolveResult, guided_velocity, initial_noise, solve
 
 logger = logging.getLogger(__name__)
 

@@ -31,8 +31,8 @@ import torch
 from torch import Tensor
 
 from mfm.diffusion import GaussianDiffusion
-from mfm.editing import as_bool_mask
 from mfm.guidance import classifier_free_guidance
+from mfm.editing import as_bool_mask
 from mfm.model import valid_frame_mask
 from mfm.solvers import (
     NoiseGenerators,

@@ -11,8 +11,8 @@ The diffusion objective (FLAME / FlowMDM baselines) can live beside this one beh
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
+from collections.abc import Mapping
 from typing import Any, Protocol
 
 import torch

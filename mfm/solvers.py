@@ -215,9 +215,7 @@ def is_adaptive(method: str) -> bool:
     solvers, torchdiffeq's fixed-grid ones and unknown names."""
     if method in FIXED_STEP_SOLVERS:
         return False
-    from torchdiffeq._impl.odeint import (
-        SOLVERS,  # torchdiffeq's only list of its methods
-    )
+    from torchdiffeq._impl.odeint import SOLVERS  # torchdiffeq's only list of its methods
 
     return method in SOLVERS and not is_torchdiffeq_fixed_grid(method)
 

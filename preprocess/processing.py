@@ -19,22 +19,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from mfm.features import (
-    features_to_joints,
-    features_to_joints_fk,
-    joints_to_features,
-    resample_joints,
-)
+from mfm.features import features_to_joints, features_to_joints_fk, joints_to_features, resample_joints
 from mfm.layout import FeatureLayout
 from mfm.skeleton import Skeleton
-from preprocess.clip import (
-    BAD_SHAPE,
-    NAN_FRAMES,
-    Caption,
-    Clip,
-    SkippedInput,
-    check_joints,
-)
+from preprocess.clip import BAD_SHAPE, NAN_FRAMES, Caption, Clip, SkippedInput, check_joints
 
 log = logging.getLogger(__name__)
 

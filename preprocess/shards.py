@@ -44,16 +44,16 @@ import pyarrow.parquet as pq
 from tqdm import tqdm
 
 from mfm.features import FeatureStats
-from mfm.integrity import sha256_file
 from mfm.layout import FeatureLayout
+from mfm.integrity import sha256_file
 from mfm.skeleton import Skeleton, get_skeleton
 from preprocess.clip import SkippedInput
 from preprocess.processing import (
     DEFAULT_MAX_FRAMES,
     DEFAULT_MIN_FRAMES,
+    default_min_frames,
     ProcessingSettings,
     Record,
-    default_min_frames,
     is_valid_key,
     process_source,
 )

@@ -18,16 +18,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
-from mfm.export.stick import (
-    FLOOR_COLOR,
-    KEPT_COLOR,
-    Camera,
-    bones,
-    draw_pose,
-    equal_scale_limits,
-    floor_grid,
-    metres,
-)
+from mfm.export.stick import FLOOR_COLOR, KEPT_COLOR, Camera, bones, draw_pose, equal_scale_limits, floor_grid, metres
 from mfm.features import features_to_joints
 from mfm.skeleton import Skeleton
 

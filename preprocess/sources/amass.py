@@ -56,15 +56,7 @@ import torch
 
 from mfm.rotations import axis_angle_to_matrix
 from mfm.skeleton import HUMANML3D
-from preprocess.clip import (
-    BAD_SHAPE,
-    NO_CAPTIONS,
-    UNREADABLE,
-    Caption,
-    Clip,
-    SkippedInput,
-    check_joints,
-)
+from preprocess.clip import BAD_SHAPE, NO_CAPTIONS, UNREADABLE, Caption, Clip, SkippedInput, check_joints
 from preprocess.sources.humanml3d import (
     EMPTY_CAPTION,
     SPAN_END_NOT_AFTER_START,

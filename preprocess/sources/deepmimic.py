@@ -79,16 +79,7 @@ import torch
 
 from mfm.rotations import qmul, quat_to_matrix
 from mfm.skeleton import HUMANML3D
-from preprocess.clip import (
-    BAD_SHAPE,
-    NAN_FRAMES,
-    NO_CAPTIONS,
-    UNREADABLE,
-    Caption,
-    Clip,
-    SkippedInput,
-    check_joints,
-)
+from preprocess.clip import BAD_SHAPE, NAN_FRAMES, NO_CAPTIONS, UNREADABLE, Caption, Clip, SkippedInput, check_joints
 from preprocess.sources.humanml3d import as_bool
 
 URDF_SCALE = 0.25  # DeepMimic's globalScaling

@@ -46,8 +46,8 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
-import os
 import re
+import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,13 +64,7 @@ from preprocess.clip import (
     SkippedInput,
     check_joints,
 )
-from preprocess.processing import (
-    FEATURE_MISMATCH,
-    FEATURES_KEY,
-    JOINTS_PATH_KEY,
-    check_features,
-    is_valid_key,
-)
+from preprocess.processing import FEATURE_MISMATCH, FEATURES_KEY, JOINTS_PATH_KEY, check_features, is_valid_key
 
 log = logging.getLogger(__name__)
 
