@@ -116,7 +116,7 @@ class ProtocolConfig:
         """Which evaluation loop the rules make: 'ours' (every rule at our default), 'mdm' (every rule as the
         reference's, MDM_RULES) or 'mixed'. Recorded in every result and table row."""
         rules = self.rules()
-        if rules == {name: OUR_RULES[name] for name in MDM_RULES}:
+        if rules == OUR_RULES:  # OUR_RULES holds exactly MDM_RULES' names
             return "ours"
         return "mdm" if rules == MDM_RULES else "mixed"
 

@@ -304,11 +304,16 @@ class GroundTruthPasses:
                 "embeddings_from_cache": self.row.from_cache and self.stats.from_cache}
 
 
+def drop_last_count(num_items: int, batch: int) -> int:
+    """How many items one shuffled pass with ``drop_last`` scores: all but ``num_items mod batch`` (all of them
+    when fewer than one batch)."""
+    return num_items - num_items % batch if num_items >= batch else num_items
+
+
 def whole_batches(num_items: int, batch: int, rng: np.random.Generator) -> np.ndarray:
-    """The items one shuffled pass with ``drop_last`` scores: all but ``num_items mod batch`` random ones (all of
-    them when fewer than one batch), in item order."""
-    keep = num_items - num_items % batch if num_items >= batch else num_items
-    return np.sort(rng.permutation(num_items)[:keep])
+    """The items one shuffled pass with ``drop_last`` scores (:func:`drop_last_count` random ones), in item
+    order."""
+    return np.sort(rng.permutation(num_items)[:drop_last_count(num_items, batch)])
 
 
 class GroundTruthDraws:
@@ -446,7 +451,7 @@ def plan_protocol(cfg: EvalConfig, num_items: int, mm_candidates: int) -> Protoc
                      "(protocol.mm_replications; the reference's mm_short mode); its interval over those")
     gt_row_items = 0
     if p.gt_draws == "independent":
-        gt_row_items = num_items - num_items % rp if num_items >= rp else num_items
+        gt_row_items = drop_last_count(num_items, rp)
         if diversity_times > gt_row_items - 1:
             diversity_times = gt_row_items - 1
             notes.append(f"Diversity over {diversity_times} pairs: each ground-truth pass scores {gt_row_items} "
@@ -749,8 +754,9 @@ class PointRun:
                 self.width = self.dist.broadcast_object(self.truth.emb.motion.shape[1] if self.dist.is_main else None)
         record = self.truth.record()
         if self.passes is not None:
-            record.update(self.passes.record(), embeddings_from_cache=record["embeddings_from_cache"]
-                          and self.passes.record()["embeddings_from_cache"])
+            passes = self.passes.record()
+            record.update(passes, embeddings_from_cache=record["embeddings_from_cache"]
+                          and passes["embeddings_from_cache"])
         self.truths.append(record)
         items, mm_items, batches = self.batches(replication)
         parts: dict[str, list] = defaultdict(list)
