@@ -76,6 +76,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"caption match {figures['caption_match']:.2f}; medians, generated | ground truth:")
         for name, pair in figures["plausibility"].items():
             print(f"  {name:<22} " + " | ".join("—" if v is None else f"{v:.3f}" for v in pair.values()))
+        print(f"  {'movement_ratio':<22} {figures['median_movement_ratio']:.3f} (median of each sample's over its clip's)")
+        for name, checks in figures.get("caption_checks", {}).get("generated", {}).items():
+            truth = figures["caption_checks"]["ground_truth"][name]["share"]
+            print(f"  caption check {name:<12} {checks['share']:.2f} | {truth:.2f} of {checks['checked']}")
     print(f"figures in {report}")
     return 0
 

@@ -562,13 +562,31 @@ def motion_amount(joints: Any, fps: float, lengths: Any = None, root: int = 0) -
     local = pos - pos[:, :, root : root + 1]
     local_speed = np.linalg.norm(np.diff(local, axis=1), axis=-1).mean(axis=-1) * fps  # (N, T-1)
     root_speed = np.linalg.norm(np.diff(pos[:, :, root, [0, 2]], axis=1), axis=-1) * fps
-    frames = _frame_mask(lens, t)[..., None, None]  # (N, T, 1, 1)
+    return MotionAmount(_masked_mean(local_speed, in_clip, np.nan), _masked_mean(root_speed, in_clip, np.nan),
+                        _spread(local, lens))
+
+
+def _spread(local: np.ndarray, lens: np.ndarray) -> np.ndarray:
+    """(N,) mean over joints of the RMS distance of (N, T, J, 3) positions from their mean over each clip's frames."""
+    frames = _frame_mask(lens, local.shape[1])[..., None, None]  # (N, T, 1, 1)
     count = frames.sum(axis=1)  # (N, 1, 1)
     centre = np.where(frames, local, 0.0).sum(axis=1, keepdims=True) / count[:, None]  # (N, 1, J, 3)
     square = np.where(frames, local - centre, 0.0) ** 2
-    spread = np.sqrt(square.sum(axis=(1, 3)) / count[..., 0]).mean(axis=-1)  # (N,)
-    return MotionAmount(_masked_mean(local_speed, in_clip, np.nan), _masked_mean(root_speed, in_clip, np.nan),
-                        spread)
+    return np.sqrt(square.sum(axis=(1, 3)) / count[..., 0]).mean(axis=-1)
+
+
+def movement_spread(joints: Any, lengths: Any = None, root: int = 0) -> np.ndarray:
+    """(N,) how much each clip moves as issue-level judges count it: per joint, the RMS spread over frames of its
+    position relative to the root's ground point (the root's x and z, height 0), averaged over joints [m].
+
+    Unlike ``pose_spread`` (relative to the root itself) this counts the body rising and sinking — a jump's flight,
+    a squat's dip — as movement, and a turn in place (the joints circle the ground point) too; travel does not count.
+    """
+    pos = _clips(joints)
+    lens = _lengths_or_full(lengths, pos.shape[0], pos.shape[1])
+    ground = pos[:, :, root : root + 1].copy()
+    ground[..., 1] = 0.0
+    return _spread(pos - ground, lens)
 
 
 def _jerk_ratio(jerk: np.ndarray, reference: Any) -> np.ndarray:

@@ -77,6 +77,7 @@ from mfm.path import preconditioning, velocity_from_data
 ACTIVATIONS = {"gelu": F.gelu, "relu": F.relu, "silu": F.silu}
 POSITIONAL_ENCODINGS = ("absolute", "bpe")
 CONDITIONINGS = ("prefix", "pccat", "cross_attention")
+LENGTH_EMBEDDINGS = ("learned", "sinusoidal")
 PREDICTIONS = ("velocity", "data", "preconditioned")
 TIME_GRIDS = ("continuous", "floor", "nearest")
 NULL_CONDITIONS = ("zero", "empty_caption")
@@ -125,7 +126,12 @@ class ModelConfig:
     """null_condition='empty_caption' with cross-attention: rows of the empty caption's token features (the
     dataset's max_tokens; the trainer sets it)."""
     length_token: bool = False
-    """FLAME option: prepend a learned embedding of the motion's valid length as an extra token."""
+    """FLAME option: prepend an embedding of the motion's valid length as an extra token (``length_embedding``)."""
+    length_embedding: str = "learned"
+    """How the length token embeds a length (one of LENGTH_EMBEDDINGS). 'learned' (FLAME): a table of max_frames + 1
+    rows, one free vector per length, so a length no training crop had (our crops are multiples of
+    data.unit_length) stays at its initialisation. 'sinusoidal' (ours, not FLAME's): the sinusoid of the length
+    through Linear → SiLU → Linear, as the time embedding, so nearby lengths get nearby tokens."""
     max_frames: int = 196
     """Largest motion length the length token can embed (table of max_frames + 1 rows)."""
     max_len: int = 5000
@@ -312,6 +318,9 @@ class ModelConfig:
             raise ValueError("ModelConfig.null_condition='empty_caption' needs a text model (num_actions=0)")
         if not isinstance(self.null_tokens, int) or self.null_tokens < 0:
             raise ValueError(f"ModelConfig.null_tokens must be an int >= 0, got {self.null_tokens!r}")
+        if self.length_embedding not in LENGTH_EMBEDDINGS:
+            raise ValueError(f"ModelConfig.length_embedding must be one of {LENGTH_EMBEDDINGS}, got "
+                             f"{self.length_embedding!r}")
         if self.conditioning == "pccat" and self.length_token:
             raise ValueError(
                 "ModelConfig.length_token is not available with conditioning='pccat' (FlowMDM has no auxiliary tokens)"
@@ -789,6 +798,18 @@ class EncoderLayer(nn.Module):
         return x
 
 
+class SinusoidalLengthEmbedding(nn.Module):
+    """Sinusoid of the valid length (frames) → Linear → SiLU → Linear (ModelConfig.length_embedding='sinusoidal')."""
+
+    def __init__(self, latent_dim: int) -> None:
+        super().__init__()
+        self.latent_dim = latent_dim
+        self.mlp = nn.Sequential(nn.Linear(latent_dim, latent_dim), nn.SiLU(), nn.Linear(latent_dim, latent_dim))
+
+    def forward(self, lengths: torch.Tensor) -> torch.Tensor:
+        return self.mlp(sinusoidal_embedding(lengths, self.latent_dim))
+
+
 class TimeEmbedding(nn.Module):
     """Sinusoid of ``t·1000`` → Linear → SiLU → Linear (MDM's TimestepEmbedder); continuous by default, on MFM's or
     MDM's integer grid with ``grid`` (ModelConfig.time_grid)."""
@@ -832,7 +853,8 @@ class MotionFlowTransformer(nn.Module):
         else:
             self.cond_proj = nn.Linear(config.cond_dim, d)
         if config.length_token:
-            self.length_embedding = nn.Embedding(config.max_frames + 1, d)
+            self.length_embedding = (nn.Embedding(config.max_frames + 1, d) if config.length_embedding == "learned"
+                                     else SinusoidalLengthEmbedding(d))
         # Computed: not persistent, a pure function of (max_len, d), so checkpoints stay small and max_len can
         # change. Stored: a converted checkpoint's own table (ModelConfig.positional_table).
         self.register_buffer(

@@ -210,6 +210,13 @@ class TrainLoopConfig:
     flow_bone_weight: float = 0.0
     """objective=flow: weight of ``mfm.flow.bone_length_loss`` (bone lengths of the implied motion against the
     clip's, m²), added to the flow loss. 0 = MFM."""
+    flow_time_sampling: Literal["uniform", "logit_normal"] = "uniform"
+    """objective=flow: the density of the training times (``mfm.flow.warp_time``): 'uniform' = MFM; 'logit_normal' =
+    sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice)."""
+    flow_time_loc: float = 0.0
+    """flow_time_sampling=logit_normal: the normal's mean (< 0 toward the noise, > 0 toward the data)."""
+    flow_time_scale: float = 1.0
+    """flow_time_sampling=logit_normal: the normal's standard deviation (> 0)."""
     diffusion: Literal["flowmdm", "flame", "mdm"] = "flowmdm"
     """With objective=diffusion: flowmdm = 1000-step cosine, x0-prediction (mdm: the same process, the name
     converted MDM checkpoints carry); flame = cosine, eps-prediction with
@@ -220,6 +227,7 @@ class TrainLoopConfig:
         _require(self.max_steps >= 1, f"train.max_steps must be >= 1, got {self.max_steps}")
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
         _require(self.flow_temporal_weight >= 0, f"train.flow_temporal_weight must be >= 0, got {self.flow_temporal_weight}")
+        _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
         _require(self.log_every >= 1, f"train.log_every must be >= 1, got {self.log_every}")
         _require(self.save_every >= 1, f"train.save_every must be >= 1, got {self.save_every}")
         _require(self.keep_last >= 0, f"train.keep_last must be >= 0 (0 keeps all), got {self.keep_last}")

@@ -3,6 +3,7 @@ import pytest
 import torch
 
 from mfm.flow import (
+    warp_time,
     SIGMA_MIN,
     FlowMatchingObjective,
     flow_matching_loss,
@@ -241,3 +242,30 @@ def test_motion_geometry_reads_the_bones_of_a_real_clip(reference_data):
     stretched[:, ric] = positions.reshape(-1, 63)  # the left wrist (20, a leaf) 10 cm further from its elbow (18)
     loss = bone_length_loss(torch.as_tensor((stretched.numpy() - mean) / std)[None], normalised, mask, geometry)
     assert loss.item() == pytest.approx(0.1 ** 2 / len(children), rel=1e-3)
+
+
+def test_uniform_time_sampling_keeps_the_draws_and_logit_normal_is_its_inverse_cdf():
+    u = torch.rand(20_000, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(warp_time(u, "uniform"), u)
+    t = warp_time(u, "logit_normal", loc=0.0, scale=1.0)
+    logits = torch.logit(t.double())
+    assert abs(logits.mean().item()) < 0.03 and abs(logits.std().item() - 1.0) < 0.03
+    shifted = warp_time(u, "logit_normal", loc=-1.0, scale=0.5)
+    assert abs(torch.logit(shifted.double()).mean().item() + 1.0) < 0.02
+    assert torch.all(torch.diff(warp_time(torch.linspace(0, 1, 101), "logit_normal")) >= 0)  # monotone in u
+    assert torch.isfinite(warp_time(torch.tensor([0.0, 1.0]), "logit_normal")).all()
+    with pytest.raises(ValueError):
+        warp_time(u, "cosine")
+
+
+def test_the_loss_trains_at_the_warped_time():
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(ModelConfig(feature_dim=6, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
+    x1, cond, lengths = torch.randn(3, 8, 6), torch.randn(3, 4), torch.tensor([8, 5, 7])
+    u, x0 = torch.tensor([0.2, 0.5, 0.9]), torch.randn(3, 8, 6)
+    warped = warp_time(u, "logit_normal", -0.5, 1.0)
+    loss_warped, _ = flow_matching_loss(model, x1, cond, lengths, t=u, x0=x0,
+                                        time_sampling=("logit_normal", -0.5, 1.0))
+    loss_direct, _ = flow_matching_loss(model, x1, cond, lengths, t=warped, x0=x0)
+    assert torch.allclose(loss_warped, loss_direct)

@@ -592,3 +592,17 @@ def test_empty_caption_null_condition_is_the_encoding_of_the_empty_caption(condi
         zeroed.set_null_condition(empty_pooled)
     with pytest.raises(ValueError, match="null_condition must be one of"):
         tiny_config(null_condition="learned")
+
+
+def test_a_sinusoidal_length_token_embeds_every_length_and_nearby_lengths_alike():
+    torch.manual_seed(0)
+    config = ModelConfig(feature_dim=8, latent_dim=32, ff_dim=64, num_layers=1, num_heads=2, cond_dim=4,
+                         length_token=True, length_embedding="sinusoidal", max_frames=64)
+    model = MotionFlowTransformer(config).eval()
+    tokens = model.length_embedding(torch.tensor([40, 41, 60]))
+    assert (tokens[0] - tokens[1]).norm() < (tokens[0] - tokens[2]).norm()
+    x = torch.randn(2, 50, 8)
+    out = model(x, torch.rand(2), torch.randn(2, 4), torch.tensor([50, 37]))
+    assert out.shape == (2, 50, 8) and torch.isfinite(out).all()
+    with pytest.raises(ValueError, match="length_embedding"):
+        ModelConfig(length_token=True, length_embedding="table")

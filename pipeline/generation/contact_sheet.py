@@ -24,9 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from mfm.caption_checks import caption_check_summary, stated_attributes
 from mfm.export import render_contact_sheet
 from mfm.features import features_to_joints, features_to_joints_rigid
-from mfm.metrics import plausibility, plausibility_settings, plausibility_side_by_side
+from mfm.metrics import movement_spread, plausibility, plausibility_settings, plausibility_side_by_side
 from mfm.skeleton import Skeleton, get_skeleton
 from pipeline.data.stream import Manifest, iter_motions, open_manifest
 from pipeline.generation.inference import load_trained_model, skeleton_from_spec
@@ -100,30 +101,48 @@ def mean_joint_error(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def compare_with_clips(motions: Sequence[np.ndarray], clips: Sequence[np.ndarray], skeleton: Skeleton,
-                       ids: Sequence[str]) -> dict[str, Any]:
+                       ids: Sequence[str], captions: Sequence[str] = ()) -> dict[str, Any]:
     """Samples of the dataset's captions against the clips the captions describe (row i ↔ clip i): medians of the
     plausibility figures, generated beside ground truth (jerk ratio: each sample over its own clip), and per row
-    the mean joint error to its own clip and the clip it is nearest to (``caption_match``: the share of rows whose
-    nearest clip is their own)."""
+    the mean joint error to its own clip, the clip it is nearest to (``caption_match``: the share of rows whose
+    nearest clip is their own) and ``movement_ratio``, its :func:`mfm.metrics.movement_spread` over its own clip's (the median of the
+    ratios is ``median_movement_ratio``: 1 = moves as much as its clip). With ``captions`` of the synthetic set on
+    HumanML3D's skeleton, ``caption_checks`` says for samples and clips alike how many show what their caption
+    states (side, count, in place, direction: :mod:`mfm.caption_checks`)."""
     generated = plausibility_figures(motions, skeleton)
     truth = plausibility_figures(clips, skeleton)
     truth = truth.with_jerk_reference(truth.mean_jerk)  # 1 (or undefined) by definition: the column's reference
     generated = generated.with_jerk_reference(truth.mean_jerk)
     errors = np.array([[mean_joint_error(m, c) for c in clips] for m in motions])
     nearest = errors.argmin(axis=1)
+    movement = movement_spread(*_padded(motions)) / np.maximum(movement_spread(*_padded(clips)), 1e-9)
     rows = [{"id": ids[i], "error_to_own_clip_m": float(errors[i, i]), "nearest_clip": ids[int(nearest[i])],
-             **generated.clip(i)} for i in range(len(motions))]
-    return {"plausibility": plausibility_side_by_side(generated, truth), "thresholds": plausibility_settings(skeleton),
-            "caption_match": float(np.mean(nearest == np.arange(len(motions)))),
-            "median_error_to_own_clip_m": float(np.median(np.diag(errors))), "rows": rows}
+             "movement_ratio": float(movement[i]), **generated.clip(i)} for i in range(len(motions))]
+    report = {"plausibility": plausibility_side_by_side(generated, truth), "thresholds": plausibility_settings(skeleton),
+              "caption_match": float(np.mean(nearest == np.arange(len(motions)))),
+              "median_error_to_own_clip_m": float(np.median(np.diag(errors))),
+              "median_movement_ratio": float(np.median(movement)), "rows": rows}
+    if captions and skeleton.num_joints == 22 and any(stated_attributes(c) for c in captions):
+        checked = {"generated": caption_check_summary(motions, captions),
+                   "ground_truth": caption_check_summary(clips, captions)}
+        report["caption_checks"] = {name: result["summary"] for name, result in checked.items()}
+        for row, check in zip(rows, checked["generated"]["rows"]):
+            row["caption_checks"] = check["checks"]
+    return report
 
 
-def plausibility_figures(motions: Sequence[np.ndarray], skeleton: Skeleton):
-    """:func:`mfm.metrics.plausibility` of motions of different lengths (padded, with their lengths)."""
+def _padded(motions: Sequence[np.ndarray]) -> tuple[np.ndarray, list[int]]:
+    """Motions of different lengths as one zero-padded array, with their lengths."""
     lengths = [len(m) for m in motions]
     padded = np.zeros((len(motions), max(lengths), *motions[0].shape[1:]))
     for i, m in enumerate(motions):
         padded[i, : len(m)] = m
+    return padded, lengths
+
+
+def plausibility_figures(motions: Sequence[np.ndarray], skeleton: Skeleton):
+    """:func:`mfm.metrics.plausibility` of motions of different lengths (padded, with their lengths)."""
+    padded, lengths = _padded(motions)
     return plausibility(padded, skeleton, lengths)
 
 
@@ -180,7 +199,7 @@ def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
         if captions and not request.seconds:
             clips = [DECODERS[request.decode](c.features[: len(m)], skeleton) for c, m in zip(captions, motions)]
             info["against_dataset_clips"] = compare_with_clips(motions, clips, skeleton,
-                                                               [c.motion_id for c in captions])
+                                                               [c.motion_id for c in captions], titles)
     path = render_contact_sheet(request.out, motions, titles, skeleton, frames=request.frames, fps=fps, title=header)
     return {**info, "out": str(path), "decode": request.decode,
             "rows": [{"text": text, "frames": len(joints)} for text, joints in zip(titles, motions)]}

@@ -323,7 +323,9 @@ def build_objective(cfg: TrainConfig, manifest: Manifest):
             geometry = MotionGeometry.from_dataset(normalization["mean"], normalization["std"],
                                                    get_skeleton(manifest.data["feature_spec"]["skeleton"]))
         return FlowMatchingObjective(loss_space=cfg.train.flow_loss, temporal_weight=cfg.train.flow_temporal_weight,
-                                     bone_weight=cfg.train.flow_bone_weight, geometry=geometry)
+                                     bone_weight=cfg.train.flow_bone_weight, geometry=geometry,
+                                     time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
+                                     time_scale=cfg.train.flow_time_scale)
     return diffusion_from_preset(cfg.train.diffusion)
 
 
