@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import torch
 
 from mfm.model import valid_frame_mask
-from mfm.path import SIGMA_MIN
+from mfm.path import MIN_NOISE_SCALE, SIGMA_MIN
 
 
 class VelocityModel(Protocol):
@@ -128,6 +128,25 @@ def masked_mse(
 
 
 LOSS_SPACES = ("velocity", "data")
+TERM_WEIGHTINGS = ("data", "loss")
+
+
+def term_weight(t: torch.Tensor, loss_space: str, terms_weighting: str,
+                sigma_min: float = SIGMA_MIN) -> torch.Tensor | None:
+    """Per-sample weight of the temporal and bone terms (which are errors of the implied motion x̂1).
+
+    'data': none, as the terms were introduced: every time counts alike. 'loss': the weight the main loss puts on
+    an x̂1 error at that time, relative to the data loss's, so the terms keep the same proportion to the main loss at
+    every t: ``1 / max(1 − (1 − σ_min)·t, MIN_NOISE_SCALE)²`` under the velocity loss (the floor the model's
+    velocity conversion uses), 1 under the data loss. Under the velocity loss with 'data', a term weighs 4 against
+    the main loss's 100 at t = 0.9, where a 10-step Euler sampler takes its last step; that last step is what
+    leaves the frame-to-frame jitter in the sample.
+    """
+    if terms_weighting not in TERM_WEIGHTINGS:
+        raise ValueError(f"terms_weighting must be one of {TERM_WEIGHTINGS}, got {terms_weighting!r}")
+    if terms_weighting == "data" or loss_space == "data":
+        return None
+    return (1 - (1 - sigma_min) * t.float()).clamp_min(MIN_NOISE_SCALE).square().reciprocal()
 
 
 def loss_space_weight(t: torch.Tensor, loss_space: str, sigma_min: float = SIGMA_MIN) -> torch.Tensor | None:
@@ -163,6 +182,7 @@ def flow_matching_loss(
     bone_weight: float = 0.0,
     geometry: MotionGeometry | None = None,
     time_sampling: tuple[str, float, float] = ("uniform", 0.0, 1.0),
+    terms_weighting: str = "data",
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
     weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
@@ -197,13 +217,14 @@ def flow_matching_loss(
     target = target_velocity(x0, x1, sigma_min)
     weight = loss_space_weight(t, loss_space, sigma_min)
     loss = masked_mse(velocity, target, frame_mask, weight)
+    terms = term_weight(t, loss_space, terms_weighting, sigma_min)
     if temporal_weight > 0:
-        loss = loss + temporal_weight * temporal_loss(velocity, target, t, frame_mask, sigma_min)
+        loss = loss + temporal_weight * temporal_loss(velocity, target, t, frame_mask, sigma_min, terms)
     if bone_weight > 0:
         if geometry is None:
             raise ValueError("bone_weight > 0 needs the motion geometry (normalisation and skeleton)")
         x1_hat = x1.float() + implied_motion_error(velocity, target, t, sigma_min)
-        loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry)
+        loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms)
     return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
 
 
@@ -251,19 +272,19 @@ class MotionGeometry:
 
 
 def bone_length_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Tensor,
-                     geometry: MotionGeometry) -> torch.Tensor:
+                     geometry: MotionGeometry, sample_weight: torch.Tensor | None = None) -> torch.Tensor:
     """MSE (m²) between the bone lengths of the implied motion x̂1 and those of the clip x1, over valid frames (per
     sample, then the batch mean). The ric block gives every joint its own position, so nothing else holds a
     generated skeleton together: this term does (MDM's geometric losses in the same spirit; not part of MFM)."""
     mask = frame_mask.unsqueeze(-1).float()
     error = (geometry.bone_lengths(x1_hat) - geometry.bone_lengths(x1)).square() * mask
     per_sample = error.sum(dim=(1, 2)) / (mask.sum(dim=(1, 2)) * error.shape[-1]).clamp_min(1.0)
-    return per_sample.mean()
+    return _weighted_mean(per_sample, sample_weight)
 
 
 def temporal_loss(
     velocity: torch.Tensor, target: torch.Tensor, t: torch.Tensor, frame_mask: torch.Tensor,
-    sigma_min: float = SIGMA_MIN,
+    sigma_min: float = SIGMA_MIN, sample_weight: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """MSE of the frame-to-frame change of the implied motion's error, ``Δ(x̂1 − x1)``, over pairs of valid
     frames (per sample, then the batch mean), with ``x̂1 − x1 = (v − u)·(1 − (1 − σ_min)·t)`` on the path.
@@ -276,7 +297,11 @@ def temporal_loss(
     pairs = (frame_mask[:, 1:] & frame_mask[:, :-1]).unsqueeze(-1).float()
     change = (error[:, 1:] - error[:, :-1]).square() * pairs
     per_sample = change.sum(dim=(1, 2)) / (pairs.sum(dim=(1, 2)) * error.shape[-1]).clamp_min(1.0)
-    return per_sample.mean()
+    return _weighted_mean(per_sample, sample_weight)
+
+
+def _weighted_mean(per_sample: torch.Tensor, sample_weight: torch.Tensor | None) -> torch.Tensor:
+    return (per_sample if sample_weight is None else per_sample * sample_weight.to(per_sample.dtype)).mean()
 
 
 @dataclass(frozen=True)
@@ -291,6 +316,7 @@ class FlowMatchingObjective:
     time_sampling: str = "uniform"
     time_loc: float = 0.0
     time_scale: float = 1.0
+    terms_weighting: str = "data"
 
     def __post_init__(self) -> None:
         if self.time_sampling not in TIME_SAMPLINGS or self.time_scale <= 0:
@@ -303,6 +329,9 @@ class FlowMatchingObjective:
             raise ValueError(f"FlowMatchingObjective.temporal_weight must be >= 0, got {self.temporal_weight!r}")
         if not 0.0 <= self.sigma_min < 1.0:
             raise ValueError(f"FlowMatchingObjective.sigma_min must be in [0, 1), got {self.sigma_min!r}")
+        if self.terms_weighting not in TERM_WEIGHTINGS:
+            raise ValueError(f"FlowMatchingObjective.terms_weighting must be one of {TERM_WEIGHTINGS}, got "
+                             f"{self.terms_weighting!r}")
         if self.loss_space not in LOSS_SPACES:
             raise ValueError(f"FlowMatchingObjective.loss_space must be one of {LOSS_SPACES}, got {self.loss_space!r}")
 
@@ -323,5 +352,5 @@ class FlowMatchingObjective:
             model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask,
             t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
             temporal_weight=self.temporal_weight, bone_weight=self.bone_weight, geometry=self.geometry,
-            time_sampling=(self.time_sampling, self.time_loc, self.time_scale),
+            time_sampling=(self.time_sampling, self.time_loc, self.time_scale), terms_weighting=self.terms_weighting,
         )

@@ -225,6 +225,12 @@ class ModelConfig:
     (FlowMDM, x-transformers' ``ScaledSinusoidalEmbedding``): ``cat(sin(p·ω), cos(p·ω)) · s`` with the same
     frequencies ``ω_i = 10000^(-i/(latent_dim/2))`` and one learned scalar ``s`` initialised to
     ``latent_dim ** -0.5``. The time embedding keeps MDM's table either way (FlowMDM's does too)."""
+    progress_positions: bool = False
+    """Ours, in no reference model: also add to every frame the sinusoid of how far into its motion it lies,
+    ``1000 · i / (L − 1)`` for frame i of a motion of L valid frames (the time embedding's scaling), so a frame knows
+    where it sits between the motion's start and end as well as its distance from the start. A caption describes a
+    whole clip ("kicks twice", "squats three times"): where its events fall scales with the clip's length, which
+    absolute positions and a length token leave the network to work out by division. positional='absolute' only."""
     wrapper_projections: bool = False
     """FlowMDM (x-transformers' ``ContinuousTransformerWrapper`` with ``dim_in = dim_out = latent_dim``): an extra
     Linear(latent, latent) after the input projection (before positions are added) and one after the final norm,
@@ -318,6 +324,8 @@ class ModelConfig:
             raise ValueError("ModelConfig.null_condition='empty_caption' needs a text model (num_actions=0)")
         if not isinstance(self.null_tokens, int) or self.null_tokens < 0:
             raise ValueError(f"ModelConfig.null_tokens must be an int >= 0, got {self.null_tokens!r}")
+        if self.progress_positions and self.positional != "absolute":
+            raise ValueError("ModelConfig.progress_positions needs positional='absolute'")
         if self.length_embedding not in LENGTH_EMBEDDINGS:
             raise ValueError(f"ModelConfig.length_embedding must be one of {LENGTH_EMBEDDINGS}, got "
                              f"{self.length_embedding!r}")
@@ -992,6 +1000,9 @@ class MotionFlowTransformer(nn.Module):
         else:
             # The fp32 table promotes the residual stream to fp32 under autocast; only the matmuls run in bf16.
             tokens = tokens + self._sequence_positions(tokens.shape[1])
+            if config.progress_positions:
+                tokens = torch.cat([tokens[:, : len(aux)], tokens[:, len(aux) :] + self._progress_positions(
+                    lengths, batch, num_frames, x.device)], dim=1)
             key_mask = None
             if frame_mask is not None and not config.attend_padding:
                 aux_valid = torch.ones(batch, len(aux), dtype=torch.bool, device=x.device)
@@ -1105,6 +1116,14 @@ class MotionFlowTransformer(nn.Module):
         return memory, torch.cat([aux_valid, token_valid], dim=1)[:, None, None, :]
 
     # -- blended positional encodings -------------------------------------------------------------------------
+
+    def _progress_positions(self, lengths: Tensor | None, batch: int, num_frames: int, device: torch.device) -> Tensor:
+        """(B, T, latent) sinusoid of each frame's progress through its motion (ModelConfig.progress_positions);
+        padded frames get the last frame's."""
+        frames = torch.arange(num_frames, device=device, dtype=torch.float32)
+        last = (torch.full((batch,), num_frames, device=device) if lengths is None else lengths).float() - 1
+        progress = (frames[None] / last.clamp_min(1)[:, None]).clamp(max=1.0)
+        return sinusoidal_embedding(progress * TIME_SCALE, self.config.latent_dim)
 
     def _sequence_positions(self, length: int) -> Tensor:
         """(length, latent) absolute embedding of positions 0 … length−1 (ModelConfig.absolute_positions)."""

@@ -210,6 +210,10 @@ class TrainLoopConfig:
     flow_bone_weight: float = 0.0
     """objective=flow: weight of ``mfm.flow.bone_length_loss`` (bone lengths of the implied motion against the
     clip's, m²), added to the flow loss. 0 = MFM."""
+    flow_terms_weighting: Literal["data", "loss"] = "data"
+    """objective=flow: how the temporal and bone terms are weighted over t (``mfm.flow.term_weight``): 'data' = the
+    same at every t (as introduced); 'loss' = as the main loss weighs an x̂1 error at that t (under the velocity
+    loss 1/(1 − t)², so the terms keep their proportion to it where the sampler's last steps are). Not MFM's."""
     flow_time_sampling: Literal["uniform", "logit_normal"] = "uniform"
     """objective=flow: the density of the training times (``mfm.flow.warp_time``): 'uniform' = MFM; 'logit_normal' =
     sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice)."""

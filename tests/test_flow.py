@@ -3,6 +3,7 @@ import pytest
 import torch
 
 from mfm.flow import (
+    term_weight,
     warp_time,
     SIGMA_MIN,
     FlowMatchingObjective,
@@ -269,3 +270,29 @@ def test_the_loss_trains_at_the_warped_time():
                                         time_sampling=("logit_normal", -0.5, 1.0))
     loss_direct, _ = flow_matching_loss(model, x1, cond, lengths, t=warped, x0=x0)
     assert torch.allclose(loss_warped, loss_direct)
+
+
+def test_terms_weighted_as_the_loss_follow_the_velocity_loss_and_leave_the_data_loss_alone():
+    t = torch.tensor([0.0, 0.5, 0.9, 0.999])
+    assert term_weight(t, "velocity", "data") is None and term_weight(t, "data", "loss") is None
+    weights = term_weight(t, "velocity", "loss")
+    expected = torch.tensor([1.0, 1 / (1 - (1 - SIGMA_MIN) * 0.5) ** 2, 1 / (1 - (1 - SIGMA_MIN) * 0.9) ** 2, 400.0])
+    assert torch.allclose(weights, expected, rtol=1e-5)
+    with pytest.raises(ValueError):
+        term_weight(t, "velocity", "time")
+
+
+def test_the_temporal_term_weighted_as_the_loss_is_each_sample_times_its_weight():
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(ModelConfig(feature_dim=6, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
+    x1, cond, lengths = torch.randn(2, 8, 6), torch.randn(2, 4), torch.tensor([8, 6])
+    t, x0 = torch.tensor([0.3, 0.9]), torch.randn(2, 8, 6)
+    def loss(**kw):
+        return flow_matching_loss(model, x1[i:i + 1], cond[i:i + 1], lengths[i:i + 1], t=t[i:i + 1], x0=x0[i:i + 1],
+                                  **kw)[0]
+    for i in range(2):
+        plain, term_data = loss(), loss(temporal_weight=2.0)
+        term_loss = loss(temporal_weight=2.0, terms_weighting="loss")
+        w = 1 / (1 - (1 - SIGMA_MIN) * t[i]) ** 2
+        assert torch.allclose(term_loss - plain, (term_data - plain) * w, rtol=1e-4)

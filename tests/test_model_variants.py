@@ -1,5 +1,6 @@
 """The model's FlowMDM (BPE, PCCAT) and FLAME (cross-attention, learned-variance output) options."""
 
+import dataclasses
 import functools
 import math
 
@@ -606,3 +607,22 @@ def test_a_sinusoidal_length_token_embeds_every_length_and_nearby_lengths_alike(
     assert out.shape == (2, 50, 8) and torch.isfinite(out).all()
     with pytest.raises(ValueError, match="length_embedding"):
         ModelConfig(length_token=True, length_embedding="table")
+
+
+def test_progress_positions_tell_frames_where_they_lie_in_their_motion_whatever_the_padding():
+    torch.manual_seed(0)
+    config = ModelConfig(feature_dim=8, latent_dim=32, ff_dim=64, num_layers=2, num_heads=2, cond_dim=4,
+                         progress_positions=True, dropout=0.0, prediction="data")
+    model = MotionFlowTransformer(config).eval()
+    x, t, cond = torch.randn(1, 30, 8), torch.rand(1), torch.randn(1, 4)
+    alone = model(x, t, cond, torch.tensor([30]))
+    padded = model(torch.cat([x, torch.randn(1, 12, 8)], dim=1), t, cond, torch.tensor([30]))
+    assert torch.allclose(alone, padded[:, :30], atol=1e-5)
+    # The same frames as the first 30 of a longer motion lie elsewhere in it: a different output.
+    longer = model(torch.cat([x, torch.randn(1, 12, 8)], dim=1), t, cond, torch.tensor([42]))
+    assert not torch.allclose(alone, longer[:, :30], atol=1e-3)
+    plain = MotionFlowTransformer(dataclasses.replace(config, progress_positions=False)).eval()
+    plain.load_state_dict(model.state_dict())
+    assert not torch.allclose(plain(x, t, cond, torch.tensor([30])), alone, atol=1e-4)
+    with pytest.raises(ValueError, match="progress_positions"):
+        ModelConfig(progress_positions=True, positional="bpe")

@@ -325,7 +325,8 @@ def build_objective(cfg: TrainConfig, manifest: Manifest):
         return FlowMatchingObjective(loss_space=cfg.train.flow_loss, temporal_weight=cfg.train.flow_temporal_weight,
                                      bone_weight=cfg.train.flow_bone_weight, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
-                                     time_scale=cfg.train.flow_time_scale)
+                                     time_scale=cfg.train.flow_time_scale,
+                                     terms_weighting=cfg.train.flow_terms_weighting)
     return diffusion_from_preset(cfg.train.diffusion)
 
 
