@@ -46,6 +46,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--solver", help="ODE solver or diffusion sampler (as launch/sample.py)")
     add("--guidance", type=float, default=2.5, help="classifier-free guidance scale (default 2.5)")
     add("--seed", type=int, default=0)
+    add("--smoothing", type=float, help="Gaussian smoothing of the output over time, σ in frames (as launch/sample.py)")
     add("--decode", choices=sorted(JOINT_DECODES), default="ric", help="joints as recovered from the ric block "
                                                                       "(default) or fitted onto fixed bone lengths")
     add("--device", default="auto", help="auto (cuda when available), cpu, cuda, ...")
@@ -63,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
             out=args.out, checkpoint=args.checkpoint, texts=texts, captions_from_manifest=args.captions_from_manifest,
             max_rows=args.max_rows, manifest=args.manifest, ground_truth=args.ground_truth, frames=args.frames,
             seconds=args.seconds,
-            steps=args.steps, solver=args.solver, guidance=args.guidance, seed=args.seed, decode=args.decode,
+            steps=args.steps, solver=args.solver, guidance=args.guidance, seed=args.seed, smoothing=args.smoothing,
+            decode=args.decode,
             device=args.device, weights=args.model_weights, text_weights=args.text_weights))
     except (SamplingError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -88,11 +88,20 @@ def stated_attributes(caption: str) -> dict[str, Any]:
     return {}
 
 
-def _segments(flags: np.ndarray, min_frames: int = 2) -> int:
-    """Number of runs of True at least ``min_frames`` long."""
-    padded = np.concatenate([[False], flags, [False]]).astype(np.int8)
-    starts, ends = np.flatnonzero(np.diff(padded) == 1), np.flatnonzero(np.diff(padded) == -1)
-    return int(np.sum(ends - starts >= min_frames))
+def _segments(signal: np.ndarray, threshold: float, min_frames: int = 2) -> int:
+    """How many times ``signal`` rises above ``threshold`` for at least ``min_frames`` frames, with hysteresis: a
+    rise ends only when the signal falls below half the threshold, so jitter around the threshold (a generated leg
+    trembling at kick height) counts once, as a person watching would count it, while a real lowering in between
+    counts twice."""
+    count, above, run = 0, False, 0
+    for value in signal:
+        if not above and value > threshold:
+            above, run = True, 0
+        elif above and value < threshold / 2:
+            above = False
+            count += run >= min_frames
+        run += above
+    return int(count + (above and run >= min_frames))
 
 
 def _standing(height: np.ndarray) -> float:
@@ -140,19 +149,19 @@ def observed_attributes(joints: np.ndarray, action: str) -> dict[str, Any]:
     if action == "kick":
         lift = {s: joints[:, _J[f"{s}_ankle"], 1] - _standing(joints[:, _J[f"{s}_ankle"], 1]) for s in ("left", "right")}
         side = max(lift, key=lambda s: float(lift[s].max()))
-        return {"side": side, "count": _segments(lift[side] > KICK_LIFT_M)}
+        return {"side": side, "count": _segments(lift[side], KICK_LIFT_M)}
     if action == "jump":
         feet = joints[:, [_J["left_ankle"], _J["right_ankle"]], 1]
         clearance = feet.min(axis=1) - min(_standing(feet[:, 0]), _standing(feet[:, 1]))
         horizontal = float(np.hypot(travel[0], travel[2]))
-        return {"count": _segments(clearance > FLIGHT_CLEARANCE_M),
+        return {"count": _segments(clearance, FLIGHT_CLEARANCE_M),
                 "place": "in_place" if horizontal < IN_PLACE_M else "forward"}
     if action == "squat":
         dip = _standing(pelvis[:, 1]) - pelvis[:, 1]
-        return {"count": _segments(dip > SQUAT_DIP_M)}
+        return {"count": _segments(dip, SQUAT_DIP_M)}
     if action == "raise_arms":
         above = np.minimum(joints[:, _J["left_wrist"], 1], joints[:, _J["right_wrist"], 1]) - joints[:, _J["neck"], 1]
-        return {"count": _segments(above > ARMS_UP_M)}
+        return {"count": _segments(above, ARMS_UP_M)}
     if action == "sidestep":
         sideways = float(travel @ left)
         return {"side": None if abs(sideways) < TRAVEL_M else "left" if sideways > 0 else "right"}

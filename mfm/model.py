@@ -225,6 +225,11 @@ class ModelConfig:
     (FlowMDM, x-transformers' ``ScaledSinusoidalEmbedding``): ``cat(sin(p·ω), cos(p·ω)) · s`` with the same
     frequencies ``ω_i = 10000^(-i/(latent_dim/2))`` and one learned scalar ``s`` initialised to
     ``latent_dim ** -0.5``. The time embedding keeps MDM's table either way (FlowMDM's does too)."""
+    output_smoothing: float = 0.0
+    """σ (frames) of the Gaussian smoothing over time that samplers apply to this model's outputs unless told
+    otherwise (``launch/sample.py --smoothing``, the evaluator, the contact sheet, MotionPipeline); 0 = none (MFM).
+    FLAME smooths its samples this way with σ = 1 (its diffusion preset's own setting,
+    mfm.diffusion_sampling.BASELINE_SAMPLING, still wins for such checkpoints). Not used in training."""
     progress_positions: bool = False
     """Ours, in no reference model: also add to every frame the sinusoid of how far into its motion it lies,
     ``1000 · i / (L − 1)`` for frame i of a motion of L valid frames (the time embedding's scaling), so a frame knows
@@ -324,6 +329,8 @@ class ModelConfig:
             raise ValueError("ModelConfig.null_condition='empty_caption' needs a text model (num_actions=0)")
         if not isinstance(self.null_tokens, int) or self.null_tokens < 0:
             raise ValueError(f"ModelConfig.null_tokens must be an int >= 0, got {self.null_tokens!r}")
+        if not (isinstance(self.output_smoothing, (int, float)) and self.output_smoothing >= 0):
+            raise ValueError(f"ModelConfig.output_smoothing must be a σ >= 0 (frames), got {self.output_smoothing!r}")
         if self.progress_positions and self.positional != "absolute":
             raise ValueError("ModelConfig.progress_positions needs positional='absolute'")
         if self.length_embedding not in LENGTH_EMBEDDINGS:

@@ -323,3 +323,19 @@ def test_export_then_from_pretrained_generates_what_sampling_the_checkpoint_does
                          "--seed", "3", "--no-video", "--no-bvh")
     exported_features = np.load(tmp_path / "cli-export" / file_of(from_export["samples"][0], "features"))
     np.testing.assert_allclose(exported_features, out.features[0], atol=1e-5)
+
+
+def test_a_model_whose_preset_smooths_its_outputs_is_sampled_smoothed_unless_told_otherwise(tmp_path_factory,
+                                                                                          tmp_path):
+    from mfm.diffusion_sampling import smooth_over_time
+
+    run = _train_once(tmp_path_factory, "sampling-smoothed-run", build_dataset_once(tmp_path_factory),
+                      "model.output_smoothing=1.0")
+    assert load_trained_model(run).default_smoothing == 1.0
+    args = ["--text", "a person walks", "--seconds", "3", "--no-video", "--no-bvh", "--seed", "3"]
+    default = sample(run, tmp_path / "default", *args)
+    raw = sample(run, tmp_path / "raw", *args, "--smoothing", "0")
+    smoothed, unsmoothed = features_of(tmp_path / "default", default)[0], features_of(tmp_path / "raw", raw)[0]
+    expected = smooth_over_time(torch.as_tensor(unsmoothed)[None].double(), [len(unsmoothed)], 1.0)[0].numpy()
+    np.testing.assert_allclose(smoothed, expected, atol=1e-4)
+    assert np.abs(np.diff(smoothed, 3, axis=0)).mean() < np.abs(np.diff(unsmoothed, 3, axis=0)).mean()

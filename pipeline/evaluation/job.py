@@ -73,6 +73,7 @@ from pipeline.evaluation.replications import (
     PointRun,
     action_labels,
     baseline_sampling,
+    output_smoothing,
     plan_protocol,
     points_for,
 )
@@ -128,7 +129,7 @@ def baseline_record(trained: TrainedModel, sampling: Any) -> dict[str, Any]:
     """What a result says about the output smoothing and whose sampling settings ran (a baseline's own, or ours)."""
     baseline = baseline_sampling(trained, sampling.baseline_defaults)
     if baseline is None:
-        return {"smoothing_sigma": 0.0, "baseline_defaults": None}
+        return {"smoothing_sigma": output_smoothing(trained, sampling.baseline_defaults), "baseline_defaults": None}
     return {"smoothing_sigma": baseline.smoothing_sigma,
             "baseline_defaults": {"preset": trained.diffusion_preset, "guidance": baseline.guidance,
                                   "smoothing_sigma": baseline.smoothing_sigma, "source": baseline.source}}

@@ -627,6 +627,12 @@ def baseline_sampling(trained: TrainedModel, enabled: bool) -> BaselineSampling 
     return trained.baseline_sampling if enabled else None
 
 
+def output_smoothing(trained: TrainedModel, enabled: bool) -> float:
+    """σ (frames) of the smoothing the checkpoint's own sampling defaults apply (a diffusion baseline's, or the
+    model's ``output_smoothing``) when ``enabled`` (sampling.baseline_defaults); 0 otherwise."""
+    return trained.default_smoothing if enabled else 0.0
+
+
 @torch.no_grad()
 def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], lengths: Tensor,
              seeds: Sequence[int], point: SamplingPoint, sampling: SamplingConfig, *, known: Tensor | None = None,
@@ -673,9 +679,7 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
         else:
             result = edit(velocity, known, keep, steps=point.steps, rewrite_until=rewrite_until,
                           solver=point.solver, x0=x0, lengths=lengths)
-    baseline = baseline_sampling(trained, sampling.baseline_defaults)
-    x1 = result.x1.float() if baseline is None else smooth_over_time(result.x1.float(), lengths,
-                                                                       baseline.smoothing_sigma)
+    x1 = smooth_over_time(result.x1.float(), lengths, output_smoothing(trained, sampling.baseline_defaults))
     if windowed:
         return trained.denormalize(x1), result.nfe
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)

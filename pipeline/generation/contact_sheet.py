@@ -54,6 +54,7 @@ class ContactSheetRequest:
     solver: str | None = None
     guidance: float = 2.5
     seed: int = 0
+    smoothing: float | None = None  # σ in frames of the output's Gaussian smoothing; None: the sampler's default
     decode: str = "ric"  # a key of pipeline.generation.sampling.JOINT_DECODES
     device: str = "auto"
     weights: str = "ema"
@@ -128,6 +129,7 @@ def compare_with_clips(motions: Sequence[np.ndarray], clips: Sequence[np.ndarray
         report["caption_checks"] = {name: result["summary"] for name, result in checked.items()}
         for row, check in zip(rows, checked["generated"]["rows"]):
             row["caption_checks"] = check["checks"]
+            row["caption_observed"] = check["observed"]
     return report
 
 
@@ -186,6 +188,7 @@ def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
                 checkpoint=request.checkpoint, out_dir=folder, texts=titles, seconds=request.seconds,
                 lengths=[len(c.features) for c in captions] if not request.seconds else [],
                 steps=request.steps, solver=request.solver, guidance=request.guidance, seed=request.seed,
+                smoothing=request.smoothing,
                 device=request.device, weights=request.weights, text_weights=request.text_weights,
                 decode=request.decode, video=False, bvh=False, progress=False))
             motions = [np.load(Path(folder) / f["path"]) for s in results["samples"] for f in s["files"]
@@ -194,8 +197,8 @@ def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
         run = Path(results["checkpoint"]).parents[1].name  # checkpoints live in RUN/checkpoints/step-XXXXXXXX
         header = (f"generated: {run} step {results['step']}, {results['solver']} {results['steps']} steps, "
                   f"guidance {results['guidance']:g}, seed {results['seed']}")
-        info = {"mode": "generated", **{key: results[key] for key in ("checkpoint", "step", "solver", "steps",
-                                                                        "guidance", "seed")}}
+        info = {"mode": "generated", **{key: results.get(key) for key in ("checkpoint", "step", "solver", "steps",
+                                                                            "guidance", "seed", "smoothing")}}
         if captions and not request.seconds:
             clips = [DECODERS[request.decode](c.features[: len(m)], skeleton) for c, m in zip(captions, motions)]
             info["against_dataset_clips"] = compare_with_clips(motions, clips, skeleton,

@@ -107,6 +107,13 @@ class TrainedModel:
             return None
         return BASELINE_SAMPLING.get(self.diffusion_preset or "")
 
+    @property
+    def default_smoothing(self) -> float:
+        """σ (frames) of the output smoothing samplers apply unless told otherwise: a diffusion baseline's own
+        (FLAME: 1), else the model's ``output_smoothing`` (0 unless its preset says otherwise)."""
+        baseline = self.baseline_sampling
+        return baseline.smoothing_sigma if baseline is not None else float(self.model_config.output_smoothing)
+
     def normalize(self, features: torch.Tensor) -> torch.Tensor:
         return (features - self.mean) / self.std
 

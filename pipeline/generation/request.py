@@ -266,12 +266,11 @@ class SampleRequest:
         return baseline.guidance if baseline is not None else DEFAULT_GUIDANCE
 
     def smoothing_for(self, trained: TrainedModel) -> float:
-        """σ (frames) of the output's Gaussian smoothing over time: as given, else the diffusion baseline's own
-        (FLAME: 1.0), else 0 (none)."""
+        """σ (frames) of the output's Gaussian smoothing over time: as given, else the checkpoint's default
+        (a diffusion baseline's own, FLAME: 1.0; else the model's ``output_smoothing``, 0 = none)."""
         if self.smoothing is not None:
             return float(self.smoothing)
-        baseline = trained.baseline_sampling
-        return baseline.smoothing_sigma if baseline is not None else 0.0
+        return trained.default_smoothing
 
 SWITCH_PRESETS = {"humanml3d": HUMANML3D_SWITCH, "babel": BABEL_SWITCH}
 """FlowMDM's ``bpe_denoising_step`` per dataset (60 HumanML3D, 125 Babel) as flow times."""
