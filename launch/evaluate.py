@@ -1,4 +1,5 @@
-"""Evaluate checkpoints: text-to-motion (or action-to-motion) metrics, editing and FLAME metrics, with 95 % CIs, and
+"""Evaluate checkpoints: text-to-motion (or action-to-motion) metrics, editing and the FLAME-paper metrics (APE/AVE as
+TEMOS defines them, mCLIP, MID), with 95 % CIs, and
 plausibility figures (bone lengths, floor penetration, foot skating, jerk vs ground truth) beside the ground truth's.
 
     python launch/evaluate.py --checkpoint runs/default/checkpoints/step-00001500 --protocol fast
@@ -30,6 +31,8 @@ value that covers the time between evaluator runs), or run ``--watch`` alongside
 Exit code: 0 all done (every unit evaluated, now or before), 3 some units skipped because other live jobs hold them
 and have not finished them (run again later), 2 bad settings, a missing evaluator or checkpoint, 143 on SIGTERM
 (claims released), 1 other errors. Pruned checkpoints are reported, not an error (they cannot be evaluated again).
+The results folder must be new, empty or an evaluation folder of ours (mfm-eval.json, or one an earlier version
+wrote); another tool's folder (its index.html, plots/) is refused with exit code 2 before anything is written.
 
 Composition (``tasks.composition=true``, pipeline/evaluation/composition.py): FlowMDM's protocol on a bpe + pccat model,
 one result per switch point (``composition.switch``: flow times, 'absolute' = 1.0 the absolute-only baseline,
@@ -63,6 +66,7 @@ from pipeline.evaluation.job import (
     summary_line,
 )
 from pipeline.evaluation.spaces import EvaluationError, EvaluatorUnavailable
+from pipeline.evaluation.store import EvalFolderError
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -113,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
                 count = job.watch(args.watch, once=args.once)
                 dist.print0(f"{count} unit(s) evaluated by this job")
                 summary = job.summary(count)
-        except (EvaluatorUnavailable, EvaluationError, FileNotFoundError) as exc:
+        except (EvaluatorUnavailable, EvaluationError, EvalFolderError, FileNotFoundError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         dist.print0("wall time per phase: " + ", ".join(f"{k} {v:.2f} s" for k, v in job.timings.items()))

@@ -12,8 +12,8 @@ FILE.yaml``, then the flags below (each a shorthand for one key), then ``key=val
     python launch/sample.py --checkpoint runs/tiny --extrapolate --text "a person walks" --length 100 \\
         --num-segments 10 --out out/long
 
-Flow edits use --edit-settings paper (MFM paper: 30 Euler steps, ς = 0.2, guidance 1.0) unless --steps, --guidance or
---rewrite-until override a value (results.json records the settings and what was overridden).
+Flow edits use --edit-settings paper (MFM paper §4.1: 30 Euler steps, ς = 0.2; guidance 1.0) unless --steps,
+--guidance or --rewrite-until override a value (results.json records the settings and what was overridden).
 
 --checkpoint takes a step-XXXXXXXX folder or a run folder (its newest complete checkpoint; EMA weights unless
 --model-weights model). Per sample: sample_NNN/{features.npy, joints.npy, motion.mp4|gif, motion.bvh,

@@ -33,7 +33,7 @@ from pipeline.config import (
 )
 from pipeline.distributed import Dist, MixedPrecisionError
 from pipeline.training.trainer import CheckpointSaveError, Trainer
-from preprocess.shards import BuildConfig, ManifestError, build_dataset, default_out_dir
+from preprocess.shards import BuildConfig, ManifestError, OutputFolderError, build_dataset, default_out_dir
 
 EMBEDDED_MANIFEST = default_out_dir("deepmimic", "minilm") / "manifest.json"
 
@@ -72,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
         given = sys.argv[1:] if argv is None else argv
         again = shlex.join(["python", "launch/train.py", *given, exc.continue_override])
         return fail(f"{exc}. The command that continues: {again}", 2)
-    except (ConfigError, ManifestError, CheckpointError, FileNotFoundError, MixedPrecisionError) as exc:
+    except (ConfigError, ManifestError, CheckpointError, FileNotFoundError, MixedPrecisionError,
+            OutputFolderError) as exc:
         # refused before training
         return fail(str(exc), 2)
     except CheckpointSaveError as exc:

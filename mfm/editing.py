@@ -19,7 +19,7 @@ The source motion must be in the model's feature space, i.e. normalised with the
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -120,20 +120,29 @@ class EditSettings:
 
     name: str
     steps: int
+    """Euler steps of every preset not in ``steps_per_preset``."""
     rewrite_until: Mapping[str, float]
     """ς per mask preset (EDIT_MASK_PRESETS) and ``'joints'`` (a custom joint/frame mask)."""
     guidance: float
     source: str
+    steps_per_preset: Mapping[str, int] = field(default_factory=dict)
+    """Presets whose Euler steps differ from ``steps`` (edit.py's interpolation: one step)."""
 
     def rewrite_time(self, preset: str) -> float:
         if preset not in self.rewrite_until:
             raise ValueError(f"edit settings {self.name!r} have no ς for preset {preset!r}")
         return float(self.rewrite_until[preset])
 
+    def steps_for(self, preset: str) -> int:
+        """Euler steps of ``preset`` (a mask preset or ``'joints'``) under these settings."""
+        if preset not in self.rewrite_until:
+            raise ValueError(f"edit settings {self.name!r} have no steps for preset {preset!r}")
+        return int(self.steps_per_preset.get(preset, self.steps))
+
     def record(self) -> dict[str, Any]:
         """What a results file says about these settings."""
-        return {"settings": self.name, "steps": self.steps, "rewrite_until": dict(self.rewrite_until),
-                "guidance": self.guidance, "source": self.source}
+        return {"settings": self.name, "steps": self.steps, "steps_per_preset": dict(self.steps_per_preset),
+                "rewrite_until": dict(self.rewrite_until), "guidance": self.guidance, "source": self.source}
 
 
 _EDIT_KINDS = ("prediction", "inbetween", "interpolation", "upper_body", "joints")
@@ -141,17 +150,21 @@ _EDIT_KINDS = ("prediction", "inbetween", "interpolation", "upper_body", "joints
 EDIT_SETTINGS: dict[str, EditSettings] = {
     "paper": EditSettings(
         name="paper", steps=30, rewrite_until={kind: 0.2 for kind in _EDIT_KINDS}, guidance=1.0,
-        source="MFM paper: N = 30 Euler steps, rewriting until ς = 0.2; guidance 1.0 as the reference edit.py sets "
+        source="MFM paper §4.1 (implementation details): N = 30 Euler steps, 'restrict the editing to the initial "
+               "t = 0.2' (ς = 0.2), not from edit.py; guidance 1.0 as the reference edit.py: 48 sets "
                "(cfg.guidance_param = 1.0, i.e. the conditional field alone)"),
     "reference-debug": EditSettings(
         name="reference-debug", steps=100,
         rewrite_until={"prediction": 0.5, "inbetween": 1.0, "interpolation": 1.0, "upper_body": 0.1, "joints": 0.1},
-        guidance=1.0,
-        source="motionfm edit.py is_debug presets: step_size 0.01, edit_till in_between 1.0, upper_body 0.1, "
-               "prediction 0.5 (interpolation keeps config_base's edit_till 1.0; our custom joints mask takes the "
-               "upper body's 0.1)"),
+        guidance=1.0, steps_per_preset={"interpolation": 1},
+        source="motionfm edit.py is_debug presets (guidance_param 1.0 at :48): step_size 0.01 = 100 steps with "
+               "edit_till in_between 1.0 (:72-77), upper_body 0.1 (:78-82), prediction 0.5 (:83-87); interpolate "
+               "step_size 1 = one step (:96-99; it keeps config_base's edit_till 1.0, and its one rewrite at t = 0 "
+               "puts the initial noise itself on the known part, so the source never enters); our custom joints "
+               "mask takes the upper body's 100 steps and 0.1"),
 }
-"""Named edit settings; ``'paper'`` is the default everywhere (launch/sample.py edits and the evaluator)."""
+"""Named edit settings; ``'paper'`` is the default everywhere (launch/sample.py edits and the evaluator).
+``'paper'``'s values come from the MFM paper's text (§4.1), ``'reference-debug'``'s from edit.py's debug presets."""
 DEFAULT_EDIT_SETTINGS = "paper"
 
 

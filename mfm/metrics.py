@@ -10,8 +10,12 @@ Definitions follow the reference implementations the field reports numbers with:
 * Transitions (FlowMDM ``utils/metrics.py::evaluate_jerk``): per-frame jerk curve, Peak Jerk, Area Under the Jerk.
 * Physical plausibility of joint positions, per clip: bone-length consistency, floor penetration, foot skating (GMD
   ``calculate_skating_ratio`` thresholds, as OmniControl), mean jerk and its ratio to the ground truth's.
-* FLAME / TEMOS: APE / AVE (TEMOS ``ComputeMetrics``), mCLIP score, Mutual Information Divergence
-  (Kim et al. 2022, naver-ai/mid.metric ``_compute_pmi``), per-text joint variance.
+* APE / AVE: TEMOS's definition (Mathux/TEMOS ``temos/model/metrics/compute.py`` ``ComputeMetrics`` over its
+  Rifke transform), which FLAME's paper reports; FLAME's own code differs (kakaobrain/flame
+  ``src/utils/eval_util.py``: 50–136, its call commented out at :37: no floor or heading canonicalisation, the
+  local error over 21 parent→child bone vectors, the root from the SMPL translation), see :func:`ape_ave`.
+* FLAME's other metrics: mCLIP score, Mutual Information Divergence (Kim et al. 2022, naver-ai/mid.metric
+  ``_compute_pmi``), per-text joint variance.
 * Action-to-motion: recogniser accuracy (FID/diversity/multimodality reuse the text-to-motion functions).
 
 Randomised metrics take ``generator``: a ``numpy.random.Generator`` or an int seed (``None`` = fresh entropy), so a
@@ -727,7 +731,7 @@ def plausibility_side_by_side(generated: PlausibilityFigures,
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# FLAME / TEMOS metrics
+# APE / AVE (TEMOS's definition, reported by FLAME's paper), FLAME's mCLIP, MID, joint variance
 # ---------------------------------------------------------------------------------------------------------------
 
 
@@ -766,17 +770,31 @@ def _canonical_parts(joints: np.ndarray, root: int, face_joints: tuple[int, int,
 
 
 TEMOS_FLOOR_SOFTNESS = 0.5
-"""``softness`` of TEMOS's ``get_floor`` (temos/transforms/joints2jfeats/tools.py)."""
+"""``softness`` of TEMOS's ``get_floor`` (temos/transforms/joints2jfeats/tools.py: 29–46)."""
+TEMOS_FLOOR_MM_PER_UNIT = 1000.0
+"""TEMOS's ``get_floor`` runs on joints in millimetres (its MMM/KIT joints; ``ComputeMetrics.transform`` divides
+by 1000 only after the Rifke transform, temos/model/metrics/compute.py: 154–159): the softmin's ``log`` term is in
+millimetres, so metres are scaled by this before it."""
 
 
-def temos_floor_height(joints: np.ndarray, foot_joints: Sequence[int]) -> float:
-    """The floor height TEMOS's ``get_floor`` estimates for one clip (T, J, 3), y up: the lowest of the foot joints
-    in each frame, then TEMOS's ``softmin`` over frames, ``min − log(softness + exp(min − max))`` (their formula
-    as written: up to log 1.5 ≈ 0.41 m below the minimum when the lowest foot height varies little over the clip,
-    above the minimum when it varies by more than log 2 ≈ 0.69 m)."""
-    heights = joints[:, list(foot_joints), 1].min(axis=1)
+def temos_floor_height(joints: np.ndarray, foot_joints: Sequence[int], *,
+                       millimetres_per_unit: float = TEMOS_FLOOR_MM_PER_UNIT) -> float:
+    """The floor height TEMOS's ``get_floor`` estimates for one clip (T, J, 3), y up, in the clip's unit: the lowest
+    of the foot joints in each frame, then TEMOS's ``softmin`` over frames, ``min − log(softness + e^(min − max))``
+    with softness 0.5, computed in millimetres as TEMOS does (``millimetres_per_unit``: 1000 for joints in metres,
+    1 for joints in millimetres) and converted back.
+
+    In millimetres e^(min − max) vanishes for any clip whose lowest foot moves by more than a few mm, so the floor
+    is ``min + log 2`` mm: 0.69 mm above the lowest foot point (which then sits at −0.69 mm), whatever the clip.
+    Applying the formula to metres (this function before issue 25) put the floor 0.1–0.4 m *under* the lowest foot,
+    by an amount that depends on each clip's foot-height range (log(0.5 + e^(−range)) m), so generated and
+    ground-truth clips got different offsets and APE_root / APE_mean_global were biased by 0.1–0.3 m.
+    """
+    if not millimetres_per_unit > 0:
+        raise ValueError(f"millimetres_per_unit must be > 0, got {millimetres_per_unit}")
+    heights = joints[:, list(foot_joints), 1].min(axis=1) * millimetres_per_unit
     low, high = float(heights.min()), float(heights.max())
-    return low - math.log(TEMOS_FLOOR_SOFTNESS + math.exp(low - high))
+    return (low - math.log(TEMOS_FLOOR_SOFTNESS + math.exp(low - high))) / millimetres_per_unit
 
 
 def ape_ave(
@@ -787,8 +805,15 @@ def ape_ave(
     root: int = 0,
     face_joints: tuple[int, int, int, int] | None = None,
     floor_joints: Sequence[int] | None = None,
+    metres_per_unit: float = 1.0,
 ) -> dict[str, float]:
-    """Average Position Error and Average Variance Error (TEMOS ``ComputeMetrics``, reported by FLAME).
+    """Average Position Error and Average Variance Error as TEMOS defines them (``ComputeMetrics``,
+    temos/model/metrics/compute.py), the definition FLAME's paper reports.
+
+    FLAME's own code differs (kakaobrain/flame ``src/utils/eval_util.py``: 50–136 ``compute_ape_ave``, whose call is
+    commented out at :37): no floor or heading canonicalisation, the local error over 21 parent→child bone vectors
+    instead of root-relative joints, the root from the SMPL translation; it is not implemented here, so our APE/AVE
+    are TEMOS's, not FLAME's code's.
 
     Both clips of a pair are put in canonical form independently (:func:`_canonical_parts`: root's first-frame xz
     at the origin; with ``face_joints`` = (r_hip, l_hip, r_shoulder, l_shoulder), e.g. ``Skeleton.face_joints``,
@@ -802,15 +827,21 @@ def ape_ave(
       denominator, averaged over sequences and, for the joint sets, over joints.
 
     ``floor_joints`` (the skeleton's foot joints, as TEMOS's LM/LF/RM/RF): each clip's floor is re-estimated with
-    :func:`temos_floor_height` and subtracted from its heights first, as TEMOS's Rifke transform does before
-    FLAME's APE/AVE; None keeps the heights as given (HumanML3D joints are floor-aligned already). Inputs
-    (N, T, J, 3) in metres; ``lengths`` (N,) valid frames (≥ 2). Keys: ``APE_root, APE_traj, APE_mean_local,
-    APE_mean_global, AVE_root, AVE_traj, AVE_mean_local, AVE_mean_global``.
+    :func:`temos_floor_height` (in millimetres, as TEMOS) and subtracted from its heights first, as TEMOS's Rifke
+    transform does (rifke.py: 31); None keeps the heights as given (HumanML3D joints are floor-aligned already).
+    Inputs (N, T, J, 3) in the unit ``metres_per_unit`` says (1 = metres; ``METRES_PER_UNIT[skeleton.unit]``, e.g.
+    1e-3 for KIT's millimetres), converted to metres first: results are in metres (TEMOS's ``force_in_meter``);
+    ``lengths`` (N,) valid frames (≥ 2). Keys: ``APE_root, APE_traj, APE_mean_local, APE_mean_global, AVE_root,
+    AVE_traj, AVE_mean_local, AVE_mean_global``.
     """
     pred, gt = _as_numpy(pred_joints, "pred_joints"), _as_numpy(gt_joints, "gt_joints")
     _check_joints(pred, "pred_joints")
     if pred.shape != gt.shape:
         raise ValueError(f"pred_joints {pred.shape} and gt_joints {gt.shape} must have the same shape")
+    if not metres_per_unit > 0:
+        raise ValueError(f"metres_per_unit must be > 0, got {metres_per_unit}")
+    if metres_per_unit != 1.0:
+        pred, gt = pred * metres_per_unit, gt * metres_per_unit
     n, t, j = pred.shape[:3]
     if not 0 <= root < j:
         raise ValueError(f"root index {root} out of range for {j} joints")

@@ -14,6 +14,7 @@ Layout (one folder per optimizer step; zero-padded so names sort by step)::
         COMPLETE            written last: JSON {"format", "version", "step", "files": {name: {bytes, sha256}}}
       step-00002000.tmp-node7-4242   a save in progress by pid 4242 on host node7 (or one that was killed):
                                      never read; removed at the next start-up once that pid is gone, or pruned
+                                     (only names of exactly this pattern, which this module writes, are removed)
       step-00001000.corrupt-20250101T120000    set aside by resume=auto (a file fails its sha256): never read,
       step-00001000.discarded-20250101T120000  never pruned, never deleted (by train.resume_discard_newer=true)
       saved.jsonl             one JSON line per completed save, appended by the trainer after the folder is in place:
@@ -29,6 +30,11 @@ a checkpoint, falling back to the newest one that verifies (see :func:`resolve_r
 
 A training process starting up calls :func:`remove_stale_tmp` first: temporary folders whose writer is gone are
 removed before anything else is written, so a crash or a full disk never leaves a run that cannot restart.
+
+Only what this module wrote is ever renamed or deleted: a ``step-N`` folder whose COMPLETE marker is ours (format
+``mfm-checkpoint``) and temporary folders of its own name pattern. A ``step-N`` folder without our marker (a user's
+folder of that name) is never moved or deleted: a save of that step refuses to go on
+(:class:`CheckpointFolderTakenError`), and the run-folder check at start-up names it (:func:`foreign_step_folders`).
 
 Only global rank 0 saves. Per-rank state (RNG, data-loader position) is gathered by the caller first, e.g.
 ``rng_states = dist.all_gather_object(capture_rng_state())``, and passed as lists indexed by rank.
@@ -77,7 +83,8 @@ SAVED_LISTING = "saved.jsonl"  # in <out_dir>/checkpoints: one line per complete
 _STEP_DIR = re.compile(r"^step-(\d{8})$")
 _TMP_DIR = re.compile(r"^step-(\d{8})\.tmp-(.+)$")
 # The owner part of a temporary folder's name: [incomplete-|delete-][<host>-]<pid> (names from before the host was
-# recorded have none: they were written on this host).
+# recorded have none: they were written on this host). ``incomplete-`` names come from earlier versions only and are
+# never removed (see _is_our_tmp_name).
 _TMP_OWNER = re.compile(r"^(?:(?:incomplete|delete)-)?(?:(?P<host>.+)-)?(?P<pid>\d+)$")
 
 
@@ -100,6 +107,11 @@ class CheckpointWriteError(OSError):
 
     def __str__(self) -> str:
         return self.strerror or super().__str__()
+
+
+class CheckpointFolderTakenError(CheckpointError, FileExistsError):
+    """A save's ``step-N`` folder exists and is not a checkpoint this module wrote (no COMPLETE marker of ours): it
+    is left as it is, and the save refused (a FileExistsError too, so the trainer stops with one line)."""
 
 
 class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
@@ -249,10 +261,17 @@ def save_checkpoint(
         )
     ckpt_root = Path(ckpt_root)
     final = ckpt_root / step_dir_name(step)
-    if final.exists():
+    if final.exists() or final.is_symlink():
+        if not is_our_checkpoint_folder(final):
+            raise CheckpointFolderTakenError(
+                f"checkpoint {final} cannot be saved: a folder of that name is there and is not a checkpoint this "
+                f"project wrote (no {COMPLETE_MARKER} marker of ours); it is left as it is: move it out of "
+                f"{ckpt_root} and run again")
         if is_complete(final):
             raise FileExistsError(f"checkpoint {final} already exists and is complete; refusing to overwrite it")
-        _set_aside(final)
+        aside = move_aside(final, "corrupt")  # ours, but a listed file is missing or cut short: kept, never deleted
+        logger.warning("checkpoint %s is damaged (a file it lists is missing or of the wrong size): moved aside to %s "
+                       "(kept, not deleted)", final, aside.name)
     tmp = ckpt_root / tmp_dir_name(step)
 
     state = {
@@ -357,11 +376,44 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def _set_aside(folder: Path) -> None:
-    """Rename an incomplete ``step-N`` folder (not written by this module) out of the way, as a stale tmp."""
-    aside = folder.with_name(f"{folder.name}.tmp-incomplete-{_owner_tag()}")
-    logger.warning("moving incomplete checkpoint folder %s aside to %s", folder, aside)
-    os.rename(folder, aside)
+def is_our_checkpoint_folder(folder: str | Path) -> bool:
+    """Whether ``folder`` (not a link) holds a COMPLETE marker this module wrote: a JSON object of format
+    ``mfm-checkpoint``, whatever its version and whether or not its files are still all there. Only such folders
+    are ever renamed or deleted here."""
+    folder = Path(folder)
+    if folder.is_symlink() or not folder.is_dir():
+        return False
+    try:
+        marker = json.loads((folder / COMPLETE_MARKER).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return isinstance(marker, dict) and marker.get("format") == MARKER_FORMAT
+
+
+def our_step_folders(ckpt_root: str | Path) -> list[Path]:
+    """The ``step-N`` folders of ``ckpt_root`` that are checkpoints of ours (:func:`is_our_checkpoint_folder`)."""
+    return [folder for folder in _step_named(ckpt_root) if is_our_checkpoint_folder(folder)]
+
+
+def foreign_step_folders(ckpt_root: str | Path) -> list[Path]:
+    """The entries of ``ckpt_root`` named ``step-N`` that are not checkpoints of ours: never read, renamed or
+    deleted, and a save of their step is refused."""
+    return [folder for folder in _step_named(ckpt_root) if not is_our_checkpoint_folder(folder)]
+
+
+def _step_named(ckpt_root: str | Path) -> list[Path]:
+    ckpt_root = Path(ckpt_root)
+    if not ckpt_root.is_dir():
+        return []
+    return sorted(child for child in ckpt_root.iterdir() if _STEP_DIR.match(child.name))
+
+
+def _is_our_tmp_name(name: str) -> bool:
+    """``step-N.tmp-[delete-][<host>-]<pid>``: a temporary folder this module writes (a save under way, or a pruned
+    checkpoint being deleted). ``step-N.tmp-incomplete-...`` folders are not: earlier versions renamed any ``step-N``
+    folder without a valid marker to that name, a user's folder included, so they are kept for the user."""
+    match = _TMP_DIR.match(name)
+    return bool(match and _TMP_OWNER.match(match.group(2)) and not match.group(2).startswith("incomplete-"))
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -571,14 +623,18 @@ def remove_stale_tmp(ckpt_root: str | Path) -> list[Path]:
     removed = []
     for child in sorted(ckpt_root.iterdir()):
         match = _TMP_DIR.match(child.name)
-        if not (match and child.is_dir()):
+        if not (match and child.is_dir() and not child.is_symlink()):
+            continue
+        if not _is_our_tmp_name(child.name):  # only a temporary folder of our own name pattern is ever removed
+            logger.info("keeping %s: not a temporary folder name this code writes (set aside by an earlier version, "
+                        "or not ours); delete it yourself once you know what it holds", child)
             continue
         owner = _TMP_OWNER.match(match.group(2))
-        host = owner["host"] if owner else None
-        if owner and host is not None and host != _this_host():
+        host = owner["host"]
+        if host is not None and host != _this_host():
             logger.info("keeping %s: written on host %s, whose processes cannot be checked from here", child, host)
             continue
-        if owner and _pid_alive(int(owner["pid"])):
+        if _pid_alive(int(owner["pid"])):
             logger.info("keeping %s: its writer, pid %s on this host, is still running", child, owner["pid"])
             continue
         try:
@@ -742,7 +798,8 @@ def prune_checkpoints(ckpt_root: str | Path, keep_last: int) -> list[Path]:
     doomed = [path for _, path in complete[:-keep_last]] if keep_last > 0 else []
     for child in sorted(ckpt_root.iterdir()):
         match = _TMP_DIR.match(child.name)
-        if match and child.is_dir() and int(match.group(1)) <= newest_step:
+        if (match and child.is_dir() and not child.is_symlink() and _is_our_tmp_name(child.name)
+                and int(match.group(1)) <= newest_step):
             doomed.append(child)
     removed = []
     for folder in doomed:

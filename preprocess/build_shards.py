@@ -68,12 +68,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
              "train split, or auto (default): official when the files are there. The manifest says which")
     add("--num-clips", type=int, help="synthetic: number of clips")
     add("--seed", type=int, help="synthetic: random seed")
-    add("--body-model", help="amass: SMPL-H body model file (required for AMASS)")
+    add("--body-model", help="amass: SMPL-H body model file (required for AMASS): a model.npz of numeric arrays; a "
+        "pickled one (.pkl, or an .npz holding Python objects) is refused unless --source-option "
+        "unpickle_body_model=true, because unpickling runs any code the file carries: pass it only for a file you "
+        "trust")
     add("--source-option", type=_key_value, action="append", default=[], metavar="KEY=VALUE",
         help="any other source option (repeatable), e.g. humanml3d/kit: features=auto|file|recompute (auto: read "
              "new_joint_vecs/ when present), verify=all|none|FRACTION (check feature files against new_joints/)")
     add("--strict", action="store_true", help="stop at the first bad input, naming its file and the reason")
-    add("--overwrite", action="store_true", help="replace a complete dataset already in --out")
+    add("--overwrite", action="store_true", help="replace a complete dataset built here that is already in --out "
+        "(only the files its manifest.json names are deleted; a folder that is no build of ours is refused)")
     add("--quiet", action="store_true", help="no progress bars")
     return p.parse_args(argv)
 
@@ -101,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"build_shards: error: {error}", file=sys.stderr)
         return 1
     except (OSError, ValueError, KeyError, RuntimeError) as error:  # settings refused (a missing root, an
-        # unknown source or option, an existing dataset without --overwrite): one line, exit 2 as every entry point
+        # unknown source or option, an existing dataset without --overwrite, an --out folder that is no build of
+        # ours): one line, exit 2 as every entry point
         print(f"build_shards: error: {error}", file=sys.stderr)
         return 2
     splits = ", ".join(f"{name} {s['num_motions']}" for name, s in manifest["splits"].items())

@@ -42,6 +42,8 @@ LONG_CLIP_POLICIES = ("skip", "window")
 FEATURES_KEY = "features"
 JOINTS_PATH_KEY = "joints_path"
 FEATURE_MISMATCH = "feature_mismatch"
+# A caption dropped because its span is too large to be a frame number (seconds × fps overflows): ``#0.0#1e308``.
+SPAN_OUT_OF_RANGE = "span_out_of_range"
 
 # When a clip comes with both its dataset's feature file (new_joint_vecs, T frames) and its joint file, the
 # two must agree (``feature_file_disagreement``); a clip that does not is skipped as ``feature_mismatch``
@@ -109,8 +111,8 @@ class Record:
     captions: list[RecordCaption]
     action: str | None = None
     path: str = ""
-    # Captions this record lost on the way, by reason ("empty", "span_too_short", "bad_span", and the
-    # source's own, e.g. "span_not_a_number" for a caption line it could not read): counted in the skip
+    # Captions this record lost on the way, by reason ("empty", "span_too_short", "bad_span", "span_out_of_range", and
+    # the source's own, e.g. "span_not_a_number" for a caption line it could not read): counted in the skip
     # report, never silently.
     dropped_captions: dict[str, int] = field(default_factory=dict)
 
@@ -359,8 +361,9 @@ def captions_to_frames(
     captions: list[Caption], *, length: int, fps: float, min_frames: int
 ) -> tuple[list[RecordCaption], dict[str, int]]:
     """Map caption spans from seconds to feature frames, as HumanML3D does (``int(seconds * fps)``, and
-    ``#0.0#0.0`` meaning the whole clip), clipped to ``[0, length]``. Empty texts and spans shorter than
-    ``min_frames`` are dropped and counted by reason."""
+    ``#0.0#0.0`` meaning the whole clip), clipped to ``[0, length]``. Empty texts, spans shorter than
+    ``min_frames`` and spans too large to be a frame number (``#0.0#1e308``: seconds × fps overflows to inf, which
+    ``int`` cannot take) are dropped and counted by reason, so one bad caption never stops a build."""
     kept: list[RecordCaption] = []
     dropped: dict[str, int] = {}
 
@@ -376,8 +379,12 @@ def captions_to_frames(
         if not (math.isfinite(caption.start) and (whole_clip or math.isfinite(caption.end))):
             drop("bad_span")
             continue
-        start = max(0, min(length, int(caption.start * fps)))
-        end = length if whole_clip else max(0, min(length, int(caption.end * fps)))
+        start_frame, end_frame = caption.start * fps, None if whole_clip else caption.end * fps
+        if not (math.isfinite(start_frame) and (end_frame is None or math.isfinite(end_frame))):
+            drop(SPAN_OUT_OF_RANGE)
+            continue
+        start = max(0, min(length, int(start_frame)))
+        end = length if end_frame is None else max(0, min(length, int(end_frame)))
         if end < start:
             drop("bad_span")
             continue

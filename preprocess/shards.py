@@ -13,6 +13,13 @@ Two passes, so that no more than one record's features is ever held in memory:
    numbered tar and Parquet shards. ``manifest.json`` is written last (temp file + ``os.replace``):
    its presence marks a complete dataset.
 
+The output folder (:func:`check_output_dir`, :class:`BuildMarker`): a build writes only into a new or empty folder or
+one of its own earlier builds. Before it writes anything else it puts ``build-in-progress.json`` into the folder, and
+it names there every path before creating it; the marker is removed once ``manifest.json`` is in place. So an
+interrupted build is recognised by its marker and a complete one by its manifest, and a rebuild (``--overwrite``, or
+after an interruption) deletes exactly the files one of them names, nothing else. A non-empty folder with neither,
+and a shard-named file neither names (which the build could overwrite), are refused before anything is touched.
+
 Everything written is deterministic: fixed tar headers (mtime/uid/gid 0, sorted members), fixed Parquet
 options, and a manifest without timestamps or machine-specific paths.
 """
@@ -72,7 +79,10 @@ DEFAULT_SHARD_SIZE = 500
 TAR_PATTERN = "shard-{:05d}.tar"
 PARQUET_PATTERN = "part-{:05d}.parquet"
 _TMP_DIR_NAME = ".build-tmp"
-_STALE_PATTERNS = (re.compile(r"^shard-\d{5}\.tar$"), re.compile(r"^part-\d{5}\.parquet$"))
+BUILD_MARKER_NAME = "build-in-progress.json"  # the marker of a build under way (see the module docstring)
+BUILD_MARKER_FORMAT = "mfm-dataset-build"
+_SHARD_FILE_PATTERNS = (re.compile(r"^shard-\d{5}\.tar$"), re.compile(r"^part-\d{5}\.parquet$"))
+_SHOWN_ENTRIES = 5
 _PARQUET_ROW_GROUP = 64  # bounds the writer's buffer: 64 HumanML3D motions are ~10 MB of features
 _TEXT_CHUNK = 1024  # captions per encode() call: bounds memory and drives the progress bar
 
@@ -87,6 +97,11 @@ class BadInputError(RuntimeError):
 
 class DatasetExistsError(FileExistsError):
     """The output folder already holds a complete dataset and overwriting was not asked for."""
+
+
+class OutputFolderError(FileExistsError):
+    """The output folder holds files that are not of a build of ours (or that a build would overwrite): refused
+    before anything in it is touched; the message names the folder, what is there and what to do."""
 
 
 class ManifestError(ValueError):
@@ -268,25 +283,36 @@ class ParquetShardWriter:
 
 class SplitShardWriter:
     """Writes one split's records into numbered shards of ``shard_size`` motions, in every asked format,
-    and describes the finished shards (path, motions, bytes, sha256)."""
+    and describes the finished shards (path, motions, bytes, sha256). With a build ``marker``, every folder and
+    file is named in it before it is created (and a file already there that it does not name is refused)."""
 
-    def __init__(self, root: Path, split: str, *, shard_size: int, formats: Sequence[str], schema: pa.Schema) -> None:
+    def __init__(self, root: Path, split: str, *, shard_size: int, formats: Sequence[str], schema: pa.Schema,
+                 marker: BuildMarker | None = None) -> None:
         if shard_size < 1:
             raise ValueError(f"shard_size must be >= 1, got {shard_size}")
         self._root, self._split, self._shard_size = root, split, shard_size
         self._formats, self._schema = tuple(formats), schema
+        self._marker = marker
         self._writers: dict[str, TarShardWriter | ParquetShardWriter] = {}
         self._in_shard = 0
         self._index = 0
         self.shards: dict[str, list[ShardInfo]] = {fmt: [] for fmt in self._formats}
-        (root / split).mkdir(parents=True, exist_ok=True)
+        if marker is not None:
+            marker.claim_folder(split)
+        else:
+            (root / split).mkdir(parents=True, exist_ok=True)
+
+    def _shard_path(self, pattern: str) -> Path:
+        name = pattern.format(self._index)
+        if self._marker is not None:
+            return self._marker.claim_file(f"{self._split}/{name}")
+        return self._root / self._split / name
 
     def _open(self) -> None:
-        folder = self._root / self._split
         if "tar" in self._formats:
-            self._writers["tar"] = TarShardWriter(folder / TAR_PATTERN.format(self._index))
+            self._writers["tar"] = TarShardWriter(self._shard_path(TAR_PATTERN))
         if "parquet" in self._formats:
-            self._writers["parquet"] = ParquetShardWriter(folder / PARQUET_PATTERN.format(self._index), self._schema)
+            self._writers["parquet"] = ParquetShardWriter(self._shard_path(PARQUET_PATTERN), self._schema)
 
     def _close_shard(self) -> None:
         for fmt, writer in self._writers.items():
@@ -635,28 +661,181 @@ def _tqdm_disable(progress: bool | None) -> bool | None:
     return None if progress is None else not progress
 
 
-def refuse_complete_dataset(out: Path, *, overwrite: bool) -> None:
-    if (out / MANIFEST_NAME).exists() and not overwrite:
+# --- the output folder ---------------------------------------------------------------------------------
+
+
+def is_build_path(relative: str) -> bool:
+    """Whether ``relative`` ("/"-separated, inside an output folder) is a path a build of ours writes: its work
+    folder, the manifest's temporary file, a split folder or a shard in one. Only such paths are ever deleted,
+    whatever a marker or a manifest lists."""
+    parts = relative.split("/")
+    if len(parts) == 1:
+        return relative in (_TMP_DIR_NAME, MANIFEST_NAME + ".tmp") or is_valid_key(relative)
+    return len(parts) == 2 and is_valid_key(parts[0]) and any(p.match(parts[1]) for p in _SHARD_FILE_PATTERNS)
+
+
+class BuildMarker:
+    """``build-in-progress.json``: the paths (relative, "/"-separated) a build of ours created, or is about to
+    create, in its output folder. Saved (temp file + ``os.replace``) before each new path is created, so whatever
+    the build leaves behind, an interruption included, is named; removed once the manifest is in place."""
+
+    def __init__(self, out: Path, paths: Iterable[str] = ()) -> None:
+        self.out = Path(out)
+        self.paths: list[str] = list(dict.fromkeys(paths))
+
+    @property
+    def file(self) -> Path:
+        return self.out / BUILD_MARKER_NAME
+
+    @classmethod
+    def read(cls, out: Path) -> BuildMarker | None:
+        """The marker of ``out``; None when there is none. A file of that name that is not one of our markers (or
+        names a path no build of ours writes) is an OutputFolderError: nothing of that folder is deleted."""
+        file = Path(out) / BUILD_MARKER_NAME
+        if not file.exists():
+            return None
+        try:
+            data = json.loads(file.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            data = None
+        paths = data.get("paths") if isinstance(data, dict) and data.get("format") == BUILD_MARKER_FORMAT else None
+        if not (isinstance(paths, list) and all(isinstance(p, str) and is_build_path(p) for p in paths)):
+            raise OutputFolderError(f"--out {out}: {BUILD_MARKER_NAME} is not a build marker of this project (or names "
+                                    "files a build does not write), so nothing in the folder is touched: pass a new "
+                                    "or empty folder")
+        return cls(out, paths)
+
+    def save(self) -> None:
+        tmp = self.out / (BUILD_MARKER_NAME + ".tmp")
+        payload = {"format": BUILD_MARKER_FORMAT, "version": FORMAT_VERSION, "paths": self.paths}
+        with open(tmp, "w", encoding="utf-8") as handle:
+            handle.write(json.dumps(payload, indent=1) + "\n")
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, self.file)
+
+    def claim_file(self, relative: str) -> Path:
+        """Name the file ``relative`` (saved before the caller creates it) and return its path. A file already
+        there that the marker does not name is not ours: OutputFolderError, never overwritten."""
+        target = self.out / relative
+        if relative not in self.paths:
+            if target.exists() or target.is_symlink():
+                raise OutputFolderError(f"{target}: a file this build would write is already there and no build of "
+                                        "ours wrote it; move it away or pass another --out")
+            self.paths.append(relative)
+            self.save()
+        return target
+
+    def claim_folder(self, relative: str) -> Path:
+        """Create the folder ``relative`` if needed; named only when this build creates it (an existing folder is
+        written into, never removed)."""
+        target = self.out / relative
+        if not target.is_dir():
+            if relative not in self.paths:
+                self.paths.append(relative)
+                self.save()
+            target.mkdir(parents=True)
+        return target
+
+    def remove(self) -> None:
+        self.file.unlink(missing_ok=True)
+
+
+def _manifest_paths(out: Path) -> list[str] | None:
+    """The data files the manifest of ``out`` lists; None without a manifest. A manifest.json that is not ours
+    (not a dataset manifest, or listing paths a build does not write) is an OutputFolderError."""
+    file = out / MANIFEST_NAME
+    if not file.exists():
+        return None
+    try:
+        manifest = json.loads(file.read_text(encoding="utf-8"))
+        paths = [entry["path"] for entry in manifest_files(manifest)]
+        ours = isinstance(manifest.get("dataset_id"), str)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError, KeyError, TypeError):
+        paths, ours = [], False
+    if not (ours and all(isinstance(p, str) and "/" in p and is_build_path(p) for p in paths)):
+        raise OutputFolderError(f"--out {out}: its {MANIFEST_NAME} is not a dataset manifest of this project, so "
+                                "nothing in the folder is touched: pass a new or empty folder")
+    return paths
+
+
+def check_output_dir(out: Path, *, overwrite: bool) -> tuple[str, ...]:
+    """Refuse an output folder a build must not write into, before anything is touched; else return the paths of
+    an earlier build of ours there (its manifest's files with ``overwrite``, its marker's after an interruption),
+    which the new build replaces.
+
+    Refused: a file; a complete dataset without ``overwrite`` (DatasetExistsError); a non-empty folder that is no
+    build of ours (neither our manifest nor our marker); and a folder holding a shard-named file, the work folder or
+    the manifest's temporary file that neither names (the build could overwrite it): OutputFolderError, naming the
+    folder and what is there."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise OutputFolderError(f"--out {out} is a file, not a folder: pass a new or empty folder")
+    if not out.is_dir():
+        return ()
+    entries = sorted(entry.name for entry in out.iterdir())
+    if not entries:
+        return ()
+    marker = BuildMarker.read(out)
+    listed = _manifest_paths(out)
+    if listed is not None and not overwrite:
         raise DatasetExistsError(f"{out} already holds a complete dataset ({MANIFEST_NAME}); "
                                  "pass --overwrite to replace it")
+    if marker is None and listed is None:
+        raise OutputFolderError(
+            f"--out {out} is a non-empty folder that is not a dataset built here (no {MANIFEST_NAME} or "
+            f"{BUILD_MARKER_NAME} of ours; it holds {_first_few(entries)}): the build would mix its files with these or overwrite "
+            f"them. Pass a new or empty folder, e.g. {out / 'dataset'}")
+    named = list(dict.fromkeys([*(marker.paths if marker else []), *(listed or [])]))
+    unnamed = [name for name in (_TMP_DIR_NAME, MANIFEST_NAME + ".tmp")
+               if (out / name).exists() and name not in named]
+    for folder in sorted(p for p in out.iterdir() if p.is_dir() and not p.is_symlink() and is_valid_key(p.name)):
+        shard_named = [f"{folder.name}/{file.name}" for file in sorted(folder.iterdir())
+                       if any(p.match(file.name) for p in _SHARD_FILE_PATTERNS)]
+        unnamed += [path for path in shard_named if path not in named]
+    if unnamed:
+        raise OutputFolderError(
+            f"--out {out} holds {_first_few(unnamed)}, which the build could overwrite and no build of ours wrote (neither its "
+            f"{MANIFEST_NAME} nor its {BUILD_MARKER_NAME} names them): move them away or pass another --out")
+    return tuple(named)
 
 
-def prepare_output_dir(out: Path, *, overwrite: bool) -> None:
-    """Refuse to touch a complete dataset unless ``overwrite``; then (or after an interrupted build) remove
-    the manifest first, so the folder stops counting as complete, then every stale shard, so none can
-    survive into the new dataset. Files this builder does not name are left alone."""
-    refuse_complete_dataset(out, overwrite=overwrite)
-    manifest = out / MANIFEST_NAME
+def _first_few(names: Sequence[str]) -> str:
+    """``a, b, c, d, e and 3 more``: what a refusal says a folder holds."""
+    more = len(names) - _SHOWN_ENTRIES
+    return ", ".join(names[:_SHOWN_ENTRIES]) + (f" and {more} more" if more > 0 else "")
+
+
+def prepare_output_dir(out: Path, *, overwrite: bool) -> BuildMarker:
+    """Check ``out`` (:func:`check_output_dir`), put this build's marker in it, still naming the earlier build's
+    paths so that an interruption here leaves them named, then remove the earlier manifest first (the folder stops
+    counting as complete), then exactly the files and work folder that build wrote, and the folders it left empty.
+    Nothing else in the folder is touched. Returns the marker, which names what the build writes from here on."""
+    out = Path(out)
+    earlier = check_output_dir(out, overwrite=overwrite)
     out.mkdir(parents=True, exist_ok=True)
-    for stale in (manifest, out / (MANIFEST_NAME + ".tmp")):
-        stale.unlink(missing_ok=True)
-    shutil.rmtree(out / _TMP_DIR_NAME, ignore_errors=True)
-    for folder in sorted(p for p in out.iterdir() if p.is_dir() and not p.name.startswith(".")):
-        for file in folder.iterdir():
-            if file.is_file() and any(p.match(file.name) for p in _STALE_PATTERNS):
-                file.unlink()
-        if not any(folder.iterdir()):
-            folder.rmdir()
+    fresh = [_TMP_DIR_NAME, MANIFEST_NAME + ".tmp"]
+    marker = BuildMarker(out, [*earlier, *fresh])
+    marker.save()
+    if earlier:
+        (out / MANIFEST_NAME).unlink(missing_ok=True)  # ours: check_output_dir refuses any other
+    for relative in earlier:
+        if "/" in relative:  # a shard
+            (out / relative).unlink(missing_ok=True)
+    (out / (MANIFEST_NAME + ".tmp")).unlink(missing_ok=True)  # named by this marker (and refused unless ours)
+    work_dir = out / _TMP_DIR_NAME
+    if work_dir.is_symlink():
+        work_dir.unlink()
+    elif work_dir.exists():
+        shutil.rmtree(work_dir)  # named by this marker (and refused unless ours)
+    split_folders = dict.fromkeys(r.split("/")[0] for r in earlier if "/" in r or is_valid_key(r))
+    for folder in split_folders:  # removed only when the earlier build's files were all that was in them
+        path = out / folder
+        if path.is_dir() and not path.is_symlink() and not any(path.iterdir()):
+            path.rmdir()
+    marker.paths = fresh
+    marker.save()
+    return marker
 
 
 def resolve_skeleton(source) -> Skeleton:
@@ -821,7 +1000,7 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
     from the config. The text encoder is built before the long first pass, so missing weights fail fast.
     """
     out = Path(config.out)
-    refuse_complete_dataset(out, overwrite=config.overwrite)  # before the slow setup: fail fast
+    check_output_dir(out, overwrite=config.overwrite)  # before the slow setup: fail fast, touching nothing
     if source is None:
         from preprocess.sources import build_source
 
@@ -853,7 +1032,7 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
     if ignored:
         log.warning("%s: %d files not read (not of the layout's file-name pattern; listed in the skip report), "
                     "e.g. %s", config.source, len(ignored), ignored[0])
-    prepare_output_dir(out, overwrite=config.overwrite)
+    marker = prepare_output_dir(out, overwrite=config.overwrite)
     work_dir = out / _TMP_DIR_NAME
     work_dir.mkdir()
     spill = FeatureSpill(work_dir / "features.f32", skeleton.feature_dim)
@@ -871,12 +1050,13 @@ def build_dataset(config: BuildConfig, *, source=None, text_encoder=None) -> dic
                                          work_dir=work_dir, progress=config.progress)
         with _timed("shards", sum(len(v) for v in first.spilled.values()), "motions"):
             schema = parquet_schema(skeleton.feature_dim, int(text_encoder.dim), config.token_features)
-            splits = _write_splits(out, first, spill, embeddings, schema, config)
+            splits = _write_splits(out, first, spill, embeddings, schema, config, marker)
         manifest = _assemble_manifest(config, skeleton, text_encoder, first, embeddings, splits, official)
     finally:
         spill.close()
         shutil.rmtree(work_dir, ignore_errors=True)
     write_manifest(out, manifest)
+    marker.remove()  # the manifest marks the complete dataset from here on
     log.info("built %s: %d motions, %d skipped", out, sum(s["num_motions"] for s in splits.values()),
              manifest["skip_report"]["total"])
     return manifest
@@ -891,14 +1071,15 @@ def _timed(stage: str, count: int, unit: str) -> Iterator[None]:
 
 
 def _write_splits(out: Path, first: _FirstPass, spill: FeatureSpill, embeddings: CaptionEmbeddings,
-                  schema: pa.Schema, config: BuildConfig) -> dict[str, Any]:
+                  schema: pa.Schema, config: BuildConfig, marker: BuildMarker | None = None) -> dict[str, Any]:
     """Pass 2: stream each split's records from the spill into its shards; the manifest's split entries."""
     splits: dict[str, Any] = {}
     total = sum(len(v) for v in first.spilled.values())
     with tqdm(total=total, desc="shards", unit="motion", disable=_tqdm_disable(config.progress)) as bar:
         for split in _split_order(first.spilled):
             records = first.spilled[split]
-            writer = SplitShardWriter(out, split, shard_size=config.shard_size, formats=config.formats, schema=schema)
+            writer = SplitShardWriter(out, split, shard_size=config.shard_size, formats=config.formats, schema=schema,
+                                      marker=marker)
             for spilled in records:
                 record = spill.restore(spilled)
                 writer.write(record, embeddings.for_record(record))

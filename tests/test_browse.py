@@ -195,6 +195,52 @@ def test_launch_browse_finds_the_kind_of_folder(tmp_path, capsys):
     assert write_index(tmp_path / "samples") == tmp_path / "samples" / PAGE_FILE
 
 
+FOREIGN_PAGE = "<html><body>another tool's report</body></html>\n"
+
+
+def test_a_page_we_did_not_write_is_never_overwritten(tmp_path):
+    """Issue 24, finding 4: the evaluator's output folder overwrote a foreign index.html. A page is written only over
+    a page of ours (our generator tag, or the footer of pages written before the tag)."""
+    for out, fill, write in ((tmp_path / "eval", fake_evaluation_output, write_eval_index),
+                             (tmp_path / "samples", fake_sampling_output, write_sample_index)):
+        fill(out)
+        (out / PAGE_FILE).write_text(FOREIGN_PAGE)
+        with pytest.raises(browse.PageNotOursError, match=f"{out / PAGE_FILE} is there and was not written by"):
+            write(out)
+        assert (out / PAGE_FILE).read_text() == FOREIGN_PAGE
+        (out / PAGE_FILE).unlink()
+        ours = write(out).read_text(encoding="utf-8")
+        assert f'<meta name="generator" content="{browse.PAGE_GENERATOR}">' in ours
+        earlier = ours.replace(f'<meta name="generator" content="{browse.PAGE_GENERATOR}">\n', "")
+        (out / PAGE_FILE).write_text(earlier)  # a page of an earlier version: no tag, our footer
+        assert browse.is_our_page(out / PAGE_FILE) and write(out).read_text(encoding="utf-8") == ours
+
+
+def test_sampling_overwrite_replaces_only_an_earlier_sampling_output_of_ours(tmp_path):
+    """Issue 24, finding 4: --overwrite removed any index.html and sample_NNN folder by name. Now only a folder whose
+    results.json we wrote is replaced, and never another tool's index.html in it."""
+    from pipeline.generation.outputs import prepare_out_dir
+    from pipeline.generation.request import SamplingError
+
+    theirs = tmp_path / "theirs"
+    (theirs / "sample_000").mkdir(parents=True)
+    (theirs / "sample_000" / "photo.jpg").write_bytes(b"theirs")
+    (theirs / PAGE_FILE).write_text(FOREIGN_PAGE)
+    with pytest.raises(SamplingError, match="not an earlier sampling output"):
+        prepare_out_dir(theirs, overwrite=True)
+    assert (theirs / "sample_000" / "photo.jpg").read_bytes() == b"theirs"
+    ours = tmp_path / "ours"
+    fake_sampling_output(ours)
+    (ours / PAGE_FILE).write_text(FOREIGN_PAGE)
+    with pytest.raises(SamplingError, match=r"not sampling outputs of ours \(\['index.html'\]\)"):
+        prepare_out_dir(ours, overwrite=True)
+    assert (ours / PAGE_FILE).read_text() == FOREIGN_PAGE and (ours / "sample_000" / "joints.npy").is_file()
+    (ours / PAGE_FILE).unlink()
+    write_sample_index(ours)
+    prepare_out_dir(ours, overwrite=True)
+    assert list(ours.iterdir()) == []
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # in a browser
 

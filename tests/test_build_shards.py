@@ -199,3 +199,49 @@ def test_amass_caption_map_entries_are_counted_unless_strict(tmp_path, capsys):
     assert (f"build_shards: error: {captions}: span_end_not_after_start (entry 'a/walk_poses.npz', caption 2: span "
             "end 2.0 s is not after its start 5.0 s)") in capsys.readouterr().err
     assert not (tmp_path / "strict").exists()
+
+
+def snapshot_of(root: Path) -> dict[str, tuple[bytes | None, int]]:
+    """Every path under ``root`` with its bytes (None for a folder) and mtime: what "untouched" compares."""
+    return {p.relative_to(root).as_posix(): (p.read_bytes() if p.is_file() else None, p.stat().st_mtime_ns)
+            for p in sorted(root.rglob("*"))}
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_a_folder_of_another_tools_shards_is_refused_untouched(tmp_path, capsys, overwrite):
+    """Issue 24, finding 3: --out on a folder holding another tool's train/shard-0000{0..9}.tar (no manifest.json)
+    deleted or overwrote all ten. Now: one line naming the folder and why, exit 2, every file as it was."""
+    out = tmp_path / "theirs"
+    (out / "train").mkdir(parents=True)
+    for index in range(10):
+        (out / "train" / f"shard-{index:05d}.tar").write_bytes(f"another tool's shard {index}".encode())
+    before = snapshot_of(out)
+    capsys.readouterr()
+    assert main([*SYNTHETIC, "--out", str(out), *(["--overwrite"] if overwrite else [])]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith(f"build_shards: error: --out {out} is a non-empty folder that is not a dataset built here")
+    assert "it holds train" in err[0]
+    assert snapshot_of(out) == before
+
+
+def test_overwrite_never_deletes_a_shard_our_manifest_does_not_name(tmp_path, capsys):
+    """Issue 24, finding 3: --overwrite of one of our datasets deleted every shard-named file of its folders, ours
+    or not. A file our manifest does not name, that the new build could overwrite, is refused; nothing is touched."""
+    out = tmp_path / "ours"
+    args = ["--source", "synthetic", "--num-clips", "12", "--seed", "1", "--shard-size", "4", "--quiet",
+            "--format", "tar", "--out", str(out)]
+    assert main(args) == 0
+    foreign = out / "train" / "shard-00009.tar"
+    foreign.write_bytes(b"not ours")
+    before = snapshot_of(out)
+    capsys.readouterr()
+    assert main([*args, "--overwrite"]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"--out {out} holds train/shard-00009.tar, which the build could overwrite and no build of ours" in line
+    assert snapshot_of(out) == before
+    foreign.unlink()
+    (out / "notes.txt").write_text("mine")
+    assert main([*args, "--overwrite"]) == 0  # our own dataset: replaced, the user's notes kept
+    assert (out / "notes.txt").read_text() == "mine" and not (out / "build-in-progress.json").exists()
+    load_manifest(out, verify="sha256")

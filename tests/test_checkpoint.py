@@ -254,13 +254,32 @@ def test_saving_over_a_complete_step_is_refused(tmp_path):
         save_step(tmp_path, 10)
 
 
-def test_saving_over_an_incomplete_final_folder_sets_it_aside(tmp_path):
-    stray = tmp_path / "step-00000010"
-    stray.mkdir()
-    (stray / MODEL_FILE).write_bytes(b"half")
+def test_a_step_folder_we_did_not_write_is_never_moved_or_deleted(tmp_path):
+    """Issue 24, finding 4: a user's folder named checkpoints/step-N was moved aside (step-N.tmp-incomplete-...) by a
+    save and deleted at the next start-up. A step-N folder without our COMPLETE marker is now left as it is: the save
+    of that step is refused, naming it, and no start-up or prune touches it."""
+    theirs = tmp_path / "step-00000010"
+    theirs.mkdir()
+    (theirs / MODEL_FILE).write_bytes(b"the user's own file")
+    (theirs / "COMPLETE").write_text('{"format": "someone-else"}')
+    with pytest.raises(ckpt.CheckpointFolderTakenError, match=r"step-00000010 cannot be saved: .*not a checkpoint this "
+                                                              r"project wrote"):
+        save_step(tmp_path, 10)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["step-00000010"]
+    assert (theirs / MODEL_FILE).read_bytes() == b"the user's own file"
+    save_step(tmp_path, 20)
+    assert ckpt.remove_stale_tmp(tmp_path) == [] and prune_checkpoints(tmp_path, keep_last=1) == []
+    assert ckpt.foreign_step_folders(tmp_path) == [theirs] and (theirs / MODEL_FILE).exists()
+
+
+def test_saving_over_a_damaged_checkpoint_of_ours_moves_it_aside_and_keeps_it(tmp_path):
+    damaged = save_step(tmp_path, 10)
+    (damaged / MODEL_FILE).write_bytes(b"cut short")  # ours (our marker), but a file is not what it lists
     path = save_step(tmp_path, 10)
     assert is_complete(path)
-    assert any(p.name.startswith("step-00000010.tmp-incomplete-") for p in tmp_path.iterdir())
+    (aside,) = [p for p in tmp_path.iterdir() if p.name.startswith("step-00000010.corrupt-")]
+    assert (aside / MODEL_FILE).read_bytes() == b"cut short"
+    assert ckpt.remove_stale_tmp(tmp_path) == [] and aside.exists()
 
 
 def test_retention_keeps_last_k(tmp_path):
@@ -403,12 +422,15 @@ def test_start_up_removes_unfinished_folders_of_dead_writers_only(tmp_path):
     stale = [
         tmp_path / ckpt.tmp_dir_name(20, pid=gone),  # a save killed on a full disk
         tmp_path / f"step-00000020.tmp-{gone}",  # named before the host was recorded
-        tmp_path / f"step-00000020.tmp-incomplete-{host}-{gone}",
+        tmp_path / f"step-00000020.tmp-delete-{host}-{gone}",  # a prune killed while deleting
         tmp_path / ckpt.tmp_dir_name(40, pid=os.getpid()),  # an earlier process with this pid (a container restart)
     ]
     kept = [
         tmp_path / ckpt.tmp_dir_name(40, pid=os.getppid()),  # a live process on this host: a save in progress
         tmp_path / "step-00000040.tmp-other_host-1",  # another host's: cannot be checked from here
+        # set aside by an earlier version from ANY step-N folder without a valid marker, a user's included: kept
+        tmp_path / f"step-00000020.tmp-incomplete-{host}-{gone}",
+        tmp_path / "step-00000020.tmp-backup",  # not a name this code writes
     ]
     for folder in stale + kept:
         folder.mkdir()

@@ -3,6 +3,7 @@ import pytest
 import torch
 
 from mfm.editing import (
+    EDIT_SETTINGS,
     edit,
     edit_mask,
     inbetween_mask,
@@ -104,6 +105,33 @@ def test_rewrite_until_zero_is_plain_sampling_from_the_same_noise():
     x0 = initial_noise(source.shape, seed=1, dtype=torch.float64)
     edited = edit(drifting_field, source, keep, steps=6, rewrite_until=0.0, x0=x0)
     torch.testing.assert_close(edited.x1, solve(drifting_field, x0, steps=6).x1)
+
+
+def test_edit_settings_steps_per_preset_and_their_sources():
+    """paper: 30 steps for every preset, cited to the MFM paper (§4.1), not edit.py. reference-debug: edit.py's
+    step_size 0.01 (100 steps) except interpolate's step_size 1 (edit.py: 96-99): one Euler step."""
+    paper, debug = EDIT_SETTINGS["paper"], EDIT_SETTINGS["reference-debug"]
+    presets = ("prediction", "inbetween", "interpolation", "upper_body", "joints")
+    assert [paper.steps_for(p) for p in presets] == [30] * 5
+    assert "§4.1" in paper.source and "not from edit.py" in paper.source
+    assert [debug.steps_for(p) for p in presets] == [100, 100, 1, 100, 100]
+    assert "96-99" in debug.source and debug.record()["steps_per_preset"] == {"interpolation": 1}
+    with pytest.raises(ValueError, match="no steps for preset 'teleport'"):
+        debug.steps_for("teleport")
+
+
+def test_one_step_interpolation_as_edit_py_never_sees_the_source():
+    """edit.py's interpolate preset: one Euler step from t = 0 with edit_till 1.0. Its only rewrite is at t = 0, where
+    the known line's point (1 − t)·x0 + t·x1 is the noise x0 itself: the result is plain one-step sampling."""
+    source = motion(seed=8)
+    keep = interpolation_mask([12, 12], 12, FeatureLayout(HUMANML3D), every=5)[..., :5]
+    assert keep.any() and not keep.all()
+    x0 = initial_noise(source.shape, seed=2, dtype=torch.float64)
+    debug = EDIT_SETTINGS["reference-debug"]
+    edited = edit(drifting_field, source, keep, steps=debug.steps_for("interpolation"),
+                  rewrite_until=debug.rewrite_time("interpolation"), x0=x0)
+    torch.testing.assert_close(edited.x1, solve(drifting_field, x0, steps=1).x1, rtol=0, atol=0)
+    assert edited.nfe == 1
 
 
 def test_edit_is_deterministic_given_a_seed_and_uses_the_given_noise():

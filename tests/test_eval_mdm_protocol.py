@@ -29,8 +29,10 @@ from pipeline.config import ConfigError
 from pipeline.evaluation.config import (
     MDM_RULES,
     OUR_RULES,
+    SAMPLING_POINTS,
     SamplingPoint,
     load_eval_config,
+    sweep_overrides,
 )
 from pipeline.evaluation.job import protocol_key
 from pipeline.evaluation.replications import _TAG, generate, plan_protocol, rng_of
@@ -61,7 +63,8 @@ def _context(protocol: str, checkpoint: Path, evaluator: Path, out: Path, *overr
     from pipeline.evaluation.job import EvaluationJob
     from pipeline.evaluation.replications import PhaseTimer
 
-    cfg = load_eval_config(protocol, overrides=[*SMALL_PROTOCOL, "sampling.steps=[1]", "tasks.editing=[]",
+    cfg = load_eval_config(protocol, overrides=[*SMALL_PROTOCOL, "protocol.sampling_point=sweep",
+                                                "sampling.steps=[1]", "tasks.editing=[]",
                                                 "tasks.flame=false", f"evaluator.path={evaluator}",
                                                 f"output.dir={out}", *overrides])
     dist = Dist(mixed_precision="no", cpu=True)
@@ -103,6 +106,34 @@ def test_the_mdm_preset_is_the_reference_loop_rule_by_rule():
     # Our protocols' unit keys are what they were before the rules existed; the mdm protocol's hash its rules.
     assert not set(MDM_RULES) & set(protocol_key(full.protocol))
     assert set(MDM_RULES) <= set(protocol_key(mdm.protocol))
+
+
+def test_mfm_sampling_points_are_named_settings_of_the_mdm_protocol():
+    """protocol.sampling_point: 'paper' (the mdm preset: MFM's paper evaluates at 10 Euler steps), 'released' (its
+    evaluation commands: step_size 0.01 = 100 steps for HumanML3D, 0.02 = 50 for KIT), 'sweep' (ours: the sampling
+    lists). A named point is the only one; a sweep given beside it is refused, not ignored."""
+    mdm = load_eval_config("mdm")
+    assert mdm.protocol.sampling_point == "paper"
+    assert mdm.sampling_points("humanml3d") == mdm.sampling_points("kit") == [SamplingPoint("euler", 10, 2.5)]
+    released = load_eval_config("mdm", overrides=["protocol.sampling_point=released"])
+    assert released.sampling_points("humanml3d") == [SamplingPoint("euler", 100, 2.5)]
+    assert released.sampling_points("kit") == [SamplingPoint("euler", 50, 2.5)]
+    assert SAMPLING_POINTS["released"]["humanml3d"].name == "euler-100steps-g2.5"
+    with pytest.raises(ConfigError, match="no sampling point for skeleton 'smpl'"):
+        released.sampling_points("smpl")
+    for flags in (sweep_overrides(None, "50", None), sweep_overrides("midpoint", None, None),
+                  sweep_overrides(None, None, "3.0"), ["sampling.steps_per_solver={euler: [5]}"]):
+        with pytest.raises(ConfigError, match="protocol.sampling_point=paper fixes the sampling point"):
+            load_eval_config("mdm", overrides=flags)
+    swept = load_eval_config("mdm", overrides=["protocol.sampling_point=sweep", *sweep_overrides(None, "5,50", None)])
+    assert [p.name for p in swept.sampling_points("kit")] == ["euler-5steps-g2.5", "euler-50steps-g2.5"]
+    full = load_eval_config("full")  # ours: the sweep, whose key is what it was before the setting existed
+    assert full.protocol.sampling_point == "sweep" and full.sampling_points("humanml3d") == full.sampling.points()
+    assert "sampling_point" not in protocol_key(full.protocol)
+    assert protocol_key(mdm.protocol)["sampling_point"] == "paper"
+    assert protocol_key(released.protocol) != protocol_key(mdm.protocol)
+    with pytest.raises(ConfigError, match="sampling_point"):
+        load_eval_config("mdm", overrides=["protocol.sampling_point=fast"])
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -298,16 +329,23 @@ def test_results_record_the_protocol_its_loop_and_rules(checkpoint, evaluator, t
     for protocol in ("mdm", "fast"):
         out = tmp_path / protocol
         seen.clear()
-        assert main(["--checkpoint", str(checkpoint), "--protocol", protocol, *SMALL_PROTOCOL, "sampling.steps=[1]",
+        # mdm at its named point (the paper's 10 Euler steps), fast at the sweep's 1 step
+        steps = [] if protocol == "mdm" else ["sampling.steps=[1]"]
+        assert main(["--checkpoint", str(checkpoint), "--protocol", protocol, *SMALL_PROTOCOL, *steps,
                      "tasks.editing=[]", "tasks.flame=false", f"evaluator.path={evaluator}",
                      f"output.dir={out}"]) == 0
         (path,) = (out / "results").rglob("*.json")
         results[protocol] = result = json.loads(path.read_text())
         rows = ResultsStore(out).table_rows()
         assert [(r["protocol"], r["protocol_loop"]) for r in rows] == [(protocol, result["protocol"]["loop"])] * 2
+        named = "paper" if protocol == "mdm" else "sweep"
+        assert [(r["sampling_point"], r["steps"]) for r in rows] == [(named, 10 if named == "paper" else 1)] * 2
+        assert result["sampling"]["sampling_point"] == result["protocol"]["config"]["sampling_point"] == named
         generated, truth = seen[0::2], seen[1::2]  # per replication: the generated row, then the GT row
         assert len(generated) == 2 and all((g > 50).all() == (protocol == "mdm") for g in generated)
         assert len(truth) == 2 and all((np.abs(t) <= 1).all() for t in truth)
+    assert "10 Euler steps" in results["mdm"]["sampling"]["sampling_point_source"]
+    assert "sampling_point_source" not in results["fast"]["sampling"]
     mdm, fast = results["mdm"]["protocol"], results["fast"]["protocol"]
     assert (mdm["name"], mdm["loop"], mdm["rules"]) == ("mdm", "mdm", MDM_RULES)
     assert {k: mdm["config"][k] for k in MDM_RULES} == MDM_RULES and mdm["mm_replications"] == 2

@@ -32,8 +32,9 @@ from eval_worker import (
 
 from mfm.model import valid_frame_mask
 from pipeline.config import ConfigError
-from pipeline.evaluation.config import load_eval_config, sweep_overrides
+from pipeline.evaluation.config import SamplingPoint, load_eval_config, sweep_overrides
 from pipeline.evaluation.replications import (
+    edit_points,
     my_batches,
     plan_protocol,
     plan_repeats,
@@ -112,10 +113,43 @@ def test_protocol_presets_and_sweep_flags():
     assert (debug["settings"], debug["steps"], debug["guidance"]) == ("reference-debug", 100, 1.0)
     assert debug["rewrite_until"] == {"prediction": 0.5, "inbetween": 1.0, "interpolation": 1.0, "upper_body": 0.3}
     assert debug["overridden"] == ["rewrite_until.upper_body"]
+    # edit.py's interpolate preset integrates one step (step_size 1), the others 100; tasks.edit_steps sets them all
+    assert debug["steps_per_preset"] == {"prediction": 100, "inbetween": 100, "interpolation": 1, "upper_body": 100}
+    point = SamplingPoint("midpoint", 10, 2.5)
+    flow = edit_points(point, debug, "flow")
+    assert flow["interpolation"] == SamplingPoint("euler", 1, 1.0)
+    assert flow["upper_body"] == SamplingPoint("euler", 100, 1.0)
+    assert set(edit_points(point, debug, "diffusion").values()) == {point}  # replacement edits: the point's own
+    paper = load_eval_config("fast").tasks.edit_setup()
+    assert set(paper["steps_per_preset"].values()) == {30} and "§4.1" in paper["source"]
+    fixed = load_eval_config("fast", overrides=["tasks.edit_settings=reference-debug", "tasks.edit_steps=7"])
+    assert set(fixed.tasks.edit_setup()["steps_per_preset"].values()) == {7}
     with pytest.raises(ConfigError, match="tasks.edit_settings"):
         load_eval_config("fast", overrides=["tasks.edit_settings=debug"])
     with pytest.raises(ConfigError, match="mm_times"):
         load_eval_config("fast", overrides=["protocol.mm_times=50"])
+
+
+def test_units_computing_ape_ave_are_keyed_by_its_definition(monkeypatch):
+    """Issue 25 moved APE/AVE (TEMOS's floor in millimetres): units with tasks.flame hash the definition, so results
+    computed before are not taken as done; units without APE/AVE keep their keys."""
+    from pipeline.evaluation import job
+
+    point, ids, folder = SamplingPoint("euler", 10, 2.5), {"checkpoint": "c", "evaluator": "e", "gt": "g"}, Path("s")
+    with_ape, without = load_eval_config("fast"), load_eval_config("fast", overrides=["tasks.flame=false"])
+    keys = [job.CheckpointScorer(cfg, None).unit_for(folder, ids, point).key for cfg in (with_ape, without)]
+    monkeypatch.setattr(job, "APE_AVE_REVISION", "another definition")
+    again = [job.CheckpointScorer(cfg, None).unit_for(folder, ids, point).key for cfg in (with_ape, without)]
+    assert again[0] != keys[0] and again[1] == keys[1]
+    # reference-debug's interpolation runs one step (was 100): its units get a key of their own, the others keep theirs
+    debug = ["tasks.flame=false", "tasks.edit_settings=reference-debug"]
+    unit = lambda *o: job.CheckpointScorer(load_eval_config("fast", overrides=[*debug, *o]), None).unit_for(
+        folder, ids, point).key
+    assert unit("tasks.editing=[prediction]") == unit("tasks.editing=[prediction]")
+    settings = []
+    monkeypatch.setattr(job, "digest", lambda value: settings.append(value) or "k")
+    unit("tasks.editing=[prediction,interpolation]"), unit("tasks.editing=[prediction]"), unit("tasks.edit_steps=7")
+    assert [s.get("edit_steps_per_preset") for s in settings] == [{"interpolation": 1}, None, None]
 
 
 def test_small_test_sets_reduce_the_protocol_explicitly():
@@ -435,6 +469,8 @@ def test_evaluate_checkpoint_with_a_steps_sweep(text_run, trained_evaluator, tmp
         assert row["dataset_id"] == result["data"]["dataset_id"] and "fid_ci" in row and "r_precision_top3" in row
     assert "edit_upper_body_ade" in rows[0] and pq.read_table(out / "results.parquet").num_rows == 4
     assert (rows[0]["edit_settings"], rows[0]["edit_steps"], rows[0]["edit_guidance"]) == ("paper", 30, 1.0)
+    assert rows[0]["edit_upper_body_steps"] == rows[0]["edit_prediction_steps"] == 30
+    assert rows[0]["sampling_point"] == "sweep" and result["sampling"]["sampling_point"] == "sweep"
     assert {"foot_skating_ratio", "jerk_ratio", "edit_prediction_jerk_ratio"} <= set(rows[0])
     assert "foot_skating_ratio" in rows[1]
     assert (out / "plots" / "fid_vs_nfe_step-00000002.png").stat().st_size > 0
@@ -544,6 +580,54 @@ def test_action_model_is_scored_with_the_classifier(manifest, trained_evaluator,
     assert 0.0 <= result["metrics"]["accuracy"]["mean"] <= 1.0 and "accuracy" in result["ground_truth"]
     classes = {a for a in build_ground_truth(manifest, "test").actions}
     assert result["protocol"]["mm_num_texts"] == len(classes)  # one MultiModality "text" per test class
+
+
+def test_an_evaluation_folder_is_ours_by_its_marker_or_refused_untouched(tmp_path):
+    """Issue 24, finding 4: the evaluator's output folder overwrote a foreign index.html and plots/. A folder is an
+    evaluation folder of ours by its marker (written first into a new or empty one) or, written before the marker,
+    by holding only the evaluator's own names with its table or listing; any other is refused before any write."""
+    from pipeline.evaluation.store import EVAL_MARKER, EvalFolderError, check_eval_folder
+
+    theirs = tmp_path / "theirs"
+    (theirs / "plots").mkdir(parents=True)
+    (theirs / "plots" / "metrics_vs_step.png").write_bytes(b"their plot")
+    (theirs / "index.html").write_text("<html>their report</html>")
+    before = {p: p.read_bytes() for p in theirs.rglob("*") if p.is_file()}
+    with pytest.raises(EvalFolderError, match=f"evaluation folder {theirs} is a non-empty folder that is not an "
+                                              "evaluation folder of ours"):
+        ResultsStore(theirs).open_folder(write_marker=True)
+    assert {p: p.read_bytes() for p in theirs.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in theirs.iterdir()) == ["index.html", "plots"]
+
+    new = tmp_path / "new" / "eval"
+    ResultsStore(new).open_folder(write_marker=True)
+    assert (new / EVAL_MARKER).is_file()
+    (new / "index.html").write_text("anything")  # ours by the marker from here on
+    check_eval_folder(new)
+    earlier = tmp_path / "earlier" / "eval"  # an earlier version's folder: the evaluator's names only
+    (earlier / "claims").mkdir(parents=True)
+    (earlier / "results.jsonl").write_text("")
+    (earlier / ".table.lock").write_text("")
+    ResultsStore(earlier).open_folder(write_marker=True)
+    assert (earlier / EVAL_MARKER).is_file()
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    with pytest.raises(EvalFolderError, match="is a file"):
+        check_eval_folder(a_file)
+
+
+def test_evaluating_into_another_tools_folder_is_refused_in_one_line(text_run, tmp_path, capsys):
+    theirs = tmp_path / "report"
+    (theirs / "plots").mkdir(parents=True)
+    (theirs / "plots" / "fid_vs_nfe_all.png").write_bytes(b"their plot")
+    (theirs / "index.html").write_text("<html>their report</html>")
+    before = {p: p.read_bytes() for p in theirs.rglob("*") if p.is_file()}
+    checkpoint = text_run / "checkpoints" / "step-00000002"
+    assert evaluate("--checkpoint", str(checkpoint), "--protocol", "fast", f"output.dir={theirs}") == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error: ")]
+    assert len(err) == 1 and f"evaluation folder {theirs} is a non-empty folder" in err[0]
+    assert {p: p.read_bytes() for p in theirs.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in theirs.rglob("*")) == ["fid_vs_nfe_all.png", "index.html", "plots"]
 
 
 def test_an_incomplete_checkpoint_is_refused(tmp_path, capsys):
@@ -764,3 +848,15 @@ def test_a_checkpoint_saved_and_pruned_between_two_jobs_is_reported(text_run, ma
     result.write_text(json.dumps({"checkpoint": {"id": first_id}}))
     assert evaluate("--watch", str(run), "--once", *args) == 0
     assert "pruned_before_evaluation" not in capsys.readouterr().out
+
+
+def test_a_folder_holding_only_the_marker_our_main_rank_is_writing_is_ours(tmp_path):
+    """Every rank checks the folder while the main rank writes the marker: its temporary file must not make the other
+    ranks refuse (they did, and the main rank then waited for them forever)."""
+    from pipeline.evaluation.store import EVAL_MARKER, EvalFolderError, check_eval_folder
+
+    (tmp_path / f".{EVAL_MARKER}.tmp-4242").write_text("{")
+    check_eval_folder(tmp_path)
+    (tmp_path / ".notes.txt.tmp-1").write_text("someone else's")
+    with pytest.raises(EvalFolderError):
+        check_eval_folder(tmp_path)

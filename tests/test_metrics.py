@@ -239,7 +239,7 @@ def test_transition_windows_centred_and_padded_at_ends():
     np.testing.assert_array_equal(metrics.boundaries_from_lengths([70, 80, 90]), [70, 150])
 
 
-# ------------------------------------------------------------------------------------------------ FLAME / TEMOS
+# ------------------------------------------- APE / AVE (TEMOS's definition, reported by FLAME's paper), FLAME's others
 
 
 def _random_walk_body(rng, t=40):
@@ -268,24 +268,60 @@ def test_ape_ave_identical_is_zero_and_height_offset_known():
     assert out["APE_mean_local"] == pytest.approx(0.2)  # local keeps height, removes only the root's xz
     assert out["APE_traj"] == pytest.approx(0.0, abs=1e-12)
     assert all(out[k] == pytest.approx(0.0, abs=1e-12) for k in out if k.startswith("AVE"))
-    # TEMOS/FLAME re-estimate each clip's floor from its feet: a clip lifted as a whole is the same motion
+    # TEMOS re-estimates each clip's floor from its feet: a clip lifted as a whole is the same motion
     feet = HUMANML3D.foot_left + HUMANML3D.foot_right
     floored = metrics.ape_ave(pred, gt, [40, 30, 25], floor_joints=feet)
     assert all(v == pytest.approx(0.0, abs=1e-9) for v in floored.values())
 
 
-def test_temos_floor_is_their_softmin_of_the_lowest_foot():
+def test_temos_floor_is_their_softmin_of_the_lowest_foot_in_millimetres():
     feet = [0, 1]
     clip = np.zeros((3, 3, 3))
-    clip[:, 0, 1] = [0.1, 0.3, 0.2]  # the lowest foot joint per frame: 0.05, 0.3, 0.2
+    clip[:, 0, 1] = [0.1, 0.3, 0.2]  # metres; the lowest foot joint per frame: 0.05, 0.3, 0.2
     clip[:, 1, 1] = [0.05, 0.4, 0.9]
     clip[:, 2, 1] = -5.0  # not a foot joint
-    low, high = 0.05, 0.3
+    low, high = 50.0, 300.0  # millimetres: TEMOS's get_floor runs on millimetre joints (compute.py: 154-159)
     # TEMOS: softmin(x) = -softmax(-x), softmax(y) = max(y) + log(softness + exp(min(y) - max(y))), softness 0.5
-    expected = -((-low) + np.log(0.5 + np.exp((-high) - (-low))))
-    assert metrics.temos_floor_height(clip, feet) == pytest.approx(expected)
-    # their formula as written: up to log 1.5 below the minimum for a small height range, above it past ~0.7 m
-    assert metrics.temos_floor_height(clip, feet) < low
+    expected_mm = -((-low) + np.log(0.5 + np.exp((-high) - (-low))))
+    floor = metrics.temos_floor_height(clip, feet)
+    assert floor == pytest.approx(expected_mm / 1000.0, abs=1e-15)
+    assert floor == pytest.approx(0.05 + np.log(2.0) / 1000.0, abs=1e-15)  # log 2 mm above the lowest foot
+    # the same clip in millimetres: the same floor, in millimetres
+    assert metrics.temos_floor_height(clip * 1000.0, feet, millimetres_per_unit=1.0) == pytest.approx(expected_mm)
+    # the formula applied to metres (before issue 25): 0.34 m under the lowest foot for this 0.25 m range
+    in_metres = metrics.temos_floor_height(clip, feet, millimetres_per_unit=1.0)
+    assert 0.05 - in_metres == pytest.approx(np.log(0.5 + np.exp(-0.25)))
+    with pytest.raises(ValueError, match="millimetres_per_unit"):
+        metrics.temos_floor_height(clip, feet, millimetres_per_unit=0.0)
+
+
+def test_ape_of_the_real_clip_against_itself_lifted_for_part_of_its_frames_is_the_lift(reference_data):
+    """The real HumanML3D clip 012314 against itself lifted by 15 cm over frames 60-99 (not the frame of its lowest
+    foot): with TEMOS's floor (in millimetres) both clips get the same floor, so the root and joint APE are exactly
+    the lift averaged over the frames, the trajectory's is zero. The softmin applied to metres gave the lifted clip
+    a different floor (its foot-height range grows) and so an error on every frame."""
+    joints = np.load(reference_data / "humanml3d" / "new_joints_012314.npy").astype(np.float64)  # (170, 22, 3)
+    feet = HUMANML3D.foot_left + HUMANML3D.foot_right
+    assert not 60 <= int(joints[:, feet, 1].min(axis=1).argmin()) < 100
+    lift, frames = 0.15, slice(60, 100)
+    lifted = joints.copy()
+    lifted[frames, :, 1] += lift
+    expected = lift * 40 / len(joints)
+    out = metrics.ape_ave(lifted[None], joints[None], face_joints=HUMANML3D.face_joints, floor_joints=feet)
+    for name in ("APE_root", "APE_mean_global", "APE_mean_local"):
+        assert out[name] == pytest.approx(expected, rel=1e-9), name
+    assert out["APE_traj"] == pytest.approx(0.0, abs=1e-12)
+    assert out["AVE_root"] > 0  # the lift changes the height's variance
+    # both floors: 0.69 mm above the lowest foot (y = 0 in HumanML3D), lifted or not
+    assert metrics.temos_floor_height(lifted, feet) == metrics.temos_floor_height(joints, feet) == pytest.approx(
+        np.log(2.0) / 1000.0)
+    # the metre formula's floors differ by centimetres between the two clips: the bias the fix removes
+    metre_floors = [metrics.temos_floor_height(c, feet, millimetres_per_unit=1.0) for c in (lifted, joints)]
+    assert abs(metre_floors[0] - metre_floors[1]) > 0.03
+    # the same clips in millimetres (KIT's unit) give the same APE in metres
+    in_mm = metrics.ape_ave(lifted[None] * 1000.0, joints[None] * 1000.0, face_joints=HUMANML3D.face_joints,
+                            floor_joints=feet, metres_per_unit=1e-3)
+    assert all(in_mm[k] == pytest.approx(out[k], rel=1e-9, abs=1e-12) for k in out)
 
 
 def test_ape_ave_one_oscillating_joint():

@@ -22,6 +22,7 @@ from preprocess.clip import Caption, Clip, SkippedInput
 from preprocess.processing import (
     Record,
     RecordCaption,
+    captions_to_frames,
     process_clip,
     split_into_windows,
 )
@@ -30,6 +31,7 @@ from preprocess.shards import (
     BuildConfig,
     DatasetExistsError,
     ManifestError,
+    OutputFolderError,
     SplitShardWriter,
     TextFeatures,
     build_dataset,
@@ -379,6 +381,49 @@ def test_refuses_to_overwrite_and_overwrite_removes_stale_shards(tmp_path, encod
     assert (out / "notes.txt").read_text() == "mine"
 
 
+def test_an_interrupted_build_is_named_by_its_marker_and_only_that_is_replaced(tmp_path, encoder, monkeypatch):
+    """Issue 24, finding 3: a build names every path in build-in-progress.json before creating it, so a build that
+    died before its manifest is recognised as ours and its files, and only those, are replaced by the next one."""
+    import preprocess.shards as shards
+
+    out = tmp_path / "ds"
+    config = BuildConfig(out=out, shard_size=1, progress=False)
+
+    def crash(*_args, **_kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(shards, "write_manifest", crash)
+        with pytest.raises(KeyboardInterrupt):
+            build_dataset(config, source=ListSource(good_items(6)), text_encoder=encoder)
+    marker = json.loads((out / "build-in-progress.json").read_text())
+    written = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.suffix in (".tar", ".parquet")}
+    assert len(written) == 2 * 6 and written <= set(marker["paths"]) and not (out / "manifest.json").exists()
+    (out / "train" / "notes.txt").write_text("mine")
+    manifest = build_dataset(config, source=ListSource(good_items(3)), text_encoder=encoder)  # no --overwrite needed
+    listed = {e["path"] for s in manifest["splits"].values() for e in s["shards"] + s["parquet"]}
+    on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.suffix in (".tar", ".parquet")}
+    assert on_disk == listed and len(listed) == 2 * 3
+    assert (out / "train" / "notes.txt").read_text() == "mine" and not (out / "build-in-progress.json").exists()
+
+
+def test_a_marker_or_manifest_that_is_not_ours_names_nothing_to_delete(tmp_path, encoder):
+    """Issue 24, finding 3: only our own marker and manifest say what a build may delete; a file of that name from
+    elsewhere (or one naming paths a build never writes) makes the folder foreign: refused, untouched."""
+    for name, text in (("build-in-progress.json", json.dumps({"paths": ["train/shard-00000.tar"]})),
+                       ("build-in-progress.json", json.dumps({"format": "mfm-dataset-build", "paths": ["../x"]})),
+                       ("manifest.json", json.dumps({"splits": {"train": {"shards": [{"path": "../../etc/x"}]}}}))):
+        out = tmp_path / f"case-{len(list(tmp_path.iterdir()))}"
+        (out / "train").mkdir(parents=True)
+        (out / "train" / "shard-00000.tar").write_bytes(b"theirs")
+        (out / name).write_text(text)
+        before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+        with pytest.raises(OutputFolderError, match=f"--out {out}: .*{name}.* is not a"):
+            build_dataset(replace(BuildConfig(out=out, progress=False), overwrite=True),
+                          source=ListSource(good_items(3)), text_encoder=encoder)
+        assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
 def test_load_manifest_rejects_bad_versions_and_files(built, tmp_path):
     out, manifest, _, _ = built
     copy = tmp_path / "copy"
@@ -466,6 +511,33 @@ def test_humanml3d_folder_build_counts_every_bad_input(tmp_path, encoder):
 
     with pytest.raises(BadInputError, match=r"000003\.txt: no_captions"):
         build_dataset(replace(config, out=tmp_path / "strict", strict=True), text_encoder=encoder)
+
+
+def test_an_overflowing_span_and_a_line_without_tags_are_counted_not_fatal(tmp_path, encoder):
+    """Issue 24, finding 8: a HumanML3D caption span ``#0.0#1e308`` stopped the whole build with OverflowError and no
+    manifest, and lines with no ``#`` fields were kept silently as whole-clip captions. Both are now dropped and
+    counted by reason in the skip report; a clip left with no caption is skipped, naming them."""
+    good = "a person walks forward.#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0\n"
+    root = tmp_path / "HumanML3D"
+    (root / "new_joints").mkdir(parents=True)
+    (root / "texts").mkdir()
+    texts = {"000001": good + "walks on forever#walk/VERB#0.0#1e308\nplain text, no tags\n",
+             "000002": "walks on forever#walk/VERB#0.0#1e308\nanother plain line\n"}
+    for index, (clip_id, text) in enumerate(texts.items()):
+        np.save(root / "new_joints" / f"{clip_id}.npy", make_joints(81, index))
+        (root / "texts" / f"{clip_id}.txt").write_text(text)
+    config = BuildConfig(out=tmp_path / "ds", source="humanml3d", root=str(root), progress=False)
+    manifest = build_dataset(config, text_encoder=encoder)  # used to raise OverflowError
+    report = manifest["skip_report"]
+    assert report["dropped_captions"] == {"no_tags": 1, "span_out_of_range": 1}
+    (skipped,) = report["items"]
+    assert (skipped["id"], skipped["reason"]) == ("000002", "no_captions")
+    assert "1 no_tags" in skipped["detail"] and "1 span_out_of_range" in skipped["detail"]
+    assert sum(split["num_motions"] for split in manifest["splits"].values()) == 1
+    assert load_manifest(config.out) == manifest
+    kept, dropped = captions_to_frames([Caption("x", start=1e308, end=None), Caption("y", start=0.0, end=1e308),
+                                        Caption("z", start=1e300, end=1e301)], length=100, fps=20.0, min_frames=1)
+    assert kept == [] and dropped == {"span_out_of_range": 2, "span_too_short": 1}  # 1e300 s is past the clip
 
 
 def test_duplicate_ids_are_skipped_unless_strict(tmp_path, encoder):

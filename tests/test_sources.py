@@ -321,7 +321,7 @@ def test_amass_reads_a_pickled_body_model_or_says_what_it_needs(tmp_path: Path) 
         arrays = {k: data[k] for k in data.files}
     as_pickle = tmp_path / "SMPLH_male.pkl"
     as_pickle.write_bytes(pickle.dumps(arrays))
-    from_pickle, from_npz = load_body_model(as_pickle), load_body_model(npz)
+    from_pickle, from_npz = load_body_model(as_pickle, unpickle=True), load_body_model(npz)
     np.testing.assert_array_equal(from_pickle.rest_joints, from_npz.rest_joints)
     np.testing.assert_array_equal(from_pickle.parents, from_npz.parents)
     # The MANO site's .pkl files hold chumpy objects: without that package, a clear message, not a TypeError
@@ -340,11 +340,76 @@ def test_amass_reads_a_pickled_body_model_or_says_what_it_needs(tmp_path: Path) 
     chumpy_file = tmp_path / "SMPLH_female.pkl"
     chumpy_file.write_bytes(needs_chumpy)
     with pytest.raises(ValueError, match=r"SMPLH_female\.pkl: this \.pkl body model needs the 'chumpy' package"):
-        load_body_model(chumpy_file)
+        load_body_model(chumpy_file, unpickle=True)
     renamed = tmp_path / "renamed.npz"
     renamed.write_bytes(pickle.dumps(arrays))  # a pickle under an .npz name
     with pytest.raises(ValueError, match=r"renamed\.npz: not an SMPL-H model\.npz \(it holds a dict\)"):
-        load_body_model(renamed)
+        load_body_model(renamed, unpickle=True)
+
+
+class _SparseLike:
+    """Stands in for a pickled scipy sparse J_regressor (what some body-model conversions store)."""
+
+    def __init__(self, dense: np.ndarray) -> None:
+        self.dense = dense
+
+    def toarray(self) -> np.ndarray:
+        return self.dense
+
+
+class _RunsCode:
+    """A pickle payload that, unpickled, creates the file its constructor names: proof that code ran."""
+
+    def __init__(self, proof: Path) -> None:
+        self.proof = proof
+
+    def __reduce__(self):
+        return (Path.touch, (self.proof,))
+
+
+def test_a_pickled_body_model_is_refused_unless_the_user_opts_in(tmp_path: Path) -> None:
+    """Issue 24, finding 6: an AMASS --body-model .npz with an object array was loaded with allow_pickle=True as a
+    fallback, and its pickle ran code. Now nothing is unpickled without unpickle_body_model=true, and the refusal
+    names the file, the risk and the opt-in."""
+    import pickle
+
+    npz = write_body_model(tmp_path / "model.npz")
+    with np.load(npz) as data:
+        arrays = {k: data[k] for k in data.files}
+    proof = tmp_path / "code-ran"
+    payload = np.empty((), dtype=object)
+    payload[()] = _RunsCode(proof)
+    attack = tmp_path / "attack" / "model.npz"
+    attack.parent.mkdir()
+    np.savez(attack, **{**arrays, "J_regressor": payload})  # an object array, as a pickled sparse J_regressor is
+    as_pickle = tmp_path / "model.pkl"
+    as_pickle.write_bytes(pickle.dumps({**arrays, "extra": _RunsCode(proof)}))
+    renamed = tmp_path / "renamed.npz"
+    renamed.write_bytes(pickle.dumps(_RunsCode(proof)))
+    for path, what in ((attack, "holds pickled Python objects"), (as_pickle, "is a Python pickle"),
+                       (renamed, "holds pickled Python objects")):
+        with pytest.raises(ValueError, match=rf"{path.name}: .*{what}.*unpickling runs whatever code the file carries"
+                                             r".*unpickle_body_model=true"):
+            load_body_model(path)
+        assert not proof.exists(), f"{path}: unpickled without the opt-in"
+    captions = tmp_path / "c.json"
+    captions.write_text("{}")
+    (tmp_path / "amass").mkdir()
+    with pytest.raises(ValueError, match="unpickle_body_model=true"):  # through the source, as build_shards does
+        build_source("amass", str(tmp_path / "amass"), body_model=str(attack), captions=str(captions))
+    assert not proof.exists()
+    # The opt-in reads a trusted pickled model as before (here, a scipy-like sparse J_regressor).
+    sparse = np.empty((), dtype=object)
+    sparse[()] = _SparseLike(arrays["J_regressor"])
+    trusted = tmp_path / "trusted.npz"
+    np.savez(trusted, **{**arrays, "J_regressor": sparse})
+    with pytest.raises(ValueError, match="unpickle_body_model=true"):
+        load_body_model(trusted)
+    opted_in = load_body_model(trusted, unpickle=True)
+    np.testing.assert_allclose(opted_in.rest_joints, load_body_model(npz).rest_joints)
+    source = build_source("amass", str(tmp_path / "amass"), body_model=str(trusted), captions=str(captions),
+                          unpickle_body_model="true")
+    np.testing.assert_allclose(source.body_models["male"].rest_joints, opted_in.rest_joints)
 
 
 def test_amass_zero_pose_is_rest_joints_plus_trans_in_humanml3d_axes(tmp_path: Path) -> None:

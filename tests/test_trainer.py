@@ -9,6 +9,7 @@ in every run); the rest run in this process through launch/train.py's ``main``.
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import os
 import re
@@ -31,7 +32,7 @@ from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, from_dict, load_config, to_dict
 from pipeline.data.stream import ShardVerificationError
 from pipeline.distributed import Dist
-from pipeline.training.run_folder import RunFolderError, check_run_folder
+from pipeline.training.run_folder import RUN_MARKER, RunFolderError, check_run_folder, write_run_marker
 from pipeline.training.trainer import NonFiniteLossError, Trainer
 
 train_entry = load_launch_script("train")  # launch/train.py, whose main() the in-process tests call
@@ -667,7 +668,7 @@ def test_out_dir_that_is_not_a_run_folder_is_refused_before_writing(dataset, tmp
     assert train_entry.main(["--config", "tiny", *base_overrides(dataset, out)]) == 2
     error = one_error_line(capsys)
     assert f"train.out_dir='{out}'" in error
-    assert ("is a file" if kind == "file" else "not a run folder (no checkpoints/") in error
+    assert ("is a file" if kind == "file" else "not a run folder (no mfm-run.json of ours") in error
     assert snapshot(tmp_path) == before and sorted(tmp_path.rglob("*")) == paths  # nothing written or created
 
 
@@ -692,14 +693,63 @@ def test_run_folder_rules(tmp_path):
     check_run_folder(tmp_path / "new" / "nested" / "run")  # created when the run writes
     (tmp_path / "empty").mkdir()
     check_run_folder(tmp_path / "empty")  # e.g. made by the scheduler
-    with_checkpoints = tmp_path / "with-checkpoints"
-    (with_checkpoints / "checkpoints").mkdir(parents=True)
-    (with_checkpoints / "slurm-1.out").write_text("")
-    check_run_folder(with_checkpoints)
-    with_config = tmp_path / "with-config"
-    with_config.mkdir()
-    (with_config / "config.yaml").write_text(yaml.safe_dump(to_dict(load_config(TrainConfig, "tiny"))))
-    check_run_folder(with_config)  # a run stopped before its first checkpoint
+    marked = tmp_path / "marked"
+    write_run_marker(marked, written_by="test")
+    (marked / "slurm-1.out").write_text("")
+    check_run_folder(marked)  # a run of ours, stopped before it wrote anything else
+    assert json.loads((marked / RUN_MARKER).read_text())["format"] == "mfm-run"
+
+
+def test_a_folder_is_a_run_by_our_marker_not_by_its_checkpoints_subfolder(tmp_path):
+    """Issue 24, finding 4: another project's folder with a checkpoints/ subfolder was taken for a run and had its
+    config.yaml and metrics.jsonl overwritten. A run is what our marker says; a run of an earlier version (before the
+    marker) is recognised by our training config.yaml together with a checkpoint carrying our COMPLETE marker."""
+    config_text = yaml.safe_dump(to_dict(load_config(TrainConfig, "tiny")))
+    theirs = tmp_path / "theirs"
+    (theirs / "checkpoints" / "epoch-3").mkdir(parents=True)
+    (theirs / "config.yaml").write_text("lr: 0.1\n")
+    (theirs / "metrics.jsonl").write_text('{"their": 1}\n')
+    with_our_config = tmp_path / "their-config-is-like-ours"
+    (with_our_config / "checkpoints").mkdir(parents=True)
+    (with_our_config / "config.yaml").write_text(config_text)  # a training config, but no checkpoint of ours
+    for folder in (theirs, with_our_config):
+        with pytest.raises(RunFolderError, match="not a run folder"):
+            check_run_folder(folder)
+
+    earlier = tmp_path / "earlier-version-run"
+    (earlier / "config.yaml").parent.mkdir()
+    (earlier / "config.yaml").write_text(config_text)
+    step = earlier / "checkpoints" / "step-00000004"
+    step.mkdir(parents=True)
+    files = {}
+    for name in (ckpt.MODEL_FILE, ckpt.STATE_FILE):
+        (step / name).write_bytes(b"weights")
+        files[name] = {"bytes": 7, "sha256": hashlib.sha256(b"weights").hexdigest()}
+    marker = {"format": "mfm-checkpoint", "version": 1, "step": 4, "files": files}
+    (step / "COMPLETE").write_text(json.dumps({**marker, "files": {}}))  # not a complete checkpoint: no run
+    with pytest.raises(RunFolderError, match="not a run folder"):
+        check_run_folder(earlier)
+    (step / "COMPLETE").write_text(json.dumps(marker))
+    check_run_folder(earlier)  # runs made before the marker keep working (the trainer then adds the marker)
+
+    (earlier / "checkpoints" / "step-00000008").mkdir()  # a user's folder of a checkpoint's name
+    with pytest.raises(RunFolderError, match=r"step-00000008 is not a checkpoint this project wrote"):
+        check_run_folder(earlier)
+
+
+def test_training_into_another_projects_folder_with_checkpoints_is_refused_untouched(dataset, tmp_path, monkeypatch,
+                                                                                      capsys):
+    """Issue 24, finding 4, end to end: launch/train.py refuses, in one line and exit 2, writing nothing."""
+    out = tmp_path / "theirs"
+    (out / "checkpoints").mkdir(parents=True)
+    (out / "config.yaml").write_text("their: config\n")
+    (out / "metrics.jsonl").write_text('{"their": 1}\n')
+    before, paths = snapshot(tmp_path), sorted(tmp_path.rglob("*"))
+    forbid_training(monkeypatch)
+    assert train_entry.main(["--config", "tiny", *base_overrides(dataset, out)]) == 2
+    error = one_error_line(capsys)
+    assert f"train.out_dir='{out}' is a non-empty folder that is not a run folder" in error
+    assert snapshot(tmp_path) == before and sorted(tmp_path.rglob("*")) == paths
 
 
 @pytest.mark.parametrize("override", ["train.max_steps=many", "train.no_such_key=1",

@@ -47,6 +47,7 @@ from test_trainer_bad_data import copy_dataset, planned_batches, write_nan_into
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, load_config
 from pipeline.distributed import Dist
+from pipeline.training.run_folder import write_run_marker
 from pipeline.training.trainer import Trainer
 
 pytestmark = [pytest.mark.multirank, pytest.mark.slow]
@@ -337,6 +338,7 @@ def test_a_resume_refused_on_rank_0_ends_every_rank_before_training(dataset, tmp
         ckpt.save_checkpoint(ckpt.checkpoints_dir(run), step, model_state={"w": torch.zeros(2)}, ema_state=None,
                              optimizer_state={}, scheduler_state=None, rng_states=[{}, {}], data_states=[{}, {}],
                              config={}, manifest={})
+    write_run_marker(run, written_by="tests/test_trainer_multirank.py")  # a run of ours, as the trainer marks one
     older = ckpt.checkpoints_dir(run) / "step-00000002"
     scenario = fit_scenario(tmp_path / "out", [f"data.manifest={dataset}", f"train.out_dir={run}",
                                                "train.max_steps=6", f"train.resume={older}"])

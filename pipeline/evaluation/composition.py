@@ -447,7 +447,8 @@ def composition_unit(checkpoint_name: str, ids: Mapping[str, str], point: Sampli
                 # protocol.redraw_items and the loop's rules (mdm protocol) are text-to-motion's: the composition
                 # set is always the fixed one, scored by FlowMDM's loop
                 "protocol": {k: v for k, v in to_dict(cfg.protocol).items()
-                             if k != "redraw_items" and k not in MDM_RULES},
+                             if k != "redraw_items" and k not in MDM_RULES
+                             and (k, v) != ("sampling_point", "sweep")},
                 "split": cfg.data.split,
                 "sampling": {"use_ema": cfg.sampling.use_ema}}
     name = f"compose-{point.name}-switch{switch:.4g}-{cfg.composition.scenario}"
@@ -622,7 +623,7 @@ class CompositionRun:
                          # the set and its GT are fixed (FlowMDM): protocol.redraw_items does not apply here
                          "redraw_items": False, "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(self.point), "use_ema": self.cfg.sampling.use_ema,
-                         "switch": self.switch},
+                         "switch": self.switch, "sampling_point": self.cfg.protocol.sampling_point},
             "composition": {
                 "switch": self.switch,
                 "switch_label": {0.0: "relative-only", 1.0: "absolute-only"}.get(self.switch, "blended"),

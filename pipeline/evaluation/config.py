@@ -93,6 +93,13 @@ class ProtocolConfig:
     mm_replications: int = 0
     """MultiModality runs in the first this many replications (its interval over those); 0: every replication.
     The reference's MultiModality comes from its ``mm_short`` mode: 5 replications."""
+    sampling_point: Literal["sweep", "paper", "released"] = "sweep"
+    """Where the motions are sampled. sweep (ours): every point of ``sampling.solvers/steps/guidance`` (the sweep
+    flags). paper: MFM's paper point, N = 10 Euler steps (guidance 2.5). released: MFM's released evaluation
+    commands, Euler with ``ode_kwargs.step_size`` 0.01 (config_base.yaml: 41, README.md: 75: 100 steps) for
+    HumanML3D and 0.02 (README.md: 65: 50 steps) for KIT, guidance_param 2.5; the step count follows the
+    checkpoint's skeleton (SAMPLING_POINTS). A named point is the only point: with it the sampling lists must stay
+    at their defaults. Results record it (``sampling.sampling_point`` and the table's ``sampling_point``)."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)
@@ -106,6 +113,17 @@ class ProtocolConfig:
         _require(self.mm_replications >= 0, f"protocol.mm_replications must be >= 0, got {self.mm_replications}")
         _require(self.gt_draws == "shared" or self.redraw_items,
                  "protocol.gt_draws=independent draws each pass anew: it needs protocol.redraw_items=true")
+
+    def named_point(self, skeleton: str) -> SamplingPoint | None:
+        """The sampling point ``sampling_point`` names for a checkpoint on ``skeleton`` (None: ``sweep``)."""
+        if self.sampling_point == "sweep":
+            return None
+        points = SAMPLING_POINTS[self.sampling_point]
+        if skeleton not in points:
+            raise ConfigError(f"protocol.sampling_point={self.sampling_point}: MFM names no sampling point for "
+                              f"skeleton {skeleton!r} (known: {sorted(points)}); use protocol.sampling_point=sweep "
+                              "with sampling.steps")
+        return points[skeleton]
 
     def rules(self) -> dict[str, Any]:
         """The loop's rules (the fields where the reference and ours differ) with their values."""
@@ -203,10 +221,14 @@ class TasksConfig:
     composition: bool = False
     """FlowMDM's composition protocol (section ``composition``; pipeline.evaluation.composition): bpe + pccat models."""
     flame: bool = True
-    """APE/AVE, mCLIP, MID and per-text joint variance (FLAME / TEMOS)."""
+    """The metrics FLAME's paper reports: APE/AVE (TEMOS's definition, mfm.metrics.ape_ave; FLAME's own
+    eval_util.py differs: no floor or heading canonicalisation, bone vectors as the local error, the root from the
+    SMPL translation), mCLIP, MID and per-text joint variance."""
     ape_floor: Literal["temos", "given"] = "temos"
-    """APE/AVE: 'temos' re-estimates each clip's floor from its feet as TEMOS's Rifke transform (FLAME's APE/AVE);
-    'given' keeps the heights as recovered (HumanML3D joints stand on y = 0 already)."""
+    """APE/AVE: 'temos' re-estimates each clip's floor from its feet as TEMOS's Rifke transform, in millimetres as
+    TEMOS (the lowest foot ends 0.69 mm under y = 0; since issue 25, before which the formula ran on metres and
+    offset each clip by 0.1-0.4 m); 'given' keeps the heights as recovered (HumanML3D joints stand on y = 0
+    already)."""
     mid_eps: float = 5e-4
     """Ridge added to MID's covariances (its authors' advice for small sets)."""
     editing: tuple[str, ...] = ("prediction", "inbetween", "upper_body")
@@ -214,14 +236,14 @@ class TasksConfig:
     editing_replications: int = 0
     """0: as many as protocol.replications."""
     edit_settings: str = "paper"
-    """Flow edits' steps, ς and guidance (mfm.editing.EDIT_SETTINGS): 'paper' (MFM paper: 30 Euler steps, ς = 0.2,
-    guidance 1.0 as its edit.py) or 'reference-debug' (edit.py's debug presets: 100 steps, ς per task). Edits
-    integrate with these steps and guidance whatever the sampling point's (a diffusion model's replacement edits
-    use the point's sampler, steps and guidance)."""
+    """Flow edits' steps, ς and guidance (mfm.editing.EDIT_SETTINGS): 'paper' (the MFM paper's §4.1: 30 Euler
+    steps, ς = 0.2; guidance 1.0 as its edit.py) or 'reference-debug' (edit.py's debug presets: 100 steps, ς per
+    task, interpolation one step). Edits integrate with these steps and guidance whatever the sampling point's (a
+    diffusion model's replacement edits use the point's sampler, steps and guidance)."""
     edit_rewrite_until: dict[str, float] = dataclasses.field(default_factory=dict)
     """ς per preset overriding the settings' (e.g. {upper_body: 0.1}); empty: the settings' values."""
     edit_steps: int = 0
-    """Euler steps of a flow edit; 0: the settings'."""
+    """Euler steps of every flow edit; 0: the settings' (per preset)."""
     edit_guidance: float | None = None
     """Guidance scale of a flow edit; null: the settings'."""
     edit_restore_known: bool = False
@@ -244,11 +266,13 @@ class TasksConfig:
                  "tasks.text_to_motion and tasks.composition are both false: nothing to evaluate")
 
     def edit_setup(self) -> dict[str, Any]:
-        """The flow edits' settings as run: name, steps, ς per preset, guidance, and the overridden values."""
+        """The flow edits' settings as run: name, steps (the settings' base count and ``steps_per_preset``, what
+        each preset runs), ς per preset, guidance, and the overridden values."""
         settings = EDIT_SETTINGS[self.edit_settings]
         record = settings.record()
         record["rewrite_until"] = {p: self.edit_rewrite_until.get(p, settings.rewrite_time(p)) for p in EDIT_PRESETS}
         record["steps"] = self.edit_steps or settings.steps
+        record["steps_per_preset"] = {p: self.edit_steps or settings.steps_for(p) for p in EDIT_PRESETS}
         record["guidance"] = settings.guidance if self.edit_guidance is None else self.edit_guidance
         record["overridden"] = ([f"rewrite_until.{p}" for p in self.edit_rewrite_until]
                                 + (["steps"] if self.edit_steps else [])
@@ -374,6 +398,25 @@ class EvalConfig:
     data: EvalDataConfig = dataclasses.field(default_factory=EvalDataConfig)
     output: OutputConfig = dataclasses.field(default_factory=OutputConfig)
 
+    def __post_init__(self) -> None:
+        named = self.protocol.sampling_point
+        if named == "sweep":
+            return
+        defaults = SamplingConfig()
+        swept = [f"sampling.{name}={list(value) if isinstance(value, tuple) else value}"
+                 for name in ("solvers", "steps", "steps_per_solver", "guidance")
+                 if (value := getattr(self.sampling, name)) != getattr(defaults, name)]
+        _require(not swept, f"protocol.sampling_point={named} fixes the sampling point "
+                            f"({SAMPLING_POINT_SOURCES[named]}), so {', '.join(swept)} would be ignored: leave the "
+                            "sampling lists (and --solver/--steps/--guidance) out, or set "
+                            "protocol.sampling_point=sweep to evaluate them")
+
+    def sampling_points(self, skeleton: str) -> list[SamplingPoint]:
+        """The points to evaluate for a checkpoint on ``skeleton``: the protocol's named point (paper / released,
+        whose steps follow the dataset) or, with ``protocol.sampling_point=sweep``, the sampling sweep."""
+        point = self.protocol.named_point(skeleton)
+        return self.sampling.points() if point is None else [point]
+
 
 def load_eval_config(protocol: str = "full", preset: str | Path | None = None,
                      overrides: Sequence[str] = ()) -> EvalConfig:
@@ -418,3 +461,19 @@ class SamplingPoint:
     @property
     def name(self) -> str:
         return f"{self.solver}-{self.steps}steps-g{self.guidance:g}"
+
+
+SAMPLING_POINTS: dict[str, dict[str, SamplingPoint]] = {
+    "paper": {"humanml3d": SamplingPoint("euler", 10, 2.5), "kit": SamplingPoint("euler", 10, 2.5)},
+    "released": {"humanml3d": SamplingPoint("euler", 100, 2.5), "kit": SamplingPoint("euler", 50, 2.5)},
+}
+"""MFM's two text-to-motion sampling points per skeleton (``protocol.sampling_point``). paper: the paper evaluates
+text-to-motion at N = 10 Euler steps. released: dongzhuoyao/motionfm 08eb88d's evaluation commands, Euler
+(torchdiffeq ``odeint`` with ``step_size``) at config_base.yaml: 41 ``step_size: 0.01`` = 100 steps for HumanML3D
+(README.md: 75 passes no step size) and README.md: 65 ``ode_kwargs.step_size=0.02`` = 50 steps for KIT; both
+commands pass ``guidance_param=2.5`` (the paper point uses the same scale)."""
+SAMPLING_POINT_SOURCES = {
+    "paper": "MFM paper: 10 Euler steps, guidance 2.5",
+    "released": "MFM's released evaluation commands: Euler, 100 steps for HumanML3D (step_size 0.01), 50 for KIT "
+                "(step_size 0.02), guidance 2.5",
+}

@@ -14,14 +14,15 @@ texts), 20 replications (``full``) or 3 (``fast``), mean ± 1.96·std/√R, plus
 reference's shuffled loader, every replication draws its own ground-truth items (``protocol.redraw_items``, the
 default): each test motion's caption and crop, seeded by (protocol seed, replication); the replication generates
 for those captions and lengths and scores against those clips (FID's μ and Σ, the ground-truth row, MultiModality
-texts, edits, FLAME's metrics), so the intervals of both rows include that spread (``protocol.intervals`` says so).
+texts, edits, the FLAME-paper metrics), so the intervals of both rows include that spread (``protocol.intervals``).
 ``redraw_items=false`` keeps one fixed set for every replication (noise-only intervals). A test set too
 small for a constant (32, 300, 100) uses a smaller value, recorded with a note under ``protocol``; never silently.
 The ground-truth row's FID is that of a bootstrap resample of the replication's ground truth against the whole of
 it: the sampling-noise floor (the reference's GT FID is likewise nonzero, its crops and captions being re-drawn). Also:
 editing (prediction, in-between, upper body: FID, Diversity, and ADE/FDE on joints in metres, our definition: MFM's
-Table 3 names them but its public code has no formula), FLAME's metrics
-(APE/AVE, mCLIP, MID, per-text joint variance), and for action models FID / accuracy / Diversity /
+Table 3 names them but its public code has no formula), the metrics FLAME's paper reports
+(APE/AVE in TEMOS's definition, not FLAME's code's: mfm.metrics.ape_ave; mCLIP, MID, per-text joint variance), and
+for action models FID / accuracy / Diversity /
 MultiModality in the action classifier's feature space. NFE and generation seconds per motion are reported.
 Plausibility (mfm.metrics.plausibility, on joints recovered from the features): bone-length range and relative
 deviation, floor penetration, foot skating ratio / contact and skating foot speeds, mean jerk and its ratio to the
@@ -31,6 +32,8 @@ names as the PlausibilityFigures fields) and for the ground truth (per ground-tr
 rules: 1,024 motions in whole batches, three independent ground-truth passes per replication so that the GT row's FID
 is that of two draws, caption length 22 for the generated row, the sampler's 196-frame window seen by the evaluator,
 MultiModality in the model's normalisation over 5 replications); results record the loop ('ours', 'mdm', 'mixed').
+It samples at MFM's paper point (``protocol.sampling_point=paper``: 10 Euler steps) or its released code's
+(``released``: 100 steps, 50 on KIT) instead of the sampling sweep; results record which (``sampling_point``).
 With ``tasks.composition=true`` (a bpe + pccat model), FlowMDM's composition protocol adds one unit per sampling
 point and ``composition.switch`` point (pipeline.evaluation.composition); ``tasks.text_to_motion=false`` runs only those.
 
@@ -65,7 +68,7 @@ from pipeline.evaluation.composition import (
     evaluate_switch,
     prepare_composition,
 )
-from pipeline.evaluation.config import OUR_RULES, EvalConfig, SamplingPoint
+from pipeline.evaluation.config import OUR_RULES, SAMPLING_POINT_SOURCES, EvalConfig, SamplingPoint
 from pipeline.evaluation.replications import (
     CheckpointContext,
     GroundTruthDraws,
@@ -193,8 +196,11 @@ class CheckpointScorer:
     def context(self, folder: Path, cache_dir: Path, timer: PhaseTimer) -> CheckpointContext:
         with timer.phase("load"):
             trained = load_trained_model(folder, use_ema=self.cfg.sampling.use_ema, device=self.dist.device)
-            points = points_for(trained, self.cfg.sampling.points(),
-                                baseline_defaults=self.cfg.sampling.baseline_defaults)
+            try:  # protocol.sampling_point: a named point (its steps follow the skeleton) or the sweep
+                wanted = self.cfg.sampling_points(trained.skeleton.name)
+            except ConfigError as exc:
+                raise EvaluationError(f"{trained.checkpoint}: {exc}") from exc
+            points = points_for(trained, wanted, baseline_defaults=self.cfg.sampling.baseline_defaults)
             manifest = self.manifest_for(trained)
             check_compatible(trained, manifest)
             space = self.space_for(trained, manifest)
@@ -246,6 +252,15 @@ class CheckpointScorer:
                     "protocol": protocol_key(cfg.protocol), "tasks": tasks, "split": cfg.data.split,
                     "sampling": {"use_ema": cfg.sampling.use_ema, "rtol": cfg.sampling.rtol,
                                  "atol": cfg.sampling.atol}}
+        setup = cfg.tasks.edit_setup()
+        own_steps = {p: setup["steps_per_preset"][p] for p in cfg.tasks.editing
+                     if setup["steps_per_preset"][p] != setup["steps"]}
+        if own_steps:  # a preset with its own step count (reference-debug's interpolation: 1 since issue 25)
+            settings["edit_steps_per_preset"] = own_steps
+        if tasks.get("flame"):
+            # Issue 25 changed APE/AVE (TEMOS's floor in millimetres, every skeleton in metres): results computed
+            # before carry the metre-floor bias, so units with the FLAME-paper metrics get new keys and run again.
+            settings["ape_ave"] = APE_AVE_REVISION
         return Unit(folder.name, point.name, digest(settings))
 
     # -- evaluating one unit -------------------------------------------------------------------------------------
@@ -288,13 +303,29 @@ class Work:
     switch: float | None = None
 
 
+APE_AVE_REVISION = "temos-floor-mm"
+"""Hashed into the key of units that compute APE/AVE (``tasks.flame``): which definition their numbers have."""
+
+
+def sampling_point_record(cfg: EvalConfig) -> dict[str, Any]:
+    """What a result says about where it sampled: ``sampling_point`` (sweep, paper or released) and, for a named
+    point, where its values come from."""
+    named = cfg.protocol.sampling_point
+    if named == "sweep":
+        return {"sampling_point": named}
+    return {"sampling_point": named, "sampling_point_source": SAMPLING_POINT_SOURCES[named]}
+
+
 def protocol_key(protocol: Any) -> dict[str, Any]:
     """The protocol settings as hashed into a text-to-motion unit's key. ``redraw_items=false`` is left out: the
     fixed set scores exactly as before the setting existed, so results computed then keep their keys; so are the
-    loop's rules (``mdm`` protocol) at our values, which score as before they existed."""
+    loop's rules (``mdm`` protocol) at our values, which score as before they existed, and ``sampling_point=sweep``
+    (the point itself is in the key; a named point adds its name, which results record)."""
     out = to_dict(protocol)
     if not out.get("redraw_items", True):
         out.pop("redraw_items")
+    if out.get("sampling_point") == "sweep":
+        out.pop("sampling_point")
     for name, ours in OUR_RULES.items():
         if out.get(name) == ours:
             out.pop(name)
@@ -342,6 +373,9 @@ def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
         "replications": result["protocol"]["replications"], "num_items": result["protocol"]["num_items"],
         # Whether the intervals include re-drawn ground-truth items (results before the setting: a fixed set).
         "redraw_items": bool(result["protocol"].get("redraw_items", False)),
+        # Which sampling point ran: the sweep's, or MFM's named 'paper' / 'released' one (protocol.sampling_point);
+        # results written before the setting ran the sweep's.
+        "sampling_point": result["sampling"].get("sampling_point", "sweep"),
         "solver": result["sampling"]["solver"], "steps": result["sampling"]["steps"],
         "guidance": result["sampling"]["guidance"], "nfe": result["nfe"],
         "model_passes_per_motion": result["model_passes_per_motion"],
@@ -359,6 +393,9 @@ def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
     if edits:  # which edit settings the edit_* columns were measured with
         generated.update(edit_method=edits["method"], edit_settings=edits.get("settings"),
                          edit_steps=edits["steps"], edit_guidance=edits["guidance"])
+        # what each preset integrated with when a preset has its own count (reference-debug's interpolation: 1)
+        for preset, steps in (edits.get("steps_per_preset") or {}).items():
+            generated[f"edit_{preset}_steps"] = steps
     truth = {**base, "row_kind": "ground_truth", "row_key": f"{result['key']}:ground_truth"}
     truth.update(_flatten(result["ground_truth"]))
     return [generated, truth]
@@ -450,8 +487,12 @@ class EvaluationJob:
         return self.store_for_run(ckpt.run_dir_of(folder))
 
     def store_for_run(self, run_dir: Path) -> ResultsStore:
+        """The results store of a run (output.dir, default <run>/eval), its folder checked to be an evaluation folder
+        of ours (EvalFolderError otherwise, before anything is written) and marked as one by the main rank."""
         root = Path(self.cfg.output.dir) if self.cfg.output.dir else run_dir / "eval"
-        return ResultsStore(root, self.cfg.output.claim_timeout_s)
+        store = ResultsStore(root, self.cfg.output.claim_timeout_s)
+        store.open_folder(write_marker=self.dist.is_main)
+        return store
 
     def evaluate_checkpoint(self, folder: str | Path) -> list[dict[str, Any]]:
         """Every sampling point of one complete checkpoint not evaluated yet (by anyone); returns the results
@@ -564,6 +605,7 @@ class EvaluationJob:
         run_dir = Path(run_dir)
         if not run_dir.is_dir():
             raise FileNotFoundError(f"--watch: no run folder at {run_dir}")
+        self.store_for_run(run_dir)  # on every rank: a folder that is not ours is refused by all of them at once
         done = 0
         while True:
             folders = self.dist.broadcast_object([str(p) for p in self.pending(run_dir)] if self.dist.is_main else None)
@@ -607,7 +649,8 @@ class EvaluationJob:
                      "data_verified": bool(gt.verification.get("verified")), "verification": dict(gt.verification)},
             "protocol": {**ctx.plan.as_dict(), "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(point), "use_ema": self.cfg.sampling.use_ema,
-                         "batch_size": self.cfg.sampling.batch_size, **baseline_record(trained, self.cfg.sampling)},
+                         "batch_size": self.cfg.sampling.batch_size, **baseline_record(trained, self.cfg.sampling),
+                         **sampling_point_record(self.cfg)},
             "tasks": to_dict(self.cfg.tasks),
             **computed,
             "world_size": self.dist.world_size,

@@ -11,7 +11,7 @@ same numbers (tests/test_evaluation_multirank.py).
 
 Ground truth per replication (:class:`GroundTruthDraws`): with ``protocol.redraw_items`` (the default) replication r
 generates for its own draw of the items (their captions as conditions, their lengths), edits its clips, and scores
-against them: FID's μ, Σ, the ground-truth row, R-precision texts, MultiModality texts, FLAME's APE/AVE and MID,
+against them: FID's μ, Σ, the ground-truth row, R-precision texts, MultiModality texts, APE/AVE (TEMOS's) and MID,
 plausibility references. Its evaluator embeddings cost one pass over the test set per replication (cached on disk
 per set, so later sampling points and checkpoints read them).
 
@@ -622,6 +622,15 @@ def points_for(trained: TrainedModel, points: Sequence[SamplingPoint], *,
     return fitting
 
 
+def edit_points(point: SamplingPoint, edit_setup: Mapping[str, Any], objective: str) -> dict[str, SamplingPoint]:
+    """The point each edit preset runs at: a diffusion model's replacement edits at the sampling point itself; flow
+    edits with Euler at the edit settings' steps for that preset (``edit_setup['steps_per_preset']``:
+    reference-debug's interpolation takes one step, as MFM's edit.py) and their guidance."""
+    return {preset: point if objective == "diffusion" else dataclasses.replace(
+        point, solver="euler", steps=int(steps), guidance=edit_setup["guidance"])
+        for preset, steps in edit_setup["steps_per_preset"].items()}
+
+
 def baseline_sampling(trained: TrainedModel, enabled: bool) -> BaselineSampling | None:
     """The diffusion baseline's own sampling settings when ``enabled`` (sampling.baseline_defaults) and it has any."""
     return trained.baseline_sampling if enabled else None
@@ -711,8 +720,7 @@ class PointRun:
         # Flow edits integrate with the edit settings' Euler steps and guidance (MFM paper: 30, 1.0), not the
         # sampling point's; a diffusion model's replacement edits run on the point's sampler and steps.
         self.edit_setup = cfg.tasks.edit_setup()
-        self.edit_point = point if ctx.trained.objective == "diffusion" else dataclasses.replace(
-            point, solver="euler", steps=self.edit_setup["steps"], guidance=self.edit_setup["guidance"])
+        self.edit_points = edit_points(point, self.edit_setup, ctx.trained.objective)
         self.notes: list[str] = list(ctx.notes)
         if cfg.tasks.editing and not self.edit_presets:
             self.notes.append(f"editing skipped: edits run at fixed-step sampling points only, not {point.solver}")
@@ -807,7 +815,8 @@ class PointRun:
                 gt_raw, _ = self.gt.padded(batch.items, device)
                 known = self.trained.normalize(gt_raw) * valid_frame_mask(lengths, gt_raw.shape[1]).unsqueeze(-1)
                 keep = edit_mask(preset, lengths.cpu(), gt_raw.shape[1], self.layout).to(device)
-                raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.edit_point, self.cfg.sampling,
+                raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.edit_points[preset],
+                                    self.cfg.sampling,
                                     known=known, keep=keep, rewrite_until=self.edit_setup["rewrite_until"][preset],
                                     restore_known=self.cfg.tasks.edit_restore_known)
             else:
@@ -853,8 +862,10 @@ class PointRun:
         gt_joints = features_to_joints(gt_raw.double(), self.skeleton).cpu().numpy()
         if kind == "main":
             feet = self.skeleton.foot_left + self.skeleton.foot_right
+            # TEMOS's APE/AVE in metres (KIT joints are millimetres), its floor estimated in millimetres.
             ape = metrics.ape_ave(joints, gt_joints, lens, face_joints=self.skeleton.face_joints,
-                                  floor_joints=feet if self.cfg.tasks.ape_floor == "temos" else None)
+                                  floor_joints=feet if self.cfg.tasks.ape_floor == "temos" else None,
+                                  metres_per_unit=metrics.METRES_PER_UNIT[self.skeleton.unit])
             return {**stats, "ape_ave": ape, "frames": int(lens.sum())}
         keep = edit_mask(kind[5:], lengths.cpu(), raw.shape[1], self.layout).numpy()
         regenerated = ~keep.all(axis=-1)  # frames with at least one generated dim
@@ -965,7 +976,8 @@ class PointRun:
                     "guidance": self.point.guidance, "restore_known": self.cfg.tasks.edit_restore_known}
         setup = {k: v for k, v in self.edit_setup.items() if k != "diffusion_restore_known"}
         return {"method": "trajectory rewriting (MFM)", "solver": "euler", **setup,
-                "rewrite_until": {p: setup["rewrite_until"][p] for p in self.edit_presets}}
+                "rewrite_until": {p: setup["rewrite_until"][p] for p in self.edit_presets},
+                "steps_per_preset": {p: setup["steps_per_preset"][p] for p in self.edit_presets}}
 
     def result(self) -> dict[str, Any]:
         rows = sum(r for _, r in self.nfe)

@@ -13,6 +13,14 @@ Layout of an evaluation folder (default ``<run_dir>/eval``)::
                                                                       set (re-drawn items: one per replication;
                                                                       -padtext: with the mdm caption lengths)
     plots/*.png
+    index.html                                                        the table and plots to browse
+    mfm-eval.json                                                     the folder's marker: an evaluation folder of ours
+
+The folder is one of ours, or the evaluator writes nothing into it (:func:`check_eval_folder`): a new or empty folder
+(the marker is written first), one holding our marker, or one an earlier version wrote before the marker existed
+(only the names above, with its results table or listing among them). Anything else (another tool's ``index.html``
+and ``plots/``, say) is refused before anything is written, so the evaluator never overwrites what it did not
+write; the page itself is also written only over a page of ours (pipeline/generation/browse.py).
 
 Concurrency. Any number of jobs (cron, Slurm array, Kubernetes CronJob, two shells) may watch the same run. A unit
 is claimed by creating its claim file with ``O_CREAT | O_EXCL`` while holding an exclusive ``flock`` on
@@ -34,6 +42,7 @@ import fcntl
 import json
 import logging
 import os
+import re
 import socket
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -52,6 +61,65 @@ PLOTS_SUBDIR = "plots"
 TABLE_JSONL = "results.jsonl"
 TABLE_PARQUET = "results.parquet"
 SEEN_JSONL = "checkpoints_seen.jsonl"
+PAGE_FILE = "index.html"  # pipeline.generation.browse.PAGE_FILE
+EVAL_MARKER = "mfm-eval.json"
+EVAL_MARKER_FORMAT = "mfm-eval"
+# Every name an evaluation folder of ours holds at its top (the layout above, its lock files); a folder written before
+# the marker existed is recognised by holding only these (and temporary files), its table or listing among them.
+_EVAL_ENTRIES = frozenset({RESULTS_SUBDIR, CLAIMS_SUBDIR, CACHE_SUBDIR, PLOTS_SUBDIR, TABLE_JSONL, TABLE_PARQUET,
+                           SEEN_JSONL, PAGE_FILE, EVAL_MARKER, ".seen.lock", ".table.lock"})
+_EARLIER_EVAL_SIGNS = frozenset({RESULTS_SUBDIR, TABLE_JSONL, SEEN_JSONL})
+_TEMPORARY_FILE = re.compile(r"^\.[^/]+\.tmp-\d+$")  # atomic_write_text's and write_page's temporary files
+_SHOWN_ENTRIES = 5
+
+
+class EvalFolderError(FileExistsError):
+    """The evaluation folder (``output.dir``, default ``<run>/eval``) holds files that are not an evaluation's of
+    ours: refused before anything is written; the message names the folder, what is there and what to pass."""
+
+
+def check_eval_folder(root: str | Path) -> None:
+    """Raise EvalFolderError unless ``root`` is new, empty, or an evaluation folder of ours (our marker, or one written
+    by an earlier version before the marker: only the evaluator's own names, its table or listing among them)."""
+    root = Path(root)
+    if root.exists() and not root.is_dir():
+        raise EvalFolderError(f"evaluation folder {root} is a file: pass a new or empty folder with output.dir=...")
+    if not root.is_dir():
+        return
+    entries = sorted(entry.name for entry in root.iterdir())
+    # Every rank checks while the main rank may be writing the marker: its temporary file is ours, not a stranger's.
+    marker_in_progress = re.compile(rf"^\.{re.escape(EVAL_MARKER)}\.tmp-\d+$")
+    if (all(marker_in_progress.match(name) for name in entries) or has_eval_marker(root)
+            or _is_earlier_eval_folder(entries)):
+        return
+    shown = ", ".join(entries[:_SHOWN_ENTRIES]) + (f" and {len(entries) - _SHOWN_ENTRIES} more"
+                                                  if len(entries) > _SHOWN_ENTRIES else "")
+    raise EvalFolderError(
+        f"evaluation folder {root} is a non-empty folder that is not an evaluation folder of ours (no {EVAL_MARKER}; "
+        f"it holds {shown}): the evaluator's {PAGE_FILE}, {PLOTS_SUBDIR}/ and tables would overwrite or mix with "
+        f"these. Pass a new or empty folder with output.dir=..., e.g. output.dir={root / 'eval'}")
+
+
+def has_eval_marker(root: str | Path) -> bool:
+    try:
+        data = json.loads((Path(root) / EVAL_MARKER).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return isinstance(data, dict) and data.get("format") == EVAL_MARKER_FORMAT
+
+
+def _is_earlier_eval_folder(entries: Sequence[str]) -> bool:
+    known = all(name in _EVAL_ENTRIES or _TEMPORARY_FILE.match(name) for name in entries)
+    return known and any(name in _EARLIER_EVAL_SIGNS for name in entries)
+
+
+def write_eval_marker(root: str | Path) -> None:
+    """Put ``mfm-eval.json`` into ``root`` (created if needed) unless it is there; call after
+    :func:`check_eval_folder` and before anything else is written."""
+    root = Path(root)
+    if not has_eval_marker(root):
+        atomic_write_text(root / EVAL_MARKER, json.dumps({"format": EVAL_MARKER_FORMAT, "version": 1,
+                                                          "written_by": "pipeline/evaluation/store.py"}) + "\n")
 
 
 @dataclass(frozen=True)
@@ -149,6 +217,13 @@ class ResultsStore:
             raise ValueError(f"claim_timeout_s must be > 0, got {claim_timeout_s}")
         self.root = Path(root)
         self.claim_timeout_s = claim_timeout_s
+
+    def open_folder(self, *, write_marker: bool) -> None:
+        """Refuse a folder that is not an evaluation folder of ours (:func:`check_eval_folder`, on every rank, so all
+        refuse alike); then, with ``write_marker`` (the main rank), put the marker in before anything else."""
+        check_eval_folder(self.root)
+        if write_marker:
+            write_eval_marker(self.root)
 
     # -- paths -------------------------------------------------------------------------------------------------
 

@@ -47,6 +47,8 @@ from pipeline.checkpoint import run_dir_of
 logger = logging.getLogger(__name__)
 
 PAGE_FILE = "index.html"
+PAGE_GENERATOR = "motion-flow-matching pipeline/generation/browse.py"  # in every page's <meta name="generator">
+_EARLIER_PAGE_FOOTER = "written by pipeline/generation/browse.py"  # what pages from before the tag say (lower case)
 SAMPLE_RESULTS = "results.json"  # pipeline.generation.sampling.RESULTS_FILE
 EVAL_TABLE = "results.jsonl"  # pipeline.evaluation.store.TABLE_JSONL
 EVAL_RESULTS_DIR = "results"  # pipeline.evaluation.store.RESULTS_SUBDIR
@@ -106,8 +108,27 @@ def fmt_number(value: Any, digits: int = 4) -> str:
     return f"{value:.{digits}g}"
 
 
+class PageNotOursError(FileExistsError):
+    """The page's file exists and was not written by this module: it is left as it is."""
+
+
+def is_our_page(path: Path) -> bool:
+    """Whether the file at ``path`` is a page this module wrote: it carries :data:`PAGE_GENERATOR` in its
+    ``<meta name="generator">`` or, for pages written before that tag existed, the footer line naming this module
+    (``written by pipeline/generation/browse.py``)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return False
+    return f'<meta name="generator" content="{PAGE_GENERATOR}">' in text or _EARLIER_PAGE_FOOTER in text.lower()
+
+
 def write_page(path: Path, text: str) -> Path:
-    """Write atomically (concurrent evaluation jobs rewrite the same page)."""
+    """Write atomically (concurrent evaluation jobs rewrite the same page). A file at ``path`` that is not a page of
+    ours (:func:`is_our_page`; another tool's index.html) is never overwritten: PageNotOursError naming it."""
+    if (path.exists() or path.is_symlink()) and not (path.is_file() and not path.is_symlink() and is_our_page(path)):
+        raise PageNotOursError(f"{path} is there and was not written by this project (no generator tag or footer of "
+                               "pipeline/generation/browse.py): it is left as it is; move it away to get the page")
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.write_text(text, encoding="utf-8")
     os.replace(tmp, path)
@@ -181,6 +202,7 @@ footer { color: var(--muted); font-size: 12px; padding: 10px 20px 24px; }
 
 def page(title: str, body: str, script: str = "") -> str:
     return (f"<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+            f"<meta name=\"generator\" content=\"{PAGE_GENERATOR}\">\n"
             f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n"
             f"<title>{esc(title)}</title>\n{ERROR_HOOK}\n<style>{CSS}</style>\n</head>\n<body>\n"
             f"<p id=\"error-banner\" hidden></p>\n{body}\n{script}\n</body>\n</html>\n")

@@ -61,7 +61,7 @@ def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integra
         if solver in SAMPLERS:
             raise SamplingError(f"{trained.checkpoint} is a flow-matching model (train.objective=flow): {solver!r} is "
                                 f"a diffusion sampler; use an ODE solver ({', '.join(known_solvers())})")
-        default_steps = request.settings.steps if request.edit is not None else DEFAULT_FLOW_STEPS
+        default_steps = request.settings_steps if request.edit is not None else DEFAULT_FLOW_STEPS
         return Integrator("flow", solver, request.steps or default_steps)
     sampler = request.solver or DEFAULT_DIFFUSION_SAMPLER
     if sampler not in SAMPLERS:

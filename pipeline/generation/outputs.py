@@ -131,20 +131,40 @@ def write_mdm_layout(out_dir: Path, samples: Sequence[Mapping[str, Any]], num_sa
     return {"path": path.name, "layout": "MDM sample/generate.py: motion (R·S, J, 3, F), index rep·S + sample, "
             "padded with the last frame", "num_samples": len(samples) // num_samples, "num_repetitions": num_samples}
 
+def is_our_results_file(path: Path) -> bool:
+    """Whether ``path`` is a results.json this module wrote (a JSON object with our ``version``, the checkpoint, the
+    mode and the list of samples): what makes a folder an earlier sampling output of ours."""
+    try:
+        results = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False
+    return (isinstance(results, dict) and results.get("version") == RESULTS_VERSION and "checkpoint" in results
+            and "mode" in results and isinstance(results.get("samples"), list))
+
+
 def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
-    """Create ``out_dir``; refuse one with files unless ``overwrite``, which removes an earlier run's outputs
-    (results.json, index.html and sample_NNN folders) only."""
+    """Create ``out_dir``; refuse one with files unless ``overwrite``, which replaces an earlier sampling output of
+    ours only (its results.json is ours: :func:`is_our_results_file`): it removes that run's results.json, MDM files,
+    sample_NNN folders and index.html, the page only when it is ours. Anything else there (another tool's
+    index.html included) refuses the overwrite before anything is removed."""
+    from pipeline.generation.browse import is_our_page
+
     out_dir.mkdir(parents=True, exist_ok=True)
     existing = [p for p in out_dir.iterdir()]
     if not existing:
         return
     if not overwrite:
         raise SamplingError(f"{out_dir} is not empty: choose a new output folder or pass overwrite")
-    ours = [p for p in existing if p.name in (RESULTS_FILE, *MDM_RESULTS_FILES, BROWSE_PAGE)
-            or (p.is_dir() and _SAMPLE_DIR_PATTERN.match(p.name))]
+    if not is_our_results_file(out_dir / RESULTS_FILE):
+        raise SamplingError(f"{out_dir} is not an earlier sampling output (no {RESULTS_FILE} written by this project): "
+                            "overwrite replaces only those; choose a new output folder")
+    ours = [p for p in existing if not p.is_symlink() and (
+        p.name in (RESULTS_FILE, *MDM_RESULTS_FILES) or (p.name == BROWSE_PAGE and is_our_page(p))
+        or (p.is_dir() and _SAMPLE_DIR_PATTERN.match(p.name)))]
     others = sorted(p.name for p in set(existing) - set(ours))
     if others:
-        raise SamplingError(f"{out_dir} holds files that are not sampling outputs ({others[:5]}): not overwriting")
+        raise SamplingError(f"{out_dir} holds files that are not sampling outputs of ours ({others[:5]}): "
+                            "not overwriting")
     for path in ours:
         shutil.rmtree(path) if path.is_dir() else path.unlink()
 

@@ -96,7 +96,8 @@ class SampleRequest:
     num_samples: int = 1
     """Samples per prompt (without prompts: in total, unconditional); composition: sequences."""
     steps: int | None = None
-    """Solver steps; null: 10 (flow), the edit settings' 30 (flow edits), every training step (diffusion)."""
+    """Solver steps; null: 10 (flow), the edit settings' (flow edits: paper 30; reference-debug 100, interpolation
+    1), every training step (diffusion)."""
     solver: str | None = None
     """Flow: euler (default), midpoint, heun, rk4 or a torchdiffeq method such as dopri5; diffusion: ddpm
     (default) or ddim."""
@@ -125,7 +126,8 @@ class SampleRequest:
     rewrite_until: float | None = None
     """Flow edits: rewrite the kept part up to this time ς; null: the edit settings'."""
     edit_settings: str = DEFAULT_EDIT_SETTINGS
-    """Flow edits: paper (N = 30 steps, ς = 0.2, guidance 1.0) or reference-debug (MFM edit.py's debug presets)."""
+    """Flow edits: paper (the MFM paper's §4.1: N = 30 steps, ς = 0.2; guidance 1.0) or reference-debug (MFM
+    edit.py's debug presets: 100 steps, interpolation 1)."""
     mdm_results: bool = False
     """Also write MDM's results.npy (+ results.txt, results_len.txt) for MDM's render/SMPL scripts."""
     video: bool = True
@@ -254,6 +256,12 @@ class SampleRequest:
         if self.rewrite_until is not None:
             return float(self.rewrite_until)
         return self.settings.rewrite_time(EDIT_PRESETS[self.edit] or "joints")
+
+    @property
+    def settings_steps(self) -> int:
+        """The edit settings' Euler steps for this edit's preset (reference-debug's interpolation: 1, as MFM's
+        edit.py); an explicit ``steps`` wins over it."""
+        return self.settings.steps_for(EDIT_PRESETS[self.edit] or "joints")
 
     def guidance_for(self, trained: TrainedModel) -> float:
         """The guidance scale: as given, else the edit settings' for a flow edit, else the diffusion baseline's own

@@ -46,7 +46,7 @@ from mfm.skeleton import get_skeleton
 from mfm.text import MDM_CONTEXT_LENGTH, OPENAI_VIT_B_32_SHA256
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
-from pipeline.training.run_folder import check_run_folder
+from pipeline.training.run_folder import check_run_folder, write_run_marker
 from preprocess.shards import feature_spec
 
 logger = logging.getLogger(__name__)
@@ -149,6 +149,7 @@ def convert_checkpoint(request: ConversionRequest) -> Path:
     config_dict["data"].update(manifest=str(request.source), window=REFERENCE_WINDOW)
     config_dict["train"].update(out_dir=str(request.out), objective="flow" if request.kind == "mfm" else "diffusion",
                                 diffusion="mdm")
+    write_run_marker(request.out, written_by="pipeline/training/convert.py")  # a run folder of ours, like a training's
     folder = ckpt.save_checkpoint(
         ckpt.checkpoints_dir(request.out), step,
         model_state=model.state_dict(), ema_state=None, optimizer_state={}, scheduler_state=None,

@@ -93,7 +93,7 @@ from pipeline.data.stream import (
 from pipeline.distributed import Dist
 from pipeline.training.loss_scaling import LossScaler
 from pipeline.training.reporting import MetricsSink, require_tensorboard
-from pipeline.training.run_folder import RunFolderError, check_run_folder
+from pipeline.training.run_folder import RunFolderError, check_run_folder, write_run_marker
 from pipeline.training.validation import Validator, build_validator, has_val_split
 
 logger = logging.getLogger(__name__)
@@ -936,10 +936,12 @@ class Trainer:
         return {"loss_scale": self.loss_scaler.get_scale(), "scaler_skips": self.scaler_skips}
 
     def _write_run_files(self) -> None:
-        """config.yaml (the resolved config) and shard_report.json (what verification found and skipped); written
-        only once the resume was accepted, so a refused resume leaves the run's files as they were."""
+        """The run marker first (mfm-run.json, unless there: from then on the folder is a run of ours, also for a run
+        of an earlier version resumed here), then config.yaml (the resolved config) and shard_report.json (what
+        verification found and skipped); written only once the resume was accepted, so a refused resume leaves the
+        run's files as they were."""
         if self.dist.is_main:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
+            write_run_marker(self.out_dir, written_by="pipeline/training/trainer.py")
             (self.out_dir / "config.yaml").write_text(yaml.safe_dump(to_dict(self.cfg), sort_keys=False))
             (self.out_dir / "shard_report.json").write_text(json.dumps(self.shard_report, indent=1) + "\n")
         self.dist.barrier()

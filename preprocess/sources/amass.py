@@ -6,7 +6,9 @@ Each ``.npz`` holds ``poses`` (T, 156) axis-angle (root, 21 body joints, 30 hand
 model, which is licensed and cannot ship here: pass ``body_model=`` either one ``model.npz`` (used for
 every clip) or a folder holding ``male/model.npz`` and ``female/model.npz`` (the ``body_models/smplh``
 folder of HumanML3D's instructions: "Extended SMPL+H model used in AMASS", mano.is.tue.mpg.de). As in
-HumanML3D, male clips use the male model and every other clip the female one.
+HumanML3D, male clips use the male model and every other clip the female one. A body model is read as plain
+numeric arrays; a pickled one (a ``.pkl``, or an ``.npz`` holding Python objects) is refused unless the option
+``unpickle_body_model=true`` says the file is trusted: unpickling runs whatever code the file carries.
 
 Joints, per frame (what human_body_prior's ``BodyModel(...).Jtr + trans`` gives for the body joints):
 rest joints ``J = J_regressor @ (v_template + shapedirs . betas[:10])`` (the joints are linear in the
@@ -141,13 +143,26 @@ class BodyJointModel:
         return positions + np.asarray(trans, dtype=np.float64)[:, None, :]
 
 
-def load_body_model(path: str | Path) -> BodyJointModel:
+UNPICKLE_OPTION = "unpickle_body_model"
+UNPICKLE_RISK = (
+    "unpickling runs whatever code the file carries, with your permissions, so it is never done by default. If the "
+    f"file is your own copy of the licensed model from mano.is.tue.mpg.de, pass --source-option {UNPICKLE_OPTION}=true "
+    "(only for a file from a source you trust), or convert it once to a plain model.npz of numeric arrays"
+)
+
+
+def load_body_model(path: str | Path, *, unpickle: bool = False) -> BodyJointModel:
     """Read an SMPL-H ``model.npz`` (v_template (V, 3), shapedirs (V, 3, >=10), J_regressor (52, V),
-    dense or a pickled scipy sparse matrix, kintree_table (2, 52)). Errors name the file and the key."""
+    kintree_table (2, 52)) of plain numeric arrays. Errors name the file and the key.
+
+    Pickled models (a ``.pkl``, or an ``.npz`` whose J_regressor is a pickled scipy sparse matrix, as some
+    conversions store it) are read only with ``unpickle=True`` (source option ``unpickle_body_model``): unpickling a
+    file runs any code it carries, so without the opt-in such a file is refused with a ValueError naming the risk,
+    before anything in it is unpickled."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"body model {path} not found. {BODY_MODEL_HELP}")
-    arrays = _read_model_arrays(path)
+    arrays = _read_model_arrays(path, unpickle=unpickle)
     v_template = arrays["v_template"]
     shapedirs = arrays["shapedirs"]
     regressor = arrays["J_regressor"]
@@ -175,11 +190,13 @@ def load_body_model(path: str | Path) -> BodyJointModel:
     )
 
 
-def _read_model_arrays(path: Path) -> dict[str, np.ndarray]:
+def _read_model_arrays(path: Path, *, unpickle: bool) -> dict[str, np.ndarray]:
     keys = ("v_template", "shapedirs", "J_regressor", "kintree_table")
     if path.suffix == ".npy":
         raise ValueError(f"{path}: a .npy file holds one array, not a body model. {BODY_MODEL_HELP}")
     if path.suffix == ".pkl":
+        if not unpickle:
+            raise ValueError(f"{path}: a .pkl body model is a Python pickle; {UNPICKLE_RISK}")
         return _read_pickled_model(path, keys)
     try:
         with np.load(path, allow_pickle=False) as data:
@@ -190,8 +207,11 @@ def _read_model_arrays(path: Path) -> dict[str, np.ndarray]:
     except ValueError as err:
         if "allow_pickle" not in str(err):
             raise
-    # Some conversions store J_regressor as a pickled scipy sparse matrix. The file is the user's own
-    # licensed model, so it is trusted to be unpickled.
+    # Pickled content: an object array (some conversions store J_regressor as a pickled scipy sparse matrix) or a
+    # pickle under an .npz name. Only on the user's explicit opt-in (see UNPICKLE_RISK).
+    if not unpickle:
+        raise ValueError(f"{path}: the body model holds pickled Python objects (not plain numeric arrays); "
+                         f"{UNPICKLE_RISK}")
     loaded = np.load(path, allow_pickle=True)
     if not isinstance(loaded, np.lib.npyio.NpzFile):  # a pickle or .npy under another name
         raise ValueError(f"{path}: not an SMPL-H model.npz (it holds a {type(loaded).__name__}). {BODY_MODEL_HELP}")
@@ -204,8 +224,9 @@ def _read_model_arrays(path: Path) -> dict[str, np.ndarray]:
 
 
 def _read_pickled_model(path: Path, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
-    """An SMPL/SMPL-H ``.pkl`` (the user's own licensed file, trusted to unpickle). The MANO site's
-    ``SMPLH_*.pkl`` hold chumpy arrays: without the chumpy package they cannot be read, which is said plainly."""
+    """An SMPL/SMPL-H ``.pkl``, read only on the user's opt-in (``unpickle_body_model``: unpickling runs the code a
+    file carries). The MANO site's ``SMPLH_*.pkl`` hold chumpy arrays: without the chumpy package they cannot be
+    read, which is said plainly."""
     import pickle
 
     try:
@@ -416,7 +437,9 @@ class AMASSSource:
 
     Options: ``body_model`` (required), ``captions`` (required: index.csv, JSON or CSV), ``texts_dir``
     and ``split_dir`` (index mode; default beside index.csv), ``mirror`` (index mode, default False),
-    ``splits`` (which to list), ``default_split`` (index mode: split of an id in no split file).
+    ``splits`` (which to list), ``default_split`` (index mode: split of an id in no split file),
+    ``unpickle_body_model`` (default False: a pickled body model, ``.pkl`` or an ``.npz`` holding Python objects, is
+    refused, because unpickling runs the code the file carries; True reads it, for a file you trust).
     """
 
     name = "amass"
@@ -433,6 +456,7 @@ class AMASSSource:
         mirror: bool | str = False,
         splits: str | list[str] | tuple[str, ...] = SPLIT_NAMES,
         default_split: str = "train",
+        unpickle_body_model: bool | str = False,
     ) -> None:
         if body_model is None:
             raise ValueError(f"amass: no body model given. {BODY_MODEL_HELP}")
@@ -441,6 +465,7 @@ class AMASSSource:
         self.root = Path(root)
         if not self.root.is_dir():
             raise FileNotFoundError(f"amass: root folder {self.root} does not exist")
+        self.unpickle_body_model = as_bool(unpickle_body_model)
         self.body_models = self._load_body_models(Path(body_model))
         if captions is None:
             raise ValueError(
@@ -475,8 +500,8 @@ class AMASSSource:
             missing = [str(p) for p in needed.values() if not p.is_file()]
             if missing:
                 raise FileNotFoundError(f"amass: body model folder {path} lacks {missing}. {BODY_MODEL_HELP}")
-            return {gender: load_body_model(p) for gender, p in needed.items()}
-        model = load_body_model(path)
+            return {gender: load_body_model(p, unpickle=self.unpickle_body_model) for gender, p in needed.items()}
+        model = load_body_model(path, unpickle=self.unpickle_body_model)
         return {"male": model, "female": model}
 
     # -- protocol ------------------------------------------------------------------------------------

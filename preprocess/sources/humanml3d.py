@@ -28,8 +28,10 @@ the dataset does not ship); caption spans are mapped onto whichever length the r
 ``from``/``to`` are seconds into the clip. As in HumanML3D's own loader, ``0.0#0.0`` (or NaN) means the
 whole clip and anything else a sub-clip ``[from, to)``; ``to = 0`` with ``from > 0`` (which HumanML3D's
 loader turns into an empty clip) is read here as "from ``from`` to the end". A line whose span is not a
-number, negative, or ends before it starts, and a line with tags but no text, is dropped and counted by
-reason (``Clip.dropped_captions``, then the skip report's ``dropped_captions``).
+number, negative, or ends before it starts, a line with tags but no text, and a line of plain text without the
+``#tokens#from#to`` tags (not a HumanML3D caption line: no tokens for the T2M evaluator, and HumanML3D's own loader
+fails on it) is dropped and counted by reason (``Clip.dropped_captions``, then the skip report's
+``dropped_captions``); so is a span too large to be a frame number (``#0.0#1e308``, counted by the processing stage).
 
 Ids: a joint file is ``<id>.npy`` with the id in ``[A-Za-z0-9_-]`` (``000001.npy``, ``M000001.npy``), so the
 file name alone is the id and two files can never share one. Anything else in the joint folder (a
@@ -141,6 +143,7 @@ EMPTY_CAPTION = "empty"  # tags without text (the processing stage counts empty 
 SPAN_NOT_A_NUMBER = "span_not_a_number"  # ``#abc#2.0``, or infinite
 SPAN_NEGATIVE = "span_negative"  # ``#-1#2``
 SPAN_END_NOT_AFTER_START = "span_end_not_after_start"  # ``#5.0#2.0``
+NO_TAGS = "no_tags"  # a caption file line of plain text, without ``#tokens#from#to``
 
 
 class CaptionSpanError(ValueError):
@@ -193,24 +196,29 @@ class CaptionFile:
 
 
 def read_caption_file(path: Path) -> CaptionFile:
-    """The captions of a HumanML3D ``texts/<id>.txt`` file; lines with a malformed span are dropped, counted
-    and logged (file:line). Raises OSError/UnicodeDecodeError if the file cannot be read."""
+    """The captions of a HumanML3D ``texts/<id>.txt`` file; lines with a malformed span, and plain-text lines without
+    the ``#tokens#from#to`` tags, are dropped, counted and logged (file:line). Raises OSError/UnicodeDecodeError if
+    the file cannot be read."""
     captions: list[Caption] = []
     dropped: dict[str, int] = {}
     first = ""
     for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
         if not line.strip():
             continue
-        try:
-            caption = parse_caption_line(line)
-        except CaptionSpanError as err:
-            reason, why = err.reason, str(err)
+        if "#" not in line:
+            reason, why = NO_TAGS, "plain text without the #tokens#from#to tags of a HumanML3D caption line"
             log.warning("%s:%d: caption dropped (%s): %s", path, number, reason, why)
         else:
-            if caption is not None:
-                captions.append(caption)
-                continue
-            reason, why = EMPTY_CAPTION, "no caption text"
+            try:
+                caption = parse_caption_line(line)
+            except CaptionSpanError as err:
+                reason, why = err.reason, str(err)
+                log.warning("%s:%d: caption dropped (%s): %s", path, number, reason, why)
+            else:
+                if caption is not None:
+                    captions.append(caption)
+                    continue
+                reason, why = EMPTY_CAPTION, "no caption text"
         dropped[reason] = dropped.get(reason, 0) + 1
         first = first or f"line {number}: {why}"
     return CaptionFile(captions, dropped, first)
