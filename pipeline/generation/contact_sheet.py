@@ -197,8 +197,8 @@ def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
         run = Path(results["checkpoint"]).parents[1].name  # checkpoints live in RUN/checkpoints/step-XXXXXXXX
         header = (f"generated: {run} step {results['step']}, {results['solver']} {results['steps']} steps, "
                   f"guidance {results['guidance']:g}, seed {results['seed']}")
-        info = {"mode": "generated", **{key: results.get(key) for key in ("checkpoint", "step", "solver", "steps",
-                                                                            "guidance", "seed", "smoothing")}}
+        info = {"mode": "generated", **{key: results[key] for key in ("checkpoint", "step", "solver", "steps",
+                                                                        "guidance", "seed", "smoothing_sigma")}}
         if captions and not request.seconds:
             clips = [DECODERS[request.decode](c.features[: len(m)], skeleton) for c, m in zip(captions, motions)]
             info["against_dataset_clips"] = compare_with_clips(motions, clips, skeleton,
