@@ -29,7 +29,8 @@ holds them, and (--watch) checkpoints deleted by training (train.keep_last) befo
 pruned between two --once jobs is reported too). Keep checkpoints for the evaluator with train.keep_last=0 (or a
 value that covers the time between evaluator runs), or run ``--watch`` alongside training.
 Exit code: 0 all done (every unit evaluated, now or before), 3 some units skipped because other live jobs hold them
-and have not finished them (run again later), 2 bad settings, a missing evaluator or checkpoint, 143 on SIGTERM
+and have not finished them (run again later), 2 bad settings, a missing evaluator or checkpoint, test data that does
+not verify or is not the test set of the run's earlier results (data.allow_other_test_set=true), 143 on SIGTERM
 (claims released), 1 other errors. Pruned checkpoints are reported, not an error (they cannot be evaluated again).
 The results folder must be new, empty or an evaluation folder of ours (mfm-eval.json, or one an earlier version
 wrote); another tool's folder (its index.html, plots/) is refused with exit code 2 before anything is written.
@@ -66,7 +67,7 @@ from pipeline.evaluation.job import (
     summary_line,
 )
 from pipeline.evaluation.spaces import EvaluationError, EvaluatorUnavailable
-from pipeline.evaluation.store import EvalFolderError
+from pipeline.evaluation.store import EvalFolderError, MixedTestSetError
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -117,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
                 count = job.watch(args.watch, once=args.once)
                 dist.print0(f"{count} unit(s) evaluated by this job")
                 summary = job.summary(count)
-        except (EvaluatorUnavailable, EvaluationError, EvalFolderError, FileNotFoundError) as exc:
+        except (EvaluatorUnavailable, EvaluationError, EvalFolderError, MixedTestSetError, FileNotFoundError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         dist.print0("wall time per phase: " + ", ".join(f"{k} {v:.2f} s" for k, v in job.timings.items()))

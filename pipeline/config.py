@@ -72,6 +72,11 @@ class DataConfig:
     non-finite features) is left out of its batch, counted and logged, deterministically (exact resume holds); a
     resume after a shard went bad finishes the checkpoint's epoch with its plan without that shard's records and
     plans later epochs without it (logged as a warning). off: no checks before training."""
+    allow_external_shards: bool = False
+    """false: every shard path in the manifest must be a relative path under the manifest's own folder or URL; an
+    absolute path, a URL (``file://``, another host or scheme) or a '..' segment is refused before anything is read
+    (a manifest fetched from elsewhere could otherwise make the job read any local file). true: read such shards
+    where they point (a ``pipe:`` command is refused either way)."""
     caption_policy: Literal["random", "first"] = "random"
     """Which of a motion's captions a visit uses: a random one (training) or always the first (debugging)."""
     retries: int = 3

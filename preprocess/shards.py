@@ -67,7 +67,12 @@ from preprocess.processing import (
 
 log = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""The manifest format this code writes. 2: ``dataset_id`` covers the whole ``splits`` section
+(:func:`derive_dataset_id`)."""
+READABLE_FORMAT_VERSIONS = (1, 2)
+"""Manifest formats this code reads. A format-1 manifest keeps its id, checked by the rule it was built with (the
+files' sha256s only): rebuilding it gives a format-2 manifest with another id."""
 MANIFEST_NAME = "manifest.json"
 SPLIT_ORDER = ("train", "val", "test")
 SHARD_FORMATS = ("tar", "parquet")
@@ -455,9 +460,54 @@ def feature_spec(skeleton: Skeleton, compat: bool) -> dict[str, Any]:
     }
 
 
-def dataset_id(shards: Iterable[ShardInfo]) -> str:
-    """sha256 over the sorted sha256s of every data file (tar and Parquet) the manifest lists."""
-    return hashlib.sha256("\n".join(sorted(s.sha256 for s in shards)).encode("ascii")).hexdigest()
+def derive_dataset_id(manifest: Mapping[str, Any]) -> str:
+    """The dataset id of a manifest, derived from what it identifies; the builder writes it and every reader derives
+    it again (:func:`dataset_id_problem`), so an edited manifest never passes under the id of the data it was built
+    for.
+
+    Format 2: sha256 of the canonical JSON (sorted keys, no spaces) of ``{"format_version": 2, "splits": ...}``, i.e.
+    which files each split lists with their paths, sizes, sha256s and record counts, and each split's totals and clip
+    lengths. Format 1 (kept for datasets built before): sha256 over the sorted sha256s of every listed file, joined by
+    newlines; it does not cover which split lists a file, nor counts or lengths. Not covered by either: feature spec,
+    normalisation and text encoder (checkpoints record and compare those themselves), and a manifest whose shards,
+    hashes and id were all rewritten consistently (only comparing the id with an earlier result's shows that)."""
+    version = manifest.get("format_version")
+    splits = manifest.get("splits")
+    if version == 1:
+        listed = [entry for split in (splits.values() if isinstance(splits, Mapping) else ())
+                  if isinstance(split, Mapping) for kind in ("shards", "parquet") for entry in split.get(kind) or ()]
+        hashes = sorted(str(e.get("sha256")) if isinstance(e, Mapping) else json.dumps(e) for e in listed)
+        return hashlib.sha256("\n".join(hashes).encode("utf-8")).hexdigest()
+    covered = {"format_version": version, "splits": splits}
+    text = json.dumps(covered, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
+def dataset_id_problem(manifest: Mapping[str, Any]) -> str | None:
+    """Why the manifest's stored ``dataset_id`` cannot be trusted (it is not the one derived from its shard list:
+    the manifest was edited after the build), or None when it matches."""
+    stored = manifest.get("dataset_id")
+    derived = derive_dataset_id(manifest)
+    if stored == derived:
+        return None
+    shown = f"{stored[:16]}…" if isinstance(stored, str) and stored else repr(stored)
+    return (f"dataset_id {shown} is not the id derived from its shard list ({derived[:16]}…): the manifest was "
+            "edited after it was built")
+
+
+def shard_path_problem(path: Any) -> str | None:
+    """Why a manifest's shard path does not name a file under the manifest's own folder ("is absolute", "is a URL",
+    "leaves the manifest's folder ('..')", "is not a relative path"), or None for a plain relative path. Both
+    separators count: a server or filesystem may take a backslash for one."""
+    if not isinstance(path, str) or not path:
+        return "is not a relative path"
+    if path.startswith(("/", "\\")) or os.path.isabs(path) or re.match(r"^[A-Za-z]:", path):
+        return "is absolute"
+    if re.match(r"^[A-Za-z][A-Za-z0-9+.-]+:", path):
+        return "is a URL"
+    if ".." in re.split(r"[/\\]", path):
+        return "leaves the manifest's folder ('..')"
+    return None
 
 
 def manifest_json(manifest: Mapping[str, Any]) -> str:
@@ -501,9 +551,9 @@ _REQUIRED_KEYS = ("format_version", "dataset_id", "builder", "feature_spec", "no
 def load_manifest(path: str | Path, *, verify: str = "size") -> dict[str, Any]:
     """Read and check a dataset's manifest. ``path``: the dataset folder or its ``manifest.json``.
 
-    ``verify``: ``"none"``, ``"size"`` (every listed file exists with its recorded size; the default, a
-    stat per file) or ``"sha256"`` (also re-hash every file). Raises :class:`ManifestError` naming the
-    file and the problem.
+    ``verify``: ``"none"``, ``"size"`` (the stored ``dataset_id`` is the one derived from the shard list, and every
+    listed file is a relative path under the dataset folder and exists with its recorded size; the default, a stat per
+    file) or ``"sha256"`` (also re-hash every file). Raises :class:`ManifestError` naming the file and the problem.
     """
     path = Path(path)
     file = path / MANIFEST_NAME if path.is_dir() else path
@@ -516,8 +566,9 @@ def load_manifest(path: str | Path, *, verify: str = "size") -> dict[str, Any]:
     if not isinstance(manifest, dict):
         raise ManifestError(f"{file}: a manifest must be a JSON object")
     version = manifest.get("format_version")
-    if version != FORMAT_VERSION:
-        raise ManifestError(f"{file}: format_version {version!r}, this code reads version {FORMAT_VERSION}; "
+    if version not in READABLE_FORMAT_VERSIONS:
+        raise ManifestError(f"{file}: format_version {version!r}, this code reads versions "
+                            f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))}; "
                             "rebuild the dataset with this version of preprocess/build_shards.py")
     missing = [k for k in _REQUIRED_KEYS if k not in manifest]
     if missing:
@@ -529,6 +580,9 @@ def load_manifest(path: str | Path, *, verify: str = "size") -> dict[str, Any]:
     if verify not in ("none", "size", "sha256"):
         raise ValueError(f"verify must be 'none', 'size' or 'sha256', got {verify!r}")
     if verify != "none":
+        problem = dataset_id_problem(manifest)
+        if problem:
+            raise ManifestError(f"{file}: {problem}; rebuild the dataset")
         verify_shards(manifest, file.parent, check_sha256=verify == "sha256")
     return manifest
 
@@ -544,6 +598,10 @@ def verify_shards(manifest: Mapping[str, Any], root: str | Path, *, check_sha256
     the first bad file otherwise."""
     root = Path(root)
     for entry in manifest_files(manifest):
+        problem = shard_path_problem(entry.get("path"))
+        if problem:
+            raise ManifestError(f"{root / MANIFEST_NAME}: shard path {entry.get('path')!r} {problem}; a manifest lists "
+                                "files under its own folder")
         file = root / entry["path"]
         if not file.is_file():
             raise ManifestError(f"{file}: listed in the manifest but missing")
@@ -1105,9 +1163,9 @@ def _assemble_manifest(config: BuildConfig, skeleton: Skeleton, text_encoder, fi
         mean, std = first.train_stats.mean_std(FeatureLayout(skeleton))
         normalization = {"mean": mean.tolist(), "std": std.tolist(), "split": "train",
                          "num_frames": first.train_stats.count, "rule": RECOMPUTED_RULE, "source": "recomputed"}
-    return {
+    manifest = {
         "format_version": FORMAT_VERSION,
-        "dataset_id": dataset_id(ShardInfo(**e) for e in manifest_files({"splits": splits})),
+        "dataset_id": "",  # derived below, from the splits (its place in the file stays second)
         "builder": {
             "command": "python -m preprocess.build_shards " + shlex.join(config.command()),
             "version": _builder_version(),
@@ -1125,3 +1183,5 @@ def _assemble_manifest(config: BuildConfig, skeleton: Skeleton, text_encoder, fi
         "splits": splits,
         "skip_report": _skip_report(first, config.root),
     }
+    manifest["dataset_id"] = derive_dataset_id(manifest)
+    return manifest

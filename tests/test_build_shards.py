@@ -69,8 +69,9 @@ def test_synthetic_cli_artifacts(synthetic_build):
     assert "--out" not in manifest["builder"]["command"] and "--workers" not in manifest["builder"]["command"]
     assert manifest["builder"]["options"]["source_options"] == {
         "corrupt": "nan,bad_shape,short,long,no_captions", "num_clips": 40, "seed": 3}
-    every_file = [e for s in splits.values() for e in s["shards"] + s["parquet"]]
-    assert manifest["dataset_id"] == hashlib.sha256("\n".join(sorted(e["sha256"] for e in every_file)).encode()).hexdigest()
+    # The id covers the splits section (docs/dataset-format.md): which files, in which split, with their counts.
+    covered = json.dumps({"format_version": 2, "splits": splits}, sort_keys=True, separators=(",", ":"))
+    assert manifest["format_version"] == 2 and manifest["dataset_id"] == hashlib.sha256(covered.encode()).hexdigest()
 
     stats = FeatureStats()
     action_classes = set()

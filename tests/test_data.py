@@ -50,6 +50,7 @@ from pipeline.data.stream import (
     split_shards,
     verify_shards,
 )
+from preprocess.shards import FORMAT_VERSION, ManifestError, derive_dataset_id
 
 DIM, TEXT_DIM, MAX_TOKENS = 5, 4, 3
 UNEVEN = (7, 3, 11, 5, 9, 4, 6, 8)  # 8 shards, 53 motions
@@ -156,8 +157,8 @@ def write_fixture_dataset(root: Path, shard_sizes=UNEVEN, *, split="train", toke
         shards.append(_file_entry(root, tar_rel, size))
         parts.append(_file_entry(root, pq_rel, size))
     manifest = {
-        "format_version": 1,
-        "dataset_id": hashlib.sha256("".join(sorted(s["sha256"] for s in shards)).encode()).hexdigest(),
+        "format_version": FORMAT_VERSION,
+        "dataset_id": "",  # derived below, as the builder does
         "builder": {"command": "fixture", "version": "0", "options": {}},
         "feature_spec": {"representation": "guo", "skeleton": "humanml3d", "dim": DIM, "num_joints": 22,
                          "fps": 20.0, "unit": "m", "compat": True, "groups": {}},
@@ -170,6 +171,7 @@ def write_fixture_dataset(root: Path, shard_sizes=UNEVEN, *, split="train", toke
                            "shards": shards, "parquet": parts}},
         "skip_report": {"total": 0, "by_reason": {}, "items": []},
     }
+    manifest["dataset_id"] = derive_dataset_id(manifest)
     path = root / "manifest.json"
     path.write_text(json.dumps(manifest, indent=1))
     return path
@@ -631,9 +633,14 @@ def test_exclude_shards_must_name_known_shards(dataset):
 # ----------------------------------------------------------------------------------------------------------
 
 
-def edit_manifest(manifest: Path, change) -> None:
+def edit_manifest(manifest: Path, change, *, resign: bool = True) -> None:
+    """Apply ``change`` to the manifest's JSON. ``resign``: derive its dataset id again, as a builder writing these
+    numbers would (so that what is tested is the check of the numbers themselves, not the id's); without, the id
+    stays the one of the manifest before the edit."""
     data = json.loads(manifest.read_text())
     change(data)
+    if resign:
+        data["dataset_id"] = derive_dataset_id(data)
     manifest.write_text(json.dumps(data, indent=1))
 
 
@@ -725,6 +732,129 @@ def test_ground_truth_from_a_tampered_test_shard_is_refused(tmp_path):
         build_ground_truth(manifest, "test", max_length=24, unit_length=4)
     with pytest.raises(ShardVerificationError, match=r"shard-00001\.tar"):  # tools read through the same check
         list(iter_motions(manifest, "test"))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The dataset id is derived from the shard list on every read; unlisted files (issue 24, item 1)
+# ----------------------------------------------------------------------------------------------------------
+
+
+def drop_last_shard(manifest: Path, sizes, *, resign: bool) -> None:
+    """The edit of issue 24.1: the last shard's entries (tar and Parquet) removed from the split, its totals and
+    lengths made to agree, the shard files left on disk."""
+    def change(m):
+        entry = m["splits"]["train"]
+        for key in ("shards", "parquet"):
+            entry[key].pop()
+        kept = sum(sizes[:-1])
+        entry["lengths"] = entry["lengths"][:kept]
+        entry["num_motions"], entry["num_frames"] = kept, sum(entry["lengths"])
+
+    edit_manifest(manifest, change, resign=resign)
+
+
+def test_a_removed_shard_entry_is_reported_by_its_file_and_by_the_dataset_id(tmp_path):
+    """Issue 24.1: with totals and lengths fixed and the dataset id left as it was, strict verification passed and
+    tolerant said verified, samples_lost 0, while 2 of the clips were never read."""
+    sizes = (4, 5, 2)
+    manifest = write_fixture_dataset(tmp_path, sizes)
+    built_id = json.loads(manifest.read_text())["dataset_id"]
+    drop_last_shard(manifest, sizes, resign=False)
+    with pytest.raises(ShardVerificationError, match=r"manifest\.json: split 'train': its folder holds 2 file\(s\) "
+                                                     r"the manifest does not list \(train/part-00002\.parquet, "
+                                                     r"train/shard-00002\.tar\)"):
+        verify_shards(manifest, "train", mode="strict")
+    report = verify_shards(manifest, "train", mode="tolerant")
+    assert report.unlisted_files == ("train/part-00002.parquet", "train/shard-00002.tar") and not report.verified
+    assert report.dataset_id != built_id and any("not the id derived" in p for p in report.manifest_problems)
+    written = report.as_dict()  # what shard_report.json and results record
+    assert written["verified"] is False and written["unlisted_files"] == list(report.unlisted_files)
+    assert written["unlisted_files_checked"] is True and written["dataset_id"] == report.dataset_id
+
+    # The files gone too: the stored id is what gives the edit away.
+    for name in report.unlisted_files:
+        (tmp_path / name).unlink()
+    with pytest.raises(ShardVerificationError, match=rf"manifest\.json: dataset_id {built_id[:16]}… is not the id "
+                                                     "derived from its shard list"):
+        verify_shards(manifest, "train", mode="strict")
+    assert open_manifest(manifest).dataset_id == report.dataset_id != open_manifest(manifest).stored_dataset_id
+
+    # Edited and re-signed consistently: it verifies, under another id than the dataset it was built as.
+    edit_manifest(manifest, lambda m: None)
+    assert verify_shards(manifest, "train", mode="strict").verified
+    assert open_manifest(manifest).dataset_id == report.dataset_id != built_id
+
+
+def test_a_resigned_shard_hash_is_refused_under_the_old_id_and_changes_it_when_resigned(tmp_path):
+    """Issue 24.1: a tampered test shard whose sha256 was re-signed in the manifest (the id left as it was) scored
+    with data_verified true under the original id."""
+    from pipeline.evaluation.spaces import UnverifiedGroundTruth, build_ground_truth
+
+    sizes = (3, 4)
+    manifest = write_fixture_dataset(tmp_path, sizes, split="test")
+    original = open_manifest(manifest).dataset_id
+    rewrite_tar(manifest, sizes, 1, lambda records: [r.__setitem__("features", r["features"] * 50) for r in records],
+                split="test", update_manifest=False)
+    entry = _file_entry(tmp_path, "test/shard-00001.tar", 4)
+    edit_manifest(manifest, lambda m: m["splits"]["test"]["shards"].__setitem__(1, entry), resign=False)
+    with pytest.raises(UnverifiedGroundTruth, match=rf"dataset_id {original[:16]}… is not the id derived"):
+        build_ground_truth(manifest, "test", max_length=24, unit_length=4)
+
+    edit_manifest(manifest, lambda m: None)  # the id re-signed as well: nothing in the manifest is inconsistent
+    gt = build_ground_truth(manifest, "test", max_length=24, unit_length=4)
+    assert gt.verification["verified"] and gt.dataset_id == json.loads(manifest.read_text())["dataset_id"] != original
+
+
+def test_the_dataset_id_covers_which_split_lists_a_file_and_the_counts(tmp_path):
+    """Format 2: moving a shard's entry to another split, or changing a count or a length, changes the derived id
+    (format 1's id, over the sha256s alone, did not change)."""
+    manifest = write_fixture_dataset(tmp_path, (4, 5))
+    data = json.loads(manifest.read_text())
+    built = derive_dataset_id(data)
+    moved = json.loads(manifest.read_text())
+    moved["splits"]["test"] = {"num_motions": 5, "lengths": moved["splits"]["train"]["lengths"][4:],
+                               "shards": [moved["splits"]["train"]["shards"].pop()], "parquet": []}
+    counted = json.loads(manifest.read_text())
+    counted["splits"]["train"]["shards"][0]["num_motions"] = 3
+    longer = json.loads(manifest.read_text())
+    longer["splits"]["train"]["lengths"][0] += 1
+    assert len({built, derive_dataset_id(moved), derive_dataset_id(counted), derive_dataset_id(longer)}) == 4
+    legacy = {**data, "format_version": 1}
+    assert derive_dataset_id(legacy) == derive_dataset_id({**moved, "format_version": 1})
+
+
+def test_a_format_1_manifest_keeps_its_id_checked_by_its_own_rule(tmp_path):
+    """Datasets built before format 2 are read as they are: their id (the sorted sha256s of the files) is derived
+    again by that rule, so they keep it (and the evaluator folders and checkpoints keyed by it), and a re-signed
+    shard hash under the old id is refused as in format 2."""
+    manifest = write_fixture_dataset(tmp_path, (4, 5))
+    data = json.loads(manifest.read_text())
+    hashes = sorted(e["sha256"] for e in data["splits"]["train"]["shards"] + data["splits"]["train"]["parquet"])
+    data.update(format_version=1, dataset_id=hashlib.sha256("\n".join(hashes).encode()).hexdigest())
+    manifest.write_text(json.dumps(data))
+    assert verify_shards(manifest, "train", mode="strict").verified
+    assert open_manifest(manifest).dataset_id == data["dataset_id"]
+    rewrite_tar(manifest, (4, 5), 1, lambda records: records[0].__setitem__("features", records[0]["features"] * 2),
+                update_manifest=False)
+    entry = _file_entry(tmp_path, "train/shard-00001.tar", 5)
+    edit_manifest(manifest, lambda m: m["splits"]["train"]["shards"].__setitem__(1, entry), resign=False)
+    with pytest.raises(ShardVerificationError, match=rf"dataset_id {data['dataset_id'][:16]}… is not the id derived"):
+        verify_shards(manifest, "train", mode="strict")
+
+
+def test_a_local_manifest_may_not_point_outside_its_folder(tmp_path):
+    """Issue 24.7 for a local manifest: an absolute path or a '..' escape is refused before any file is opened,
+    unless allowed (data.allow_external_shards)."""
+    manifest = write_fixture_dataset(tmp_path / "ds", (4, 5))
+    outside = tmp_path / "elsewhere.tar"
+    (tmp_path / "ds" / "train" / "shard-00001.tar").rename(outside)
+    for path in (str(outside), outside.as_uri(), "../elsewhere.tar", "train/../../elsewhere.tar"):
+        edit_manifest(manifest, lambda m, path=path: m["splits"]["train"]["shards"][1].__setitem__("path", path))
+        with pytest.raises(ManifestError, match=rf"manifest\.json: shard path '{re.escape(path)}' .*set "
+                                                r"data\.allow_external_shards=true"):
+            verify_shards(manifest, "train", mode="strict")
+        allowed = open_manifest(manifest, allow_external_shards=True)
+        assert verify_shards(allowed, "train", mode="strict").verified  # read where it points, when asked
 
 
 def nan_record_dataset(root: Path, sizes, bad: tuple[int, int]) -> tuple[Path, str]:

@@ -292,10 +292,11 @@ def test_a_missing_cloud_package_names_the_extra(monkeypatch, tmp_path):
     manifest = write_fixture_dataset(tmp_path / "ds", (4, 4))
     edit_manifest(manifest, lambda m: [e.__setitem__("path", "s3://bucket/ds/" + e["path"])
                                        for e in m["splits"]["train"]["shards"]])
+    external = open_manifest(manifest, allow_external_shards=True)  # shards elsewhere than the manifest: asked for
     with pytest.raises(RemoteSupportMissing, match=r"pip install 'motion-flow-matching\[remote\]'"):
-        MotionLoader(manifest, "train", opts())
+        MotionLoader(external, "train", opts())
     with pytest.raises(RemoteSupportMissing, match="s3fs"):
-        verify_shards(manifest, "train")
+        verify_shards(external, "train")
 
 
 @pytest.mark.skipif(importlib.util.find_spec("s3fs") is not None, reason="s3fs is installed here")
@@ -393,6 +394,39 @@ def test_a_shard_that_keeps_failing_gives_up_after_the_retries_naming_it(dataset
     server.faults = {"/train/shard-00001.tar": [503] * 20}
     with pytest.raises(RetriesExhausted, match=r"shard-00001\.tar: verifying the shard failed after 2 retries"):
         verify_shards(f"{base}/manifest.json", "train", mode="tolerant", retry=RetryPolicy(2, 0.01), cache=False)
+
+
+@needs_http
+def test_a_remote_manifest_names_shards_only_under_its_own_url(dataset, http_root, tmp_path):
+    """Issue 24.7: a manifest fetched over http listing file:///... or an absolute local path read the local file.
+    Now every location that does not resolve under the manifest's URL is refused before anything is opened, unless
+    allowed; a pipe: command never."""
+    root, base, server = http_root
+    local = tmp_path / "local" / "shard.tar"  # a local file that would even verify: the shard's own bytes
+    local.parent.mkdir()
+    shutil.copy(root / "train" / "shard-00001.tar", local)
+    port = base.rsplit(":", 1)[1]
+    refused = [str(local), local.as_uri(), "../shard.tar", "%2e%2e/shard.tar", "train/%2E%2E/%2E%2E/x.tar",
+               "train\\..\\..\\x.tar", f"http://localhost:{port}/train/shard-00001.tar", "s3://bucket/shard.tar"]
+    for path in refused:
+        edit_manifest(root / "manifest.json", lambda m, path=path: m["splits"]["train"]["shards"][1].__setitem__("path", path))
+        server.requests.clear()
+        with pytest.raises(ManifestError, match=rf"{re.escape(base)}/manifest\.json: shard path "
+                                                rf"{re.escape(repr(path))} .*data\.allow_external_shards=true"):
+            verify_shards(f"{base}/manifest.json", "train", mode="tolerant")
+        with pytest.raises(ManifestError, match="allow_external_shards"):
+            MotionLoader(f"{base}/manifest.json", "train", opts())
+        assert {p for _, p in server.requests} == {"/manifest.json"}, path  # no shard was asked for
+
+    # Allowed: the local file is read where the manifest points.
+    edit_manifest(root / "manifest.json", lambda m: m["splits"]["train"]["shards"][1].__setitem__("path", str(local)))
+    allowed = open_manifest(f"{base}/manifest.json", allow_external_shards=True)
+    assert split_shards(allowed, "train")[1].url == str(local)
+    assert verify_shards(allowed, "train", mode="strict").verified
+    edit_manifest(root / "manifest.json", lambda m: m["splits"]["train"]["shards"][1].__setitem__(
+        "path", f"pipe:cat {local}"))
+    with pytest.raises(ManifestError, match=r"is a shell command \(pipe:\)"):
+        split_shards(open_manifest(f"{base}/manifest.json", allow_external_shards=True), "train")
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -6,14 +6,18 @@ steps in-process (checkpoints at steps 1 and 2), and a tiny evaluator trained by
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import multiprocessing
 import os
+import re
 import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tarfile
 import time
 from pathlib import Path
 
@@ -283,6 +287,110 @@ def test_table_rows_are_appended_once_and_mirrored_to_parquet(tmp_path):
     assert [r["row_key"] for r in store.table_rows()] == ["a:generated", "a:ground_truth", "b:generated"]
     table = pq.read_table(store.table_parquet).to_pylist()
     assert [r["fid"] for r in table] == [1.5, 0.01, None] and table[2]["accuracy"] == 0.5
+
+
+def _rows_on(dataset_id: str, split: str, key: str) -> list[dict]:
+    return [{"row_key": f"{key}:{kind}", "dataset_id": dataset_id, "split": split, "fid": 1.0}
+            for kind in ("generated", "ground_truth")]
+
+
+def test_one_table_never_holds_two_test_sets(tmp_path):
+    """Issue 24.1: results on two test sets (dataset id, split) in one table read as comparable; the table refuses
+    the second, before its result file is written, and a page over a table an earlier version mixed is refused."""
+    from pipeline.evaluation.store import MixedTestSetError
+    from pipeline.generation.browse import write_eval_index
+
+    store = ResultsStore(tmp_path / "eval")
+    first, second, third = (Unit(f"step-{n:08d}", "euler-10steps-g2.5", f"{n:064x}") for n in (1, 2, 3))
+    store.write_result(first, {"unit": 1}, _rows_on("a" * 64, "test", "1"))
+    store.write_result(second, {"unit": 2}, _rows_on("a" * 64, "test", "2"))  # the same test set: fine
+    for other, message in (({"dataset_id": "b" * 64}, f"refusing to add results on test set {'b' * 16} "),
+                           ({"split": "val"}, "refusing to add results on test set aaaaaaaaaaaaaaaa (split 'val')")):
+        rows = [{**row, **other} for row in _rows_on("a" * 64, "test", "3")]
+        with pytest.raises(MixedTestSetError, match=re.escape(message) + ".*one table never mixes test sets"):
+            store.write_result(third, {"unit": 3}, rows)
+        with pytest.raises(MixedTestSetError):
+            store.append_rows(rows)
+        assert not store.is_done(third) and len(store.table_rows()) == 4
+    assert [d.dataset_id for d in store.scored_data()] == ["a" * 64]
+
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    (mixed / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in _rows_on("a" * 64, "test", "1")
+                                                 + _rows_on("b" * 64, "test", "2")))
+    with pytest.raises(ValueError, match=r"results\.jsonl: results on 2 test sets .*one page never mixes"):
+        write_eval_index(mixed)
+    with pytest.raises(MixedTestSetError, match="written before the table refused a second test set"):
+        ResultsStore(mixed).append_rows(_rows_on("a" * 64, "test", "3"))
+
+
+def _scale_first_record(manifest: Path, shard: str, *, resign_id: bool) -> None:
+    """Scale the features of the first record of ``shard`` in place (same byte count) and re-sign the shard's
+    sha256 in the manifest; ``resign_id``: the dataset id too (a fully consistent manifest)."""
+    from preprocess.shards import derive_dataset_id
+
+    file = manifest.parent / shard
+    with tarfile.open(file) as tar:
+        member = next(m for m in tar.getmembers() if m.name.endswith(".features.npy"))
+        features = np.load(io.BytesIO(tar.extractfile(member).read()))
+    payload = io.BytesIO()
+    np.save(payload, features * 3.0, allow_pickle=False)
+    assert len(payload.getvalue()) == member.size
+    with open(file, "r+b") as handle:
+        handle.seek(member.offset_data)
+        handle.write(payload.getvalue())
+    data = json.loads(manifest.read_text())
+    entry = next(e for e in data["splits"]["test"]["shards"] if e["path"] == shard)
+    entry["sha256"] = hashlib.sha256(file.read_bytes()).hexdigest()
+    if resign_id:
+        data["dataset_id"] = derive_dataset_id(data)
+    manifest.write_text(json.dumps(data))
+
+
+def test_a_run_scored_on_one_test_set_refuses_another_unless_told(text_run, manifest, tmp_path, capsys):
+    """Issue 24.1: a tampered test shard re-signed in the manifest shifted FID while results said data_verified: true
+    under the original dataset id. Re-signed hash only: the ground truth is refused (the id is derived again).
+    Re-signed id too: nothing in the data can tell, but the run's earlier results are on another test set, so the job
+    refuses, unless data.allow_other_test_set=true, and even then never into the same table."""
+    run = tmp_path / "run"
+    shutil.copytree(text_run, run)
+    checkpoint = run / "checkpoints" / "step-00000002"
+    quick = [a for a in _quick_eval_args(random_contrastive_evaluator(manifest, tmp_path / "a.safetensors"), tmp_path)
+             if not a.startswith("output.dir=")]
+    assert evaluate("--checkpoint", str(checkpoint), *quick) == 0  # into the run's own <run>/eval
+    scored_a = ResultsStore(run / "eval").scored_data()
+    assert [d.dataset_id for d in scored_a] == [json.loads(manifest.read_text())["dataset_id"]]
+
+    def tampered_copy(name: str, *, resign_id: bool) -> tuple[Path, list[str]]:
+        """A copy of the data with one test record's features scaled and its shard's sha256 re-signed, and the
+        arguments that evaluate on it (with an evaluator made for the id it is read as)."""
+        copy = tmp_path / name / "manifest.json"
+        shutil.copytree(manifest.parent, copy.parent)
+        _scale_first_record(copy, json.loads(copy.read_text())["splits"]["test"]["shards"][0]["path"],
+                            resign_id=resign_id)
+        evaluator = random_contrastive_evaluator(copy, tmp_path / name / "evaluator.safetensors")
+        return copy, [*(a for a in quick if not a.startswith("evaluator.path=")), f"evaluator.path={evaluator}",
+                      f"data.manifest={copy}"]
+
+    _, on_hash_only = tampered_copy("hash-only", resign_id=False)
+    capsys.readouterr()
+    assert evaluate("--checkpoint", str(checkpoint), *on_hash_only, f"output.dir={tmp_path / 'eval-b'}") == 2
+    assert "is not the id derived from its shard list" in capsys.readouterr().err
+
+    other, on_b = tampered_copy("resigned", resign_id=True)
+    for extra, message in (([], "holds results on test set"), ([f"output.dir={tmp_path / 'eval-b'}"],
+                                                               f"run {run} was evaluated on test set"),
+                           (["data.allow_other_test_set=true"], "one table never mixes test sets")):
+        assert evaluate("--checkpoint", str(checkpoint), *on_b, *extra) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+    assert not (tmp_path / "eval-b" / "results").exists() and ResultsStore(run / "eval").scored_data() == scored_a
+
+    assert evaluate("--checkpoint", str(checkpoint), *on_b, f"output.dir={tmp_path / 'eval-b'}",
+                    "data.allow_other_test_set=true") == 0
+    (result,) = [json.loads(p.read_text()) for p in (tmp_path / "eval-b" / "results").rglob("*.json")]
+    assert result["data"]["dataset_id"] == json.loads(other.read_text())["dataset_id"] != scored_a[0].dataset_id
+    assert result["data"]["data_verified"] is True and result["checkpoint"]["dataset_id"] == scored_a[0].dataset_id
 
 
 def test_ground_truth_items_are_fixed_unit_multiples(manifest):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import re
 import tarfile
 from dataclasses import replace
 from pathlib import Path
@@ -35,6 +36,7 @@ from preprocess.shards import (
     SplitShardWriter,
     TextFeatures,
     build_dataset,
+    derive_dataset_id,
     load_manifest,
     parquet_schema,
 )
@@ -445,6 +447,32 @@ def test_load_manifest_rejects_bad_versions_and_files(built, tmp_path):
     (copy / "manifest.json").write_text(json.dumps({**manifest, "format_version": 99}))
     with pytest.raises(ManifestError, match="format_version 99"):
         load_manifest(copy, verify="none")
+
+
+def test_load_manifest_derives_the_dataset_id_and_keeps_files_under_the_folder(built, tmp_path):
+    """Issue 24, items 1 and 7, on the builder's side: the stored id must be the one derived from the shard list, and
+    every listed file lies under the dataset folder (an absolute path is never opened)."""
+    out, manifest, _, _ = built
+    assert manifest["format_version"] == 2 and manifest["dataset_id"] == derive_dataset_id(manifest)
+    copy = tmp_path / "copy"
+    for rel, data in dataset_bytes(out).items():
+        (copy / rel).parent.mkdir(parents=True, exist_ok=True)
+        (copy / rel).write_bytes(data)
+    edited = json.loads(json.dumps(manifest))
+    edited["splits"]["train"]["shards"][0]["num_motions"] += 1
+    (copy / "manifest.json").write_text(json.dumps(edited))
+    load_manifest(copy, verify="none")  # structure only
+    with pytest.raises(ManifestError, match=rf"manifest\.json: dataset_id {manifest['dataset_id'][:16]}… is not the "
+                                            "id derived from its shard list"):
+        load_manifest(copy)
+    outside = tmp_path / "outside.tar"
+    outside.write_bytes((copy / manifest["splits"]["train"]["shards"][0]["path"]).read_bytes())
+    edited = json.loads(json.dumps(manifest))
+    edited["splits"]["train"]["shards"][0]["path"] = str(outside)
+    edited["dataset_id"] = derive_dataset_id(edited)
+    (copy / "manifest.json").write_text(json.dumps(edited))
+    with pytest.raises(ManifestError, match=rf"shard path '{re.escape(str(outside))}' is absolute"):
+        load_manifest(copy, verify="sha256")
 
 
 def test_token_features_tar_only(tmp_path, encoder):

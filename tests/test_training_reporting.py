@@ -21,6 +21,7 @@ from pipeline.config import ConfigError, TrainConfig, load_config
 from pipeline.data.stream import ShardVerificationError
 from pipeline.distributed import Dist
 from pipeline.training.trainer import Trainer
+from preprocess.shards import derive_dataset_id
 
 STEPS = 6
 VAL_EVERY = 2
@@ -110,6 +111,7 @@ def test_a_manifest_without_val_split_skips_validation_with_one_line(dataset, tm
     manifest = copy_dataset(dataset, tmp_path / "data")
     data = json.loads(manifest.read_text())
     del data["splits"]["val"]
+    data["dataset_id"] = derive_dataset_id(data)  # a dataset built without one
     manifest.write_text(json.dumps(data))
     with caplog.at_level(logging.INFO):
         run = fit(manifest, tmp_path / "run", f"train.val_every={VAL_EVERY}")
@@ -140,6 +142,67 @@ def test_a_bad_val_shard_is_left_out_in_tolerant_mode(dataset, tmp_path, caplog)
         run = fit(manifest, tmp_path / "run", f"train.val_every={VAL_EVERY}", "data.verify=tolerant")
     assert "validation off" in caplog.text and "no usable motion" in caplog.text  # its only shard was bad
     assert sorted(metrics_by_step(run)) == list(range(1, STEPS + 1))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# What the run trained on: every file of the split accounted for, the dataset id derived (issue 24, items 1 and 7)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def without_last_train_shard(dataset: Path, to: Path) -> tuple[Path, list[str]]:
+    """A copy whose manifest no longer lists the last train shard (tar and Parquet entries), with its totals and
+    lengths made to agree and its dataset id left as it was; the files stay in train/."""
+    manifest = copy_dataset(dataset, to)
+    data = json.loads(manifest.read_text())
+    train = data["splits"]["train"]
+    dropped = [train["shards"].pop(), train["parquet"].pop()]
+    kept = train["num_motions"] - dropped[0]["num_motions"]
+    train["lengths"] = train["lengths"][:kept]
+    train["num_motions"], train["num_frames"] = kept, sum(train["lengths"])
+    manifest.write_text(json.dumps(data))
+    return manifest, sorted(entry["path"] for entry in dropped)
+
+
+def test_an_unlisted_train_shard_stops_strict_training_in_one_line(dataset, tmp_path, capsys):
+    manifest, dropped = without_last_train_shard(dataset, tmp_path / "data")
+    run = tmp_path / "run"
+    code = load_launch_script("train").main(["--config", "tiny", f"data.manifest={manifest}", f"train.out_dir={run}"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and f"the manifest does not list ({', '.join(dropped)})" in err[0], err
+    assert not (run / "metrics.jsonl").exists()
+
+
+def test_tolerant_training_reports_unlisted_shards_and_records_the_derived_dataset_id(dataset, tmp_path):
+    """Issue 24.1: the run trained on fewer clips than the folder holds while shard_report.json said verified: true,
+    and its checkpoints carried the id the manifest claimed."""
+    manifest, dropped = without_last_train_shard(dataset, tmp_path / "data")
+    stored = json.loads(manifest.read_text())["dataset_id"]
+    run = fit(manifest, tmp_path / "run", "data.verify=tolerant")
+    report = json.loads((run / "shard_report.json").read_text())
+    assert report["verified"] is False and report["unlisted_files"] == dropped and report["unlisted_files_checked"]
+    assert report["dataset_id"] != stored and any("not the id derived" in p for p in report["manifest_problems"])
+    _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(run) / ckpt.step_dir_name(STEPS))
+    assert state["manifest"]["dataset_id"] == report["dataset_id"]
+
+
+def test_a_train_shard_outside_the_manifests_folder_is_read_only_when_allowed(dataset, tmp_path, capsys):
+    """Issue 24.7: a shard path may not leave the manifest's folder (here an absolute path) unless
+    data.allow_external_shards=true."""
+    manifest = copy_dataset(dataset, tmp_path / "data")
+    data = json.loads(manifest.read_text())
+    entry = data["splits"]["train"]["shards"][0]
+    outside = tmp_path / "elsewhere" / "shard.tar"
+    outside.parent.mkdir()
+    (manifest.parent / entry["path"]).rename(outside)
+    entry["path"] = str(outside)
+    data["dataset_id"] = derive_dataset_id(data)
+    manifest.write_text(json.dumps(data))
+    args = ["--config", "tiny", f"data.manifest={manifest}", f"train.out_dir={tmp_path / 'run'}"]
+    assert load_launch_script("train").main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"shard path '{outside}' is absolute" in err[0] and "data.allow_external_shards" in err[0]
+    run = fit(manifest, tmp_path / "allowed", "data.allow_external_shards=true")
+    assert json.loads((run / "shard_report.json").read_text())["verified"] is True
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -89,8 +89,9 @@ def local_path(location: str) -> str | None:
 def resolve_location(manifest_location: str, relative: str) -> str:
     """A shard path from the manifest, resolved against the manifest's own location (path or URL): a manifest at
     ``s3://bucket/ds/manifest.json`` lists ``train/shard-00000.tar`` at ``s3://bucket/ds/train/shard-00000.tar``.
-    Absolute paths and URLs are kept as they are. The query string or fragment of an HTTP(S) manifest URL (a signed
-    URL) is not carried over to its shards."""
+    Absolute paths and URLs are kept as they are (whether a manifest may name them is the manifest reader's
+    decision: ``pipeline.data.stream.Manifest.shard_location`` refuses them by default). The query string or fragment
+    of an HTTP(S) manifest URL (a signed URL) is not carried over to its shards."""
     if is_url(relative) or os.path.isabs(relative):
         return relative
     if is_url(manifest_location):

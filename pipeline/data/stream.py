@@ -42,19 +42,23 @@ carries its (epoch, index) stamp, which the loader checks.
 
 Verification. Every reader of shards (training, the evaluator's ground truth, evaluator training, tools)
 checks them first with :func:`verify_shards`: the split's totals against its shard counts and lengths, and
-every shard's size, sha256, real record count and record ids (unique in the split), in one read per shard.
-``strict`` refuses a bad shard or an inconsistent manifest naming the file and the reason; ``tolerant``
-leaves bad shards out (``exclude_shards``) and counts everything it found in the report. A shard read and
+every shard's size, sha256, real record count and record ids (unique in the split), in one read per shard; then
+that the split's folders hold no file the manifest does not list (:func:`unlisted_files`, local data), and that
+the manifest's stored dataset id is the one derived from its shard list (``Manifest.dataset_id``: everything
+records the derived id). ``strict`` refuses a bad shard, an unlisted file, an inconsistent manifest or an edited id,
+naming the file or manifest and the reason; ``tolerant`` leaves bad shards out (``exclude_shards``), goes on under the
+derived id, and reports everything it found (``verified`` false). A shard read and
 found good is remembered in a small cache (``pipeline.data.shard_cache``: manifest entry, record ids, and the file's
 size + mtime/ctime/inode, or ETag/generation/Last-Modified for a URL); a later start takes an unchanged shard's
 verdict from it without reading it (``VerificationReport.num_from_cache``).
 
 Where data lives. Shard and manifest locations are local paths or any fsspec URL (``s3://``, ``gs://``,
 ``https://``, ``memory://``, ...; ``pipeline.data.locations``; the cloud packages are the ``remote`` extra). Shard paths
-in the manifest are relative to the manifest's own location. Transient errors (connection reset, timeout, HTTP
-5xx/429) are retried with exponential back-off (``LoaderOptions.retries``/``retry_backoff_s``); a shard read that
-fails half way is re-opened and the records already yielded are passed over (:func:`read_shard`), so the stream,
-and exact resume, are the same as without the failure.
+in the manifest are relative to the manifest's own location; one that leaves it (an absolute path, a URL, '..') is
+refused unless ``allow_external_shards`` (:meth:`Manifest.shard_location`). Transient errors (connection reset,
+timeout, HTTP 5xx/429) are retried with exponential back-off (``LoaderOptions.retries``/``retry_backoff_s``); a shard
+read that fails half way is re-opened and the records already yielded are passed over (:func:`read_shard`), so the
+stream, and exact resume, are the same as without the failure.
 
 Tolerant mode at run time (``LoaderOptions.tolerate_bad_data``). A record that fails to decode or validate
 (e.g. non-finite features) is left out of its batch, counted and logged; it keeps its place in the stream
@@ -91,6 +95,7 @@ import logging
 import os
 import tarfile
 import time
+import urllib.parse
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any, BinaryIO, Callable, Iterable, Iterator, Mapping, Sequence
@@ -116,6 +121,7 @@ from pipeline.data.locations import (  # noqa: F401  (is_url, resolve_location, 
     open_seekable,
     require_support,
     resolve_location,
+    scheme_of,
     wait_before_retry,
 )
 from pipeline.data.shard_cache import RACY_S, VerificationCache
@@ -136,10 +142,13 @@ from pipeline.data.stages import (
     shuffle_buffer_order,
 )
 from preprocess.shards import (
-    FORMAT_VERSION,
     MANIFEST_NAME,
+    READABLE_FORMAT_VERSIONS,
     ManifestError,
+    dataset_id_problem,
+    derive_dataset_id,
     load_manifest,
+    shard_path_problem,
 )
 
 logger = logging.getLogger(__name__)
@@ -169,10 +178,17 @@ STATE_VERSION = 1
 
 @dataclass(frozen=True)
 class Manifest:
-    """A dataset's ``manifest.json`` and where it was read from (shard paths are relative to it)."""
+    """A dataset's ``manifest.json`` and where it was read from (shard paths are relative to it).
+
+    ``dataset_id`` is derived from the manifest's shard list each time a manifest is read
+    (``preprocess.shards.derive_dataset_id``), never taken from the file: what a run, checkpoint or result records is
+    the id of the data it read. A stored id that differs is reported (:attr:`dataset_id_problem`) and refused by
+    strict verification. ``allow_external_shards``: whether shard paths may leave the manifest's own folder (see
+    :meth:`shard_location`)."""
 
     data: Mapping[str, Any]
     location: str
+    allow_external_shards: bool = False
 
     def split(self, name: str) -> Mapping[str, Any]:
         splits = self.data.get("splits", {})
@@ -180,9 +196,37 @@ class Manifest:
             raise ManifestError(f"{self.location}: no split {name!r} (has {sorted(splits)})")
         return splits[name]
 
-    @property
+    @functools.cached_property
     def dataset_id(self) -> str:
+        """The id derived from the shard list (format 1: from the files' sha256s only)."""
+        return derive_dataset_id(self.data)
+
+    @property
+    def stored_dataset_id(self) -> str:
+        """The id written in the file (trust :attr:`dataset_id`)."""
         return str(self.data.get("dataset_id", ""))
+
+    @functools.cached_property
+    def dataset_id_problem(self) -> str | None:
+        """Why the stored id is not the derived one (the manifest was edited after the build), or None."""
+        return dataset_id_problem(self.data)
+
+    def shard_location(self, path: str) -> str:
+        """Where a shard path of this manifest points: resolved under the manifest's own folder or URL. An absolute
+        path, a URL (``file://``, another host or scheme) or a '..' segment (also percent-encoded, for a URL
+        manifest) is refused with a ManifestError unless ``allow_external_shards``; a ``pipe:`` path (a shell
+        command to webdataset) is refused always."""
+        if scheme_of(path) == "pipe":
+            raise ManifestError(f"{self.location}: shard path {path!r} is a shell command (pipe:), which a manifest "
+                                "may not name")
+        problem = shard_path_problem(path)
+        decoded = urllib.parse.unquote(path)
+        if problem is None and is_url(self.location) and shard_path_problem(decoded):  # a server reads %2e%2e as ..
+            problem = f"{shard_path_problem(decoded)} once percent-decoded ({decoded!r})"
+        if problem is not None and not self.allow_external_shards:
+            raise ManifestError(f"{self.location}: shard path {path!r} {problem}: shards must lie under the manifest's "
+                                "own location (set data.allow_external_shards=true to read it anyway)")
+        return resolve_location(self.location, path)
 
     @property
     def record_spec(self) -> RecordSpec:
@@ -248,24 +292,28 @@ def _check_remote_manifest(data: Any, location: str) -> None:
     """The fields the loader relies on, for a manifest read from a URL (``load_manifest`` checks local ones)."""
     if not isinstance(data, dict):
         raise ManifestError(f"{location}: a manifest must be a JSON object")
-    if data.get("format_version") != FORMAT_VERSION:
-        raise ManifestError(f"{location}: format_version {data.get('format_version')!r}, this code reads "
-                            f"{FORMAT_VERSION}")
+    if data.get("format_version") not in READABLE_FORMAT_VERSIONS:
+        raise ManifestError(f"{location}: format_version {data.get('format_version')!r}, this code reads versions "
+                            f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))}")
     missing = [key for key in ("feature_spec", "normalization", "text_encoder", "splits") if key not in data]
     if missing:
         raise ManifestError(f"{location}: missing keys {missing}")
 
 
-def open_manifest(location: str | os.PathLike | Manifest, *, retry: RetryPolicy | None = None) -> Manifest:
+def open_manifest(location: str | os.PathLike | Manifest, *, retry: RetryPolicy | None = None,
+                  allow_external_shards: bool = False) -> Manifest:
     """Read ``manifest.json`` from a local path (or its dataset folder) with the builder's ``load_manifest``, or
     from a URL (``https://host/ds/manifest.json``, ``s3://bucket/ds/manifest.json``, or the folder URL ending in
-    ``/``), retrying transient errors (``retry``). Files are not checked here: see :func:`verify_shards`."""
+    ``/``), retrying transient errors (``retry``). Files are not checked here: see :func:`verify_shards`, which also
+    refuses (strict) or reports (tolerant) a stored dataset id that is not the derived one; here it is logged.
+    ``allow_external_shards``: see :meth:`Manifest.shard_location`. A :class:`Manifest` is returned as it is."""
     if isinstance(location, Manifest):
         return location
     location = os.fspath(location)
     if not is_url(location):
         path = os.path.join(location, MANIFEST_NAME) if os.path.isdir(location) else location
-        manifest = Manifest(data=load_manifest(path, verify="none"), location=os.path.abspath(path))
+        manifest = Manifest(data=load_manifest(path, verify="none"), location=os.path.abspath(path),
+                            allow_external_shards=allow_external_shards)
     else:
         if location.endswith("/"):
             location += MANIFEST_NAME
@@ -280,20 +328,27 @@ def open_manifest(location: str | os.PathLike | Manifest, *, retry: RetryPolicy 
         except (OSError, ValueError, RetriesExhausted, RemoteSupportMissing) as exc:
             raise ManifestError(f"{location}: cannot read manifest: {exc}") from exc
         _check_remote_manifest(data, location)
-        manifest = Manifest(data=data, location=location)
+        manifest = Manifest(data=data, location=location, allow_external_shards=allow_external_shards)
     _warn_inconsistent(manifest)
     return manifest
 
 
 def _warn_inconsistent(manifest: Manifest) -> None:
-    """Say at once when a manifest contradicts itself; whether that stops a reader is the verification
-    mode's decision (:func:`verify_shards`), taken when the split is read."""
+    """Say at once when a manifest contradicts itself or carries an id that is not its own; whether that stops a
+    reader is the verification mode's decision (:func:`verify_shards`), taken when the split is read."""
     splits = manifest.data.get("splits")
     if not isinstance(splits, Mapping):
         raise ManifestError(f"{manifest.location}: 'splits' must be a JSON object")
     for split in splits:
         for problem in manifest.consistency_problems(split):
             logger.warning("%s: inconsistent manifest: %s", manifest.location, problem)
+    if manifest.dataset_id_problem:
+        logger.warning("%s: %s; everything read from it records the derived id %s", manifest.location,
+                       manifest.dataset_id_problem, manifest.dataset_id)
+    if manifest.data.get("format_version") == 1:
+        logger.info("%s: a format-1 manifest, whose dataset id covers its files' sha256s but not which split lists "
+                    "them, nor counts or lengths; rebuilding gives a format-2 manifest (and a new id)",
+                    manifest.location)
 
 
 @dataclass(frozen=True)
@@ -317,14 +372,14 @@ def split_shards(manifest: Manifest, split: str, backend: str = "webdataset") ->
     shards = []
     for index, e in enumerate(entries):
         try:
-            shard = ShardInfo(path=str(e["path"]), url=resolve_location(manifest.location, str(e["path"])),
-                              num_motions=int(e["num_motions"]), bytes=int(e["bytes"]), sha256=str(e["sha256"]))
+            shard = ShardInfo(path=str(e["path"]), url="", num_motions=int(e["num_motions"]), bytes=int(e["bytes"]),
+                              sha256=str(e["sha256"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise ManifestError(f"{manifest.location}: split {split!r}, {_MANIFEST_LIST_KEY[backend]} entry {index}: "
                                 f"malformed ({type(exc).__name__}: {exc})") from exc
         if shard.num_motions < 0 or shard.bytes < 0:
             raise ManifestError(f"{manifest.location}: {shard.path}: negative num_motions or bytes in the manifest")
-        shards.append(shard)
+        shards.append(replace(shard, url=manifest.shard_location(shard.path)))
     return shards
 
 
@@ -416,7 +471,8 @@ def slot_sample_order(num_samples: int, *, seed: int, epoch: int, slot: int, shu
 # ----------------------------------------------------------------------------------------------------------
 
 VERIFY_MODES = ("strict", "tolerant", "off")
-VERIFICATION_CHECKS = ("manifest_totals", "size", "sha256", "record_count", "unique_ids")
+VERIFICATION_CHECKS = ("manifest_totals", "size", "sha256", "record_count", "unique_ids", "unlisted_files",
+                       "dataset_id")
 
 
 class ShardVerificationError(RuntimeError):
@@ -444,6 +500,13 @@ class VerificationReport:
     num_from_cache: int = 0
     """Shards of ``num_checked`` whose verdict came from the verification cache: hashed by an earlier check, and
     unchanged since by their size and fingerprint (``pipeline.data.shard_cache``)."""
+    dataset_id: str = ""
+    """The id derived from the manifest's shard list: the id of the data this report is about."""
+    unlisted_files: tuple[str, ...] = ()
+    """Entries of the split's folders that no split of the manifest lists (paths relative to the manifest): data
+    the manifest does not account for, e.g. a shard whose entry was removed (:func:`unlisted_files`)."""
+    unlisted_files_checked: bool = False
+    """Whether the split's folders were listed (local data only: object stores and HTTP servers are not)."""
 
     @property
     def bad_paths(self) -> tuple[str, ...]:
@@ -456,8 +519,9 @@ class VerificationReport:
 
     @property
     def verified(self) -> bool:
-        """Every shard was checked and matched the manifest, and the manifest agrees with itself."""
-        return self.mode != "off" and not self.bad and not self.manifest_problems
+        """Every shard was checked and matched the manifest, the manifest agrees with itself and carries its own
+        dataset id, and the split's folders hold no file it does not list."""
+        return self.mode != "off" and not self.bad and not self.manifest_problems and not self.unlisted_files
 
     def as_dict(self) -> dict[str, Any]:
         """For run folders and results files: what was checked, and what was found."""
@@ -466,7 +530,8 @@ class VerificationReport:
                 "num_checked": self.num_checked, "num_from_cache": self.num_from_cache,
                 "samples_lost": self.samples_lost,
                 "bad": [{"path": b.path, "reason": b.reason, "num_motions": b.num_motions} for b in self.bad],
-                "manifest_problems": list(self.manifest_problems)}
+                "manifest_problems": list(self.manifest_problems), "dataset_id": self.dataset_id,
+                "unlisted_files": list(self.unlisted_files), "unlisted_files_checked": self.unlisted_files_checked}
 
 
 class _HashingReader:
@@ -685,7 +750,8 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
         raise ValueError(f"verify mode must be one of {VERIFY_MODES}, got {mode!r}")
     manifest = open_manifest(manifest, retry=retry)
     if mode == "off":
-        return VerificationReport(split=split, backend=backend, mode=mode, num_checked=0)
+        return VerificationReport(split=split, backend=backend, mode=mode, num_checked=0,
+                                  dataset_id=manifest.dataset_id)
     bad = []
     holder: dict[str, str] = {}  # record id -> the good shard that holds it
     shards = split_shards(manifest, split, backend)
@@ -719,31 +785,95 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
     logger.info("verified %d %s shards of split %r in %.2f s (%d unchanged since an earlier check, not read again%s)",
                 len(shards), backend, split, time.perf_counter() - started, from_cache,
                 f"; cache {remembered.path}" if remembered is not None else "; no cache")
+    unlisted = unlisted_files(manifest, split)
+    if unlisted and mode == "strict":
+        raise ShardVerificationError(
+            f"{manifest.location}: split {split!r}: its folder holds {len(unlisted)} file(s) the manifest does not "
+            f"list ({_first_few(unlisted)}): data it does not account for (a shard whose entry was removed?). Remove "
+            "them or rebuild the dataset (tolerant verification reports them and goes on).")
     problems = manifest.consistency_problems(split, (backend,))
     if problems and mode == "strict":
         raise ShardVerificationError(
             f"{manifest.location}: inconsistent manifest: {'; '.join(problems)}. Its shards verify, so the "
             "totals are what is wrong: rebuild the dataset (or verify in tolerant mode, which trusts the "
             "verified shard counts).")
+    if manifest.dataset_id_problem:
+        if mode == "strict":
+            raise ShardVerificationError(
+                f"{manifest.location}: {manifest.dataset_id_problem}. Rebuild the dataset (tolerant verification goes "
+                f"on, recording the derived id {manifest.dataset_id[:16]}…).")
+        problems.append(manifest.dataset_id_problem)
     report = VerificationReport(split=split, backend=backend, mode=mode, num_checked=len(shards), bad=tuple(bad),
-                                manifest_problems=tuple(problems), num_from_cache=from_cache)
+                                manifest_problems=tuple(problems), num_from_cache=from_cache,
+                                dataset_id=manifest.dataset_id, unlisted_files=tuple(unlisted or ()),
+                                unlisted_files_checked=unlisted is not None)
     if bad:
         logger.warning("%d of %d %s shards of split %r are bad; %d motions will be skipped every epoch",
                        len(bad), len(shards), backend, split, report.samples_lost)
+    if unlisted:
+        logger.warning("%s: split %r: %d file(s) in its folder are not listed by the manifest and are not read: %s",
+                       manifest.location, split, len(unlisted), ", ".join(unlisted))
     for problem in problems:
         logger.warning("%s: inconsistent manifest (tolerant: going on with the verified shard counts): %s",
                        manifest.location, problem)
     return report
 
 
+def unlisted_files(manifest: Manifest, split: str) -> list[str] | None:
+    """Entries of the folders holding the split's files (tar and Parquet) that no split of the manifest lists, as
+    paths relative to the manifest's folder (a folder with a trailing '/'), sorted; None when the split's files are
+    not local (listing an object store or HTTP folder is often not allowed, and HTTP has no listing). Not checked:
+    the manifest's own folder (it holds the manifest and what else the user keeps there), and folders outside it
+    (``allow_external_shards``)."""
+    if local_path(manifest.location) is None:
+        return None
+    base = os.path.dirname(os.path.abspath(local_path(manifest.location)))
+    listed: set[str] = set()
+    folders: set[str] = set()
+    splits = manifest.data.get("splits") or {}
+    for name, entry in splits.items():
+        for item in _listed_entries(entry):
+            path = item.get("path")
+            if shard_path_problem(path) is not None:
+                continue  # outside the manifest's folder (allowed as external): not ours to list
+            file = os.path.normpath(os.path.join(base, path))
+            listed.add(file)
+            if name == split and os.path.dirname(file) != base:
+                folders.add(os.path.dirname(file))
+    found = []
+    for folder in sorted(folders):
+        try:
+            names = sorted(os.listdir(folder))
+        except OSError:  # a missing folder: its shards are reported missing
+            continue
+        for name in names:
+            file = os.path.join(folder, name)
+            if file not in listed:
+                relative = os.path.relpath(file, base).replace(os.sep, "/")
+                found.append(relative + "/" if os.path.isdir(file) and not os.path.islink(file) else relative)
+    return found
+
+
+def _listed_entries(split_entry: Any) -> list[Mapping[str, Any]]:
+    """The file entries (both backends) of one split of a manifest, skipping malformed ones."""
+    if not isinstance(split_entry, Mapping):
+        return []
+    return [item for key in _MANIFEST_LIST_KEY.values() for item in (split_entry.get(key) or [])
+            if isinstance(item, Mapping)]
+
+
+def _first_few(items: Sequence[str], shown: int = 5) -> str:
+    return ", ".join(items[:shown]) + (f" and {len(items) - shown} more" if len(items) > shown else "")
+
+
 def _all_listed_urls(manifest: Manifest) -> set[str]:
     """Every file any split of the manifest lists (both backends): the cache keeps entries for these only."""
     urls = set()
     for entry in (manifest.data.get("splits") or {}).values():
-        for key in _MANIFEST_LIST_KEY.values():
-            for item in (entry.get(key) or []) if isinstance(entry, Mapping) else []:
-                if isinstance(item, Mapping) and "path" in item:
-                    urls.add(resolve_location(manifest.location, str(item["path"])))
+        for item in _listed_entries(entry):
+            if "path" in item:
+                with contextlib.suppress(ManifestError):  # a refused location is never read, so never cached
+                    urls.add(manifest.shard_location(str(item["path"])))
     return urls
 
 

@@ -364,6 +364,15 @@ class EvalDataConfig:
     """Dataset manifest; empty: the one the checkpoint was trained on (its recorded location)."""
     split: str = "test"
     format: Literal["tar", "parquet"] = "tar"
+    allow_external_shards: bool = False
+    """Read shards the manifest lists outside its own folder or URL (absolute paths, other URLs, '..'): refused by
+    default, as in training (``pipeline.config.DataConfig.allow_external_shards``)."""
+    allow_other_test_set: bool = False
+    """A run's results are on one test set (dataset id and split; the id is derived from the manifest's shard list
+    when it is read). false: a job whose test set differs from the one the run's earlier results used (in its
+    evaluation folder, or in the run's default <run>/eval when output.dir is elsewhere) is refused before anything
+    is evaluated: the data changed (rebuilt, edited, another manifest) and the numbers would not compare. true:
+    evaluate anyway, into an output.dir whose table is empty or on this test set (one table never holds two)."""
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

@@ -78,6 +78,9 @@ class EvaluatorDataConfig:
     num_workers: int = 0
     shuffle_buffer: int = 256
     seed: int = 0
+    allow_external_shards: bool = False
+    """Read shards the manifest lists outside its own folder or URL (absolute paths, other URLs, '..'): refused by
+    default, as in training (``pipeline.config.DataConfig.allow_external_shards``)."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)
@@ -252,7 +255,7 @@ def _fitting_batch_size(data: EvaluatorDataConfig, manifest: Manifest, world_siz
 def train_evaluator(cfg: EvaluatorTrainConfig, dist: Dist) -> dict[str, Any]:
     """Train, save (rank 0) and return the report (every rank)."""
     start = time.perf_counter()
-    manifest = open_manifest(cfg.data.manifest)
+    manifest = open_manifest(cfg.data.manifest, allow_external_shards=cfg.data.allow_external_shards)
     model_config = model_config_for(cfg, manifest)
     out_dir = Path(cfg.out_dir) if cfg.out_dir else default_evaluator_dir(manifest.dataset_id)
     # The training reader's strict checks, on every rank (deterministic, so every rank reaches the same verdict);

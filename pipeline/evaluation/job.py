@@ -41,7 +41,10 @@ Identity. A unit's key hashes the checkpoint id (its COMPLETE marker, which list
 evaluator id, the ground-truth identity (dataset id, split, crops; with the protocol's seed and redraw_items, every
 replication's draw), the protocol, tasks and sampling point; the
 result and every table row carry the evaluator id and the dataset id, so numbers from different evaluators are
-never mixed up. Re-running on the same checkpoint finds the result and skips it.
+never mixed up. Re-running on the same checkpoint finds the result and skips it. The dataset id is the one derived
+from the manifest's shard list when it is read (never the one written in it); a job whose test set (that id and the
+split) differs from the run's earlier results is refused before anything is evaluated unless
+``data.allow_other_test_set`` (:meth:`EvaluationJob._test_set_change`), and a table never takes a second test set.
 """
 
 from __future__ import annotations
@@ -59,7 +62,7 @@ import numpy as np
 
 from pipeline import checkpoint as ckpt
 from pipeline.config import ConfigError, parse_yaml, to_dict
-from pipeline.data.stream import Manifest, backend_for_format, open_manifest
+from pipeline.data.stream import Manifest, ManifestError, backend_for_format, open_manifest
 from pipeline.distributed import Dist
 from pipeline.evaluation.composition import (
     CompositionContext,
@@ -95,9 +98,12 @@ from pipeline.evaluation.spaces import (
 )
 from pipeline.evaluation.store import (
     ClaimHolder,
+    EvalFolderError,
     ResultsStore,
+    ScoredData,
     SeenCheckpoint,
     Unit,
+    check_eval_folder,
     log_to_wandb,
 )
 from pipeline.generation.inference import (
@@ -109,6 +115,12 @@ from pipeline.generation.inference import (
 logger = logging.getLogger(__name__)
 
 RESULT_FORMAT = 1
+
+
+class ChangedTestSetError(EvaluationError):
+    """This job's test set (dataset id, split) is not the one the run's earlier results (or its evaluation folder's
+    table) are on: refused before anything is evaluated (``data.allow_other_test_set``)."""
+
 
 EXIT_ALL_DONE = 0
 """Every unit this job was given is evaluated (by this job or earlier by another)."""
@@ -172,9 +184,11 @@ class CheckpointScorer:
         if not location:
             raise EvaluationError(f"{trained.checkpoint} records no dataset location: set data.manifest=")
         try:
-            return open_manifest(location)
+            return open_manifest(location, allow_external_shards=self.cfg.data.allow_external_shards)
         except FileNotFoundError as exc:
             raise EvaluationError(f"evaluation data {location} not found ({exc}); set data.manifest=") from exc
+        except ManifestError as exc:
+            raise EvaluationError(str(exc)) from exc
 
     def space_for(self, trained: TrainedModel, manifest: Manifest) -> EmbeddingSpace:
         """The metric space: the action classifier for action models, else the configured evaluator."""
@@ -503,6 +517,9 @@ class EvaluationJob:
         store = self.store_for(folder)
         timer = PhaseTimer(self.dist.device)
         ctx = self.scorer.context(folder, store.cache_dir, timer)
+        changed = self.dist.broadcast_object(self._test_set_change(folder, store, ctx) if self.dist.is_main else None)
+        if changed is not None:  # before any unit is claimed or generated, on every rank
+            raise ChangedTestSetError(changed)
         comp = None
         if self.cfg.tasks.composition:
             comp = prepare_composition(self.cfg, self.dist, ctx, store.cache_dir, timer)
@@ -534,6 +551,36 @@ class EvaluationJob:
         if self.dist.is_main and all(store.is_done(unit) for unit in units):
             self._finished.add(ctx.checkpoint_id)
         return written
+
+    def _test_set_change(self, folder: Path, store: ResultsStore, ctx: CheckpointContext) -> str | None:
+        """Why this checkpoint may not be scored on this job's test set, or None. The test set is the dataset id
+        derived from the manifest now and the split. The evaluation folder's table holds one test set, always; with
+        ``output.dir`` elsewhere, the run's default folder (<run>/eval) holds its earlier results, whose test set this
+        job must keep unless ``data.allow_other_test_set``."""
+        ours = ScoredData(ctx.manifest.dataset_id, ctx.gt.split)
+        where = f"this job's test data is {ours.describe()} ({ctx.manifest.location})"
+        here = store.scored_data()
+        if here and here != [ours]:
+            return (f"evaluation folder {store.root} holds results on {', '.join(d.describe() for d in here)} and "
+                    f"{where}: one table never mixes test sets. If the test data changed on purpose, evaluate into "
+                    "another folder: output.dir=... data.allow_other_test_set=true")
+        if self.cfg.data.allow_other_test_set:
+            return None
+        run_dir = ckpt.run_dir_of(folder)
+        default = run_dir / "eval"
+        if default.resolve() == store.root.resolve():
+            return None
+        try:
+            check_eval_folder(default)  # only read an evaluation folder of ours
+        except EvalFolderError:
+            return None
+        earlier = ResultsStore(default).scored_data()
+        if earlier and ours not in earlier:
+            return (f"run {run_dir} was evaluated on {', '.join(d.describe() for d in earlier)} ({default}) and "
+                    f"{where}: refusing to score it on another test set (the data was rebuilt, edited or is another "
+                    "manifest, so the numbers would not compare); set data.allow_other_test_set=true to evaluate on "
+                    "it anyway")
+        return None
 
     def _claim(self, store: ResultsStore, units: Sequence[Unit]) -> list[str]:
         claimed = []

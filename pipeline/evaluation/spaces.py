@@ -43,6 +43,7 @@ from mfm.model import valid_frame_mask
 from pipeline.data.stages import MotionRecord, stable_id_hash
 from pipeline.data.stream import (
     Manifest,
+    ManifestError,
     ShardVerificationError,
     open_manifest,
     verified_split,
@@ -243,7 +244,7 @@ def read_ground_truth_pool(manifest: Manifest | str | Path, split: str = "test",
                               "does not store (build it with --token-features)")
     try:
         source = verified_split(manifest, split, backend, mode="strict")
-    except ShardVerificationError as exc:
+    except (ShardVerificationError, ManifestError) as exc:  # a bad shard, or one outside the manifest's folder
         raise UnverifiedGroundTruth(f"refusing to score against split {split!r} of {manifest.location}, which does "
                                     f"not match its manifest: {exc}") from exc
     motions: list[_Motion] = []

@@ -16,6 +16,10 @@ Layout of an evaluation folder (default ``<run_dir>/eval``)::
     index.html                                                        the table and plots to browse
     mfm-eval.json                                                     the folder's marker: an evaluation folder of ours
 
+One table, one test set: every row records the test set its result was scored on (``dataset_id``, derived from the
+manifest when it was read, and ``split``); rows on another test set than the table's are refused before their result
+file is written (:class:`MixedTestSetError`), so numbers on two test sets never stand side by side.
+
 The folder is one of ours, or the evaluator writes nothing into it (:func:`check_eval_folder`): a new or empty folder
 (the marker is written first), one holding our marker, or one an earlier version wrote before the marker existed
 (only the names above, with its results table or listing among them). Anything else (another tool's ``index.html``
@@ -120,6 +124,26 @@ def write_eval_marker(root: str | Path) -> None:
     if not has_eval_marker(root):
         atomic_write_text(root / EVAL_MARKER, json.dumps({"format": EVAL_MARKER_FORMAT, "version": 1,
                                                           "written_by": "pipeline/evaluation/store.py"}) + "\n")
+
+
+class MixedTestSetError(ValueError):
+    """Rows on another test set (dataset id, split) than the results table already holds: refused, nothing written."""
+
+
+@dataclass(frozen=True)
+class ScoredData:
+    """The test set a result was computed on: the dataset id derived from the manifest's shard list, and the split."""
+
+    dataset_id: str
+    split: str
+
+    @classmethod
+    def of(cls, row: Mapping[str, Any]) -> ScoredData:
+        """Of a table row (or a result's ``data`` section: the same keys)."""
+        return cls(str(row.get("dataset_id")), str(row.get("split")))
+
+    def describe(self) -> str:
+        return f"test set {self.dataset_id[:16]} (split {self.split!r})"
 
 
 @dataclass(frozen=True)
@@ -361,10 +385,15 @@ class ResultsStore:
     # -- results -----------------------------------------------------------------------------------------------
 
     def write_result(self, unit: Unit, result: Mapping[str, Any], rows: Sequence[Mapping[str, Any]]) -> Path:
-        """Write the result JSON (atomically: this marks the unit done), then add its table rows."""
+        """Write the result JSON (atomically: this marks the unit done), then add its table rows; both under the
+        table's lock, after checking that the rows are on the table's test set (MixedTestSetError, nothing
+        written)."""
         path = self.result_path(unit)
-        atomic_write_text(path, json.dumps(result, indent=1, sort_keys=True, allow_nan=True) + "\n")
-        self.append_rows(rows)
+        with exclusive_lock(self.root / ".table.lock"):
+            present = self.table_rows()
+            self._refuse_mixed(present, rows)
+            atomic_write_text(path, json.dumps(result, indent=1, sort_keys=True, allow_nan=True) + "\n")
+            self._append_locked(present, rows)
         return path
 
     def read_result(self, unit: Unit) -> dict[str, Any]:
@@ -383,20 +412,43 @@ class ResultsStore:
                     logger.warning("%s line %d is not JSON (%s); ignored", self.table_jsonl, number, exc)
         return rows
 
+    def scored_data(self) -> list[ScoredData]:
+        """The test sets the table's results were computed on, in the order first written (one, or none yet)."""
+        return list(dict.fromkeys(ScoredData.of(row) for row in self.table_rows()))
+
     def append_rows(self, rows: Sequence[Mapping[str, Any]]) -> None:
-        """Append rows whose ``row_key`` is not in the table yet, then rewrite the Parquet copy."""
+        """Append rows whose ``row_key`` is not in the table yet, then rewrite the Parquet copy. Rows on another test
+        set than the table's are refused (MixedTestSetError), none of them written."""
         with exclusive_lock(self.root / ".table.lock"):
-            present = {row.get("row_key") for row in self.table_rows()}
-            new = [dict(row) for row in rows if row["row_key"] not in present]
-            if new:
-                self.root.mkdir(parents=True, exist_ok=True)
-                with open(self.table_jsonl, "a", encoding="utf-8") as handle:
-                    for row in new:
-                        handle.write(json.dumps(row, sort_keys=True, allow_nan=True) + "\n")
-                    handle.flush()
-                    os.fsync(handle.fileno())
-            if new or not self.table_parquet.exists():
-                write_parquet(self.table_rows(), self.table_parquet)
+            present = self.table_rows()
+            self._refuse_mixed(present, rows)
+            self._append_locked(present, rows)
+
+    def _refuse_mixed(self, present: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[str, Any]]) -> None:
+        """One table, one test set: FID or R-precision on two test sets side by side would read as comparable."""
+        earlier = list(dict.fromkeys(ScoredData.of(row) for row in present))
+        both = list(dict.fromkeys([*earlier, *(ScoredData.of(row) for row in rows)]))
+        if len(both) > 1:
+            new = [data for data in both if data not in earlier]
+            raise MixedTestSetError(
+                f"{self.table_jsonl}: holds results on {', '.join(d.describe() for d in earlier)}"
+                + (f"; refusing to add results on {', '.join(d.describe() for d in new)}" if new else
+                   " (written before the table refused a second test set)")
+                + ": one table never mixes test sets. Evaluate into another folder: output.dir=...")
+
+    def _append_locked(self, present: Sequence[Mapping[str, Any]], rows: Sequence[Mapping[str, Any]]) -> None:
+        """Append the rows not in ``present`` (the table as read under the lock) and rewrite the Parquet copy."""
+        keys = {row.get("row_key") for row in present}
+        new = [dict(row) for row in rows if row["row_key"] not in keys]
+        if new:
+            self.root.mkdir(parents=True, exist_ok=True)
+            with open(self.table_jsonl, "a", encoding="utf-8") as handle:
+                for row in new:
+                    handle.write(json.dumps(row, sort_keys=True, allow_nan=True) + "\n")
+                handle.flush()
+                os.fsync(handle.fileno())
+        if new or not self.table_parquet.exists():
+            write_parquet(self.table_rows(), self.table_parquet)
 
 
 def write_parquet(rows: Sequence[Mapping[str, Any]], path: Path) -> None:

@@ -710,9 +710,16 @@ def _eval_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str], links
 
 
 def write_eval_index(out_dir: str | Path) -> Path:
-    """``out_dir/index.html`` for an evaluation folder (results.jsonl, results/, plots/); returns its path."""
+    """``out_dir/index.html`` for an evaluation folder (results.jsonl, results/, plots/); returns its path. A table
+    whose rows are on more than one test set (dataset id, split; the evaluator refuses to write one, an earlier
+    version did not) is refused with a ValueError: one page never shows them side by side."""
     root = Path(out_dir)
     rows = sorted(read_table(root / EVAL_TABLE), key=_sort_key)
+    test_sets = sorted({(str(r.get("dataset_id")), str(r.get("split"))) for r in rows})
+    if len(test_sets) > 1:
+        shown = ", ".join(f"{dataset[:16]} (split {split!r})" for dataset, split in test_sets)
+        raise ValueError(f"{root / EVAL_TABLE}: results on {len(test_sets)} test sets ({shown}): one page never mixes "
+                         "test sets; keep each test set's results in its own evaluation folder")
     links = _result_links(root)
     sections = []
     for task in dict.fromkeys(str(row.get("task", "text_to_motion")) for row in rows):

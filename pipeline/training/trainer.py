@@ -358,7 +358,8 @@ class Trainer:
         self._decided_by_main(self._check_before_start)
 
         self.retry = RetryPolicy(cfg.data.retries, cfg.data.retry_backoff_s)  # transient errors of remote data
-        self.manifest = open_manifest(cfg.data.manifest, retry=self.retry)
+        self.manifest = open_manifest(cfg.data.manifest, retry=self.retry,
+                                      allow_external_shards=cfg.data.allow_external_shards)
         bad_shards, self.shard_report = self._verified_bad_shards("train")
         self.objective = build_objective(cfg, self.manifest)
         self.model_config = model_config_for(
