@@ -214,6 +214,11 @@ class TrainLoopConfig:
     """objective=flow: how the temporal and bone terms are weighted over t (``mfm.flow.term_weight``): 'data' = the
     same at every t (as introduced); 'loss' = as the main loss weighs an x̂1 error at that t (under the velocity
     loss 1/(1 − t)², so the terms keep their proportion to it where the sampler's last steps are). Not MFM's."""
+    flow_velocity_weight_cap: float = 0.0
+    """objective=flow, flow_loss=velocity: cap on the weight the velocity loss puts on an x̂1 error, 1/(1 − t)²
+    (``mfm.flow.loss_space_weight``): the velocity loss where that is at most the cap, the cap times the data loss
+    nearer the data end (9 = from t = 2/3). 0 = no cap (MFM). Not MFM's; in the spirit of Min-SNR-γ (Hang et al.
+    2023). Also caps the terms under flow_terms_weighting=loss."""
     flow_time_sampling: Literal["uniform", "logit_normal"] = "uniform"
     """objective=flow: the density of the training times (``mfm.flow.warp_time``): 'uniform' = MFM; 'logit_normal' =
     sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice)."""
@@ -232,6 +237,10 @@ class TrainLoopConfig:
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
         _require(self.flow_temporal_weight >= 0, f"train.flow_temporal_weight must be >= 0, got {self.flow_temporal_weight}")
         _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
+        _require(self.flow_velocity_weight_cap >= 0,
+                 f"train.flow_velocity_weight_cap must be >= 0 (0 = no cap), got {self.flow_velocity_weight_cap}")
+        _require(self.flow_velocity_weight_cap == 0 or self.flow_loss == "velocity",
+                 f"train.flow_velocity_weight_cap applies to train.flow_loss=velocity, not {self.flow_loss!r}")
         _require(self.log_every >= 1, f"train.log_every must be >= 1, got {self.log_every}")
         _require(self.save_every >= 1, f"train.save_every must be >= 1, got {self.save_every}")
         _require(self.keep_last >= 0, f"train.keep_last must be >= 0 (0 keeps all), got {self.keep_last}")

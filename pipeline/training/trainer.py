@@ -326,7 +326,8 @@ def build_objective(cfg: TrainConfig, manifest: Manifest):
                                      bone_weight=cfg.train.flow_bone_weight, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
-                                     terms_weighting=cfg.train.flow_terms_weighting)
+                                     terms_weighting=cfg.train.flow_terms_weighting,
+                                     velocity_weight_cap=cfg.train.flow_velocity_weight_cap)
     return diffusion_from_preset(cfg.train.diffusion)
 
 
