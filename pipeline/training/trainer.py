@@ -403,6 +403,8 @@ class Trainer:
                 # tolerant: skip (count, log) records that fail to decode, and on a resume whose excluded shards
                 # changed finish the checkpoint's epoch with its plan (pipeline.data.stream, "Tolerant mode at run time")
                 tolerate_bad_data=cfg.data.verify == "tolerant",
+                # remote shards are hashed again as they stream: one changed since verification is never trained on
+                check_remote_bytes=cfg.data.verify != "off",
                 retries=cfg.data.retries,
                 retry_backoff_s=cfg.data.retry_backoff_s,
             ),
