@@ -35,10 +35,11 @@ what has been consumed, so a resumed loader recomputes the slot orders, drops th
 ``batches_in_epoch`` batches' worth of sample positions before reading, and produces bit-identical next
 batches. Cost of the fast-forward: shards whose samples were all consumed are not opened; the (at most a
 shuffle buffer's worth of) remaining shards are read from their start, but skipped records are not decoded;
-Parquet reads only the row groups that hold needed rows. A changed world size, worker count, batch size or
-seed is refused. With workers, the DataLoader takes batches from workers round-robin; the workers are rotated
-on resume so that worker ``k`` of the new iterator plays the reader that owns the next batch, and each batch
-carries its (epoch, index) stamp, which the loader checks.
+Parquet reads only the row groups that hold needed rows (a remote part checked while read is downloaded
+whole). A changed world size, worker count, batch size or seed is refused. With workers, the DataLoader takes
+batches from workers round-robin; the workers are rotated on resume so that worker ``k`` of the new iterator
+plays the reader that owns the next batch, and each batch carries its (epoch, index) stamp, which the loader
+checks.
 
 Verification. Every reader of shards (training, the evaluator's ground truth, evaluator training, tools)
 checks them first with :func:`verify_shards`: the split's totals against its shard counts and lengths, and
