@@ -71,7 +71,10 @@ class DataConfig:
     shards are left out and counted in shard_report.json; during training a record that fails to decode (e.g.
     non-finite features) is left out of its batch, counted and logged, deterministically (exact resume holds); a
     resume after a shard went bad finishes the checkpoint's epoch with its plan without that shard's records and
-    plans later epochs without it (logged as a warning). off: no checks before training."""
+    plans later epochs without it (logged as a warning). Both hash remote shards again as they stream, before any
+    of their records is used: one changed since verification stops a strict run naming its URL (before the next
+    step, so before the next checkpoint) and has its records skipped, counted, in tolerant mode. off: no checks
+    before training nor while streaming."""
     caption_policy: Literal["random", "first"] = "random"
     """Which of a motion's captions a visit uses: a random one (training) or always the first (debugging)."""
     retries: int = 3

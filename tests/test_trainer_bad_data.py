@@ -7,7 +7,10 @@
   same at two ranks, where the other rank's samples still train: tests/test_trainer_multirank.py);
 * a shard that goes bad after a checkpoint: the tolerant resume finishes the checkpoint's epoch with its plan
   without that shard's records (exactly the batches that were due, minus those records), plans later epochs
-  without it and says so; a strict resume refuses with a hint that names a real option.
+  without it and says so; a strict resume refuses with a hint that names a real option;
+* a remote shard that changes on the server after verification, keeping its size, ETag and Last-Modified (issue
+  24, item 2): strict stops before any step trains on it (every checkpoint predates it), tolerant leaves its
+  records out of their planned batches, counted.
 
 The runs are in-process (launch/train.py's ``main``); the interruption is a SIGINT in the middle of a step, after
 which the trainer writes a checkpoint of that step and returns 130.
@@ -18,6 +21,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import re
 import shutil
 import signal
 import tarfile
@@ -25,10 +29,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_data_remote import needs_http, rewrite_in_place, serving
 from test_trainer import (
     MAX_STEPS,
     SignalAtStep,
     assert_runs_identical,
+    base_overrides,
     build_dataset_once,
     complete_steps,
     flip_byte,
@@ -38,12 +44,14 @@ from test_trainer import (
     train_entry,
 )
 
+import pipeline.training.trainer as trainer_module
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, load_config
 from pipeline.data.stages import RecordError
 from pipeline.data.stream import (
     LoaderOptions,
     MotionLoader,
+    ShardChangedError,
     ShardVerificationError,
     backend_for_format,
 )
@@ -246,3 +254,57 @@ def test_tolerant_resume_after_a_shard_went_bad_finishes_the_epoch_without_it(da
         metrics[step]["records_skipped"] for step in metrics)  # never decreases
     report = json.loads((run / "shard_report.json").read_text())
     assert [b["path"] for b in report["bad"]] == [bad] and not report["verified"]
+
+
+@needs_http
+@pytest.mark.parametrize("verify", ["strict", "tolerant"])
+def test_a_remote_shard_changed_after_verification_is_never_trained_on(dataset, tmp_path, monkeypatch, verify):
+    """Issue 24, item 2, through the real trainer and no kill: the dataset is served over HTTP by a server that, like
+    nginx, derives the ETag from size and mtime. Right after the trainer verified the train split, the shard read
+    last in epoch 0 is rewritten in place with its old mtime (size, ETag, Last-Modified unchanged). It used to be
+    trained on. Strict: the run stops with ShardChangedError naming the URL before any step saw a record of it, so
+    every checkpoint on disk (saved every 2 steps) predates it. Tolerant: the run ends; every step trained exactly
+    its planned batch without the shard's records, counted in records_skipped."""
+    root = tmp_path / "served"
+    shutil.copytree(dataset.parent, root)
+    local = root / "manifest.json"
+    steps = 13  # epoch 0 at one rank
+    planned = planned_batches(local, base_overrides(local, tmp_path / "plan"))
+    first_use = {}
+    for step, ids in enumerate(planned, start=1):
+        for sample_id in ids:
+            first_use.setdefault(shard_of(local, sample_id), step)
+    changed = max(first_use, key=first_use.get)
+    lost = ids_in_shard(local, changed)
+    assert first_use[changed] > 4  # read after checkpoints 2 and 4
+
+    trained: dict[int, list[str]] = {}
+    real_step, real_verify = Trainer.train_step, trainer_module.verify_shards
+
+    def recording_step(self, micro_batches, draws=None):
+        trained[self.step + 1] = [i for b in micro_batches for i in b["ids"]]
+        return real_step(self, micro_batches, draws)
+
+    def verify_then_change(manifest, split, **kwargs):
+        report = real_verify(manifest, split, **kwargs)
+        if split == "train":
+            rewrite_in_place(root / changed)
+        return report
+
+    monkeypatch.setattr(Trainer, "train_step", recording_step)
+    monkeypatch.setattr(trainer_module, "verify_shards", verify_then_change)
+    run = tmp_path / "run"
+    with serving(root) as (base, _):
+        argv = ["--config", "tiny", *base_overrides(f"{base}/manifest.json", run, f"train.max_steps={steps}",
+                                                    "train.save_every=2", "train.keep_last=0", f"data.verify={verify}")]
+        if verify == "strict":
+            with pytest.raises(ShardChangedError, match=rf"{re.escape(base)}/{changed}: changed since it was verified"):
+                train_entry.main(argv)
+            assert not lost & {i for ids in trained.values() for i in ids}
+            assert sorted(trained) == list(range(1, max(trained) + 1)) and max(trained) < first_use[changed]
+            assert complete_steps(run) == list(range(2, max(trained) + 1, 2))  # saved before the shard was read
+            return
+        assert train_entry.main(argv) == 0
+    assert trained == {step: [i for i in planned[step - 1] if i not in lost] for step in range(1, steps + 1)}
+    skipped = sum(i in lost for ids in planned for i in ids)
+    assert skipped > 0 and metrics_by_step(run)[steps]["records_skipped"] == skipped

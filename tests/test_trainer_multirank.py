@@ -35,6 +35,7 @@ from test_trainer import (
     clean_env,
     complete_steps,
     fit_scenario,
+    holding_trainer,
     ids_by_step,
     metrics_by_step,
     output_of,
@@ -47,7 +48,7 @@ from test_trainer_bad_data import copy_dataset, planned_batches, write_nan_into
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, load_config
 from pipeline.distributed import Dist
-from pipeline.training.run_folder import write_run_marker
+from pipeline.training.run_folder import RUN_LOCK, write_run_marker
 from pipeline.training.trainer import Trainer
 
 pytestmark = [pytest.mark.multirank, pytest.mark.slow]
@@ -347,3 +348,22 @@ def test_a_resume_refused_on_rank_0_ends_every_rank_before_training(dataset, tmp
     for result in results(tmp_path / "out", 2):
         assert result["error"] == "ResumeConflictError" and "train.resume_discard_newer=true" in result["message"]
     assert complete_steps(run) == [2, 4] and not (run / "config.yaml").exists()
+
+
+def test_a_run_folder_held_by_another_trainer_is_refused_on_every_rank(dataset, tmp_path):
+    """Issue 24, item 5: only rank 0 checks and takes the run folder's lock; when another trainer holds the folder,
+    every rank raises the same one-line refusal (naming the holder) at once instead of waiting for rank 0 in a
+    collective, and nothing is written."""
+    run = tmp_path / "run"
+    holder = holding_trainer(run, "live")
+    try:
+        scenario = fit_scenario(tmp_path / "out", [f"data.manifest={dataset}", f"train.out_dir={run}",
+                                                   "train.max_steps=4"])
+        proc = run_worker(TORCHRUN, [scenario], tmp_path / "out", timeout=120)
+    finally:
+        holder.kill()
+        holder.wait(timeout=30)
+    assert proc.returncode != 0, output_of(proc)
+    for result in results(tmp_path / "out", 2):
+        assert result["error"] == "RunFolderInUseError" and f"pid {holder.pid} on " in result["message"], result
+    assert [p.name for p in run.iterdir()] == [RUN_LOCK]  # the holder's, nothing of the refused run

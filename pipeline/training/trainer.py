@@ -12,8 +12,10 @@ validation loss every ``train.val_every`` steps (fixed val batches and draws, se
 over ranks) is :mod:`pipeline.training.validation`.
 
 Nothing is written into the run folder before the resume decision: rank 0 first checks train.out_dir
-(:mod:`pipeline.training.run_folder`), removes unfinished checkpoint folders of dead processes and resolves train.resume
-(auto skips, and sets aside, corrupt checkpoints; an explicit older one is refused while newer ones exist). A save
+(:mod:`pipeline.training.run_folder`), takes its lock (one trainer per folder; a second start is refused, on every
+rank, naming the holder; the lock is held until fit() returns or raises), removes unfinished checkpoint folders of
+dead processes and resolves train.resume (auto skips, and sets aside, corrupt checkpoints; an explicit older one is
+refused while newer ones exist). A save
 that fails (a full disk) stops the run on every rank with :class:`CheckpointSaveError`; the same command continues
 from the newest complete checkpoint once there is space.
 
@@ -93,7 +95,13 @@ from pipeline.data.stream import (
 from pipeline.distributed import Dist
 from pipeline.training.loss_scaling import LossScaler
 from pipeline.training.reporting import MetricsSink, require_tensorboard
-from pipeline.training.run_folder import RunFolderError, check_run_folder, write_run_marker
+from pipeline.training.run_folder import (
+    RunFolderError,
+    RunFolderLock,
+    check_run_folder,
+    refuse_if_in_use,
+    write_run_marker,
+)
 from pipeline.training.validation import Validator, build_validator, has_val_split
 
 logger = logging.getLogger(__name__)
@@ -404,6 +412,8 @@ class Trainer:
                 # tolerant: skip (count, log) records that fail to decode, and on a resume whose excluded shards
                 # changed finish the checkpoint's epoch with its plan (pipeline.data.stream, "Tolerant mode at run time")
                 tolerate_bad_data=cfg.data.verify == "tolerant",
+                # remote shards are hashed again as they stream: one changed since verification is never trained on
+                check_remote_bytes=cfg.data.verify != "off",
                 retries=cfg.data.retries,
                 retry_backoff_s=cfg.data.retry_backoff_s,
             ),
@@ -420,6 +430,7 @@ class Trainer:
         self.empty_steps = 0  # steps with no sample on any rank (tolerant mode): stepped through, no update
         self.scaler_skips = 0  # fp16: steps whose update was skipped for a gradient overflow (not bad data)
         self.stop_signal = StopSignal()
+        self._run_lock: RunFolderLock | None = None  # rank 0's hold of train.out_dir, from resume() to fit()'s end
         self._last_saved_step = -1
         self._validator: Validator | None = None  # built by the first validate() (train.val_every)
         self._validator_built = False
@@ -428,6 +439,7 @@ class Trainer:
 
     def _check_before_start(self) -> None:
         check_run_folder(self.out_dir)
+        refuse_if_in_use(self.out_dir)  # a second trainer on the folder: refused now, not after verifying the data
         require_tensorboard(self.cfg.train.tensorboard)
 
     def _verified_bad_shards(self, split: str) -> tuple[tuple[str, ...], dict[str, Any]]:
@@ -799,11 +811,13 @@ class Trainer:
         return answer
 
     def _open_run_folder(self) -> Path | None:
-        """Rank 0's start-up decisions, before anything is written: the run folder is one this run may use, the
-        unfinished checkpoint folders of dead writers are removed (they may hold the space the run needs), and
-        train.resume is resolved (resume=auto sets corrupt checkpoints aside; an explicit older one is refused
-        while newer checkpoints exist, unless train.resume_discard_newer)."""
+        """Rank 0's start-up decisions, before anything is written: the run folder is one this run may use, no other
+        trainer holds it (its lock, held from here to the end of fit()), the unfinished checkpoint folders of dead
+        writers are removed (they may hold the space the run needs), and train.resume is resolved (resume=auto sets
+        corrupt checkpoints aside; an explicit older one is refused while newer checkpoints exist, unless
+        train.resume_discard_newer)."""
         check_run_folder(self.out_dir)
+        self._run_lock = RunFolderLock.acquire(self.out_dir)
         ckpt.remove_stale_tmp(self.ckpt_root)
         train = self.cfg.train
         return ckpt.resolve_resume(train.resume, self.ckpt_root, discard_newer=train.resume_discard_newer)
@@ -811,7 +825,16 @@ class Trainer:
     # -- the loop ---------------------------------------------------------------------------------------------
 
     def fit(self) -> int:
-        """Train to ``train.max_steps``; returns the process exit code (0, or 128 + signal after a clean stop)."""
+        """Train to ``train.max_steps``; returns the process exit code (0, or 128 + signal after a clean stop). Rank 0
+        holds the run folder's lock from the start of resume() until this returns or raises."""
+        try:
+            return self._fit()
+        finally:
+            if self._run_lock is not None:
+                self._run_lock.release()
+                self._run_lock = None
+
+    def _fit(self) -> int:
         cfg = self.cfg
         self.resume()  # decided (and possibly refused) before anything in the run folder is written
         if self._validation_ahead():
