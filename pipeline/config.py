@@ -19,6 +19,7 @@ string ``"off"``) and ``1e-4`` is a float (PyYAML's 1.1 rules read it as a strin
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 import types
 from collections.abc import Iterable, Mapping
@@ -180,8 +181,10 @@ class TrainLoopConfig:
     never count here."""
     nonfinite_budget: int = 10
     """With nonfinite=skip: consecutive skipped steps tolerated before the run stops."""
-    wandb: Literal["offline", "online", "disabled"] = "offline"
-    """Weights & Biases mode (offline needs no network; `wandb sync` uploads later)."""
+    wandb: Literal["auto", "offline", "online", "disabled"] = "auto"
+    """Weights & Biases mode (offline needs no network; `wandb sync` uploads later). auto: the environment's
+    WANDB_MODE when set, else offline. An explicit offline/online/disabled (here, in a preset or an override) wins
+    over WANDB_MODE: disabled writes no W&B files whatever the environment says (see :func:`wandb_mode`)."""
     wandb_project: str = "mfm"
     tensorboard: bool = True
     """Write TensorBoard event files to ``<out_dir>/tensorboard/`` (rank 0 only): the scalars of metrics.jsonl,
@@ -293,6 +296,16 @@ class TrainConfig:
                 f"data.window ({self.data.window}) exceeds model.max_frames ({self.model.max_frames}), "
                 "the largest length the length token can embed",
             )
+
+
+def wandb_mode(setting: str, fallback: str = "offline") -> str:
+    """The W&B mode a job runs with, from its ``wandb`` setting (``train.wandb``, the evaluator's ``output.wandb``):
+    an explicit ``offline``/``online``/``disabled`` as given, whatever the environment's ``WANDB_MODE`` says (so
+    ``disabled`` starts no W&B run and writes no wandb folder); ``auto``, the environment's ``WANDB_MODE`` when set,
+    else ``fallback``."""
+    if setting != "auto":
+        return setting
+    return os.environ.get("WANDB_MODE") or fallback
 
 
 def _require(condition: bool, message: str) -> None:

@@ -137,6 +137,7 @@ from pipeline.data.stages import (
     SKIPPED_RECORDS_KEY,
     Collate,
     CropToWindow,
+    DataError,
     DecodeParquetRow,
     DecodeTarRecord,
     MotionRecord,
@@ -432,7 +433,7 @@ VERIFY_MODES = ("strict", "tolerant", "off")
 VERIFICATION_CHECKS = ("manifest_totals", "size", "sha256", "record_count", "unique_ids")
 
 
-class ShardVerificationError(RuntimeError):
+class ShardVerificationError(DataError, RuntimeError):
     """A shard is missing, truncated, corrupted or does not hold the records the manifest says, or the
     manifest contradicts itself (strict verification). The message names the file and the reason."""
 
@@ -776,7 +777,7 @@ class DataResumeError(ValueError):
         self.key, self.saved, self.now = key, saved, now
 
 
-class ShardReadError(RuntimeError):
+class ShardReadError(DataError, RuntimeError):
     """A shard that cannot be read or does not match its manifest entry, discovered while training."""
 
 
@@ -1184,6 +1185,10 @@ def batches_before(position: int, reader: int, readers: int) -> int:
     return max(0, (position - reader + readers - 1) // readers)
 
 
+_DATA_ERROR_KEY = "_data_error"
+"""The key of the item a DataLoader worker yields in place of a batch when it met bad data (the DataError)."""
+
+
 class _RankStream(IterableDataset):
     """One rank's batches, forever, starting at (epoch, batch). In DataLoader worker ``w`` it plays reader
     ``(w + start_batch) % readers``, so the DataLoader's round-robin resumes on the right reader."""
@@ -1199,9 +1204,17 @@ class _RankStream(IterableDataset):
             raise RuntimeError(f"stream built for {readers} workers runs under {info.num_workers}")
         reader = (worker + self.start_batch) % readers
         skip = batches_before(self.start_batch, reader, readers)
-        for epoch in itertools.count(self.start_epoch):
-            yield from self.reader_epoch(epoch, reader, skip)
-            skip = 0
+        try:
+            for epoch in itertools.count(self.start_epoch):
+                yield from self.reader_epoch(epoch, reader, skip)
+                skip = 0
+        except DataError as err:
+            if info is None:
+                raise
+            # In a DataLoader worker: hand the error on whole, in the batch's place (MotionLoader._checked raises
+            # it in the rank's process). Raised here, the DataLoader would raise a new error there whose message
+            # is this worker's traceback, not the one line naming the file and the reason.
+            yield {_DATA_ERROR_KEY: err}
 
     def reader_epoch(self, epoch: int, reader: int, skip_batches: int) -> Iterator[dict]:
         spec, opts = self.spec, self.spec.options
@@ -1314,6 +1327,11 @@ class MotionLoader:
     def batches_per_epoch(self, epoch: int | None = None) -> int:
         """Batches this rank (and every other rank) yields in the epoch."""
         return self._spec.checked_plan(self.epoch if epoch is None else epoch).batches_per_rank
+
+    def empty_batch(self) -> dict[str, Any]:
+        """A batch of this stream with no sample (every key, the trailing sizes of a real batch, zero rows): what
+        the trainer steps through in place of a batch it could not read, to stay in step with the other ranks."""
+        return Collate(self.options.window, self._spec.action_classes, self._spec.record_spec).empty_batch()
 
     def samples_dropped(self, epoch: int | None = None) -> int:
         """Samples of the split (all ranks) not used in the epoch so that all readers yield equal batches."""
@@ -1436,6 +1454,8 @@ class MotionLoader:
             if generation != self._generation:
                 raise RuntimeError("this batch iterator is stale: the loader's state was loaded or another "
                                    "iterator was created since; call iter_batches() again")
+            if _DATA_ERROR_KEY in batch:  # a worker met bad data (see _RankStream.__iter__)
+                raise batch[_DATA_ERROR_KEY]
             position = tuple(batch.pop("_position"))  # robust to list conversion by collate/pin_memory
             if position != (self.epoch, self.batches_in_epoch):
                 raise RuntimeError(f"data stream out of order: got batch {position}, expected "

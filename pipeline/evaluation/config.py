@@ -396,7 +396,8 @@ class OutputConfig:
     """--watch without --once: seconds between scans of the run folder."""
     order: Literal["newest", "oldest"] = "newest"
     wandb: Literal["auto", "offline", "online", "disabled"] = "auto"
-    """auto: the training run's mode (config.yaml train.wandb); WANDB_MODE wins."""
+    """auto: the environment's WANDB_MODE when set, else the training run's mode (config.yaml train.wandb; its auto
+    is offline). An explicit offline/online/disabled wins over WANDB_MODE (pipeline.config.wandb_mode)."""
     plots: bool = True
 
     def __post_init__(self) -> None:

@@ -65,7 +65,7 @@ from typing import Any
 import numpy as np
 
 from pipeline import checkpoint as ckpt
-from pipeline.config import ConfigError, parse_yaml, to_dict
+from pipeline.config import ConfigError, parse_yaml, to_dict, wandb_mode
 from pipeline.data.stream import Manifest, backend_for_format, open_manifest
 from pipeline.distributed import Dist
 from pipeline.evaluation.composition import (
@@ -702,9 +702,8 @@ class EvaluationJob:
     def _publish(self, store: ResultsStore, folder: Path, result: Mapping[str, Any]) -> None:
         """W&B (under the training run) and the plots; failures are logged, never fatal."""
         run_dir = ckpt.run_dir_of(folder)
-        mode, project = _training_wandb(run_dir)
-        if self.cfg.output.wandb != "auto":
-            mode = self.cfg.output.wandb
+        trained_mode, project = _training_wandb(run_dir)
+        mode = wandb_mode(self.cfg.output.wandb, fallback=wandb_mode(trained_mode))
         prefix = f"{result['sampling']['solver']}-{result['sampling']['steps']}-g{result['sampling']['guidance']:g}"
         if result.get("task") == "composition":
             prefix = f"compose-{prefix}-s{result['sampling']['switch']:.4g}-{result['composition']['scenario']}"

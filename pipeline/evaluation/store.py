@@ -343,9 +343,9 @@ def log_to_wandb(run_dir: Path, mode: str, project: str, step: int, scalars: Map
 
     Training logs with W&B's own step; evaluation arrives later and out of order, so it gets its own step metric
     and never collides. Without the id file a separate run grouped under the run folder's name is created.
-    Returns False (and logs why) when W&B is disabled or fails: evaluation results never depend on it.
+    Returns False (and logs why) when W&B is disabled or fails: evaluation results never depend on it. ``mode`` is
+    the resolved one (pipeline.config.wandb_mode): ``WANDB_MODE`` does not override it here.
     """
-    mode = os.environ.get("WANDB_MODE", mode)
     if mode == "disabled":
         return False
     try:
