@@ -20,6 +20,7 @@ class ProbeClips:
     lengths: torch.Tensor  # (N,) frames, each clip cut to the model's window
     mask: torch.Tensor  # (N, T, 1) 1.0 on each clip's frames
     cond: torch.Tensor  # the captions' conditions
+    cond_inputs: dict[str, torch.Tensor]  # the model's other condition inputs (cross_attention: the token features)
 
 
 def load_probe_clips(checkpoint: str, split: str, count: int | None = None) -> ProbeClips:
@@ -35,4 +36,5 @@ def load_probe_clips(checkpoint: str, split: str, count: int | None = None) -> P
     for i, c in enumerate(captions):
         x1[i, : lengths[i]] = trained.normalize(torch.as_tensor(c.features[: lengths[i]], dtype=torch.float32))
     mask = (torch.arange(frames)[None] < lengths[:, None]).float()[..., None]
-    return ProbeClips(trained, captions, x1, lengths, mask, trained.conditions(texts=[c.text for c in captions]))
+    cond, cond_inputs = trained.condition_inputs(texts=[c.text for c in captions])
+    return ProbeClips(trained, captions, x1, lengths, mask, cond, cond_inputs)

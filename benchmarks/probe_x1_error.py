@@ -53,7 +53,7 @@ def main() -> None:
             x0 = torch.randn(x1.shape[1:], generator=generator).expand_as(x1) * mask  # same noise for every caption
             x_t = t * x1 + (1 - (1 - 1e-4) * t) * x0
             with torch.no_grad():
-                velocity = trained.model(x_t, torch.full((len(captions),), t), cond, lengths)
+                velocity = trained.model(x_t, torch.full((len(captions),), t), cond, lengths, **probe.cond_inputs)
             x1_hat = x_t + (1 - t) * velocity
             error = (x1_hat - x1) * mask
             errors.append(float(error.square().sum() / (mask.sum() * x1.shape[-1])))

@@ -12,8 +12,8 @@ The architecture comes from the tensor shapes (width, layers, FF size, feature s
 the heads from the file's metadata or MDM/MFM's fixed 4 (--num-heads). --behaviour reference (default) reproduces the
 reference forward pass (time on its 1/1000 grid, attention over padded frames, its stored positional table);
 --behaviour ours uses our model's defaults. See pipeline/training/convert.py for what the folder records.
-Exit code: 0 done, 2 refused (one line on stderr: unreadable file, keys that do not map, missing Mean/Std, an output
-folder that is not new), 1 other errors.
+Exit code: 0 done, 2 refused (one line on stderr: unreadable file, keys that do not map, NaN or inf weights (the
+tensors named), missing Mean/Std, an output folder that is not new), 1 other errors.
 """
 
 from __future__ import annotations

@@ -8,8 +8,9 @@ Settings: a preset from configs/ (``--config NAME`` or a YAML path; default ``de
 overrides, type-checked against pipeline/config.py. The run folder (train.out_dir: new, empty, or a run's) gets
 config.yaml, metrics.jsonl and checkpoints/step-XXXXXXXX/ (resume=auto continues from the newest one that
 verifies). Exit code: 0 when train.max_steps is reached, 128 + N after a clean stop on signal N (143 SIGTERM,
-130 SIGINT), 2 for settings or data refused before training (one line on stderr), 1 when a checkpoint could not be saved
-(e.g. a full disk: the run stops there) or for other errors.
+130 SIGINT), 2 for settings refused before training and for bad data (a shard or record that contradicts the
+manifest, a manifest whose dataset id is not the one its shard list derives, found before or during training: every rank stops at the same step, before its update), each one line on
+stderr, 1 when a checkpoint could not be saved (e.g. a full disk: the run stops there) or for other errors.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from pipeline.config import (
     describe_config,
     load_config,
 )
-from pipeline.data.stream import ShardVerificationError
+from pipeline.data.stages import DataError
 from pipeline.distributed import Dist, MixedPrecisionError
 from pipeline.training.trainer import CheckpointSaveError, Trainer
 from preprocess.shards import BuildConfig, ManifestError, OutputFolderError, build_dataset, default_out_dir
@@ -73,9 +74,10 @@ def main(argv: list[str] | None = None) -> int:
         given = sys.argv[1:] if argv is None else argv
         again = shlex.join(["python", "launch/train.py", *given, exc.continue_override])
         return fail(f"{exc}. The command that continues: {again}", 2)
-    except (ConfigError, ManifestError, ShardVerificationError, CheckpointError, FileNotFoundError,
-            MixedPrecisionError, OutputFolderError) as exc:
-        # refused before training (a bad shard, a manifest that is not its dataset's: strict verification)
+    except (ConfigError, ManifestError, CheckpointError, FileNotFoundError, MixedPrecisionError,
+            OutputFolderError, DataError) as exc:
+        # refused before training (incl. strict verification: a bad shard, a manifest that is not its
+        # dataset's), or bad data met while training; the message names the file and the reason
         return fail(str(exc), 2)
     except CheckpointSaveError as exc:
         return fail(str(exc), 1)

@@ -70,6 +70,30 @@ DIFFUSION_PRESETS: dict[str, dict] = {
 """Keyword arguments of :class:`GaussianDiffusion` for the reference baselines."""
 
 
+class DenoisedRange(NamedTuple):
+    """Per-channel bounds of the x_0 estimate, (D,) each, in the diffusion's feature space (for our models the
+    training normalisation); ``−inf`` / ``inf`` where a channel is unbounded."""
+
+    low: Tensor
+    high: Tensor
+
+
+def clamp_x0(x0: Tensor, bounds: float | DenoisedRange | None) -> Tensor:
+    """``x0`` (…, D) clamped to ``bounds``: a positive number c = [−c, c] on every channel (improved DDPM's
+    ``clip_denoised``, c = 1), a :class:`DenoisedRange`, or None = unchanged."""
+    if bounds is None:
+        return x0
+    if isinstance(bounds, DenoisedRange):
+        low, high = (bound.to(device=x0.device, dtype=x0.dtype) for bound in bounds)
+        if low.shape != x0.shape[-1:] or high.shape != x0.shape[-1:]:
+            raise ValueError(f"clip_denoised bounds have shapes {tuple(low.shape)}, {tuple(high.shape)}; the x_0 "
+                             f"estimate has {x0.shape[-1]} channels")
+        return torch.minimum(torch.maximum(x0, low), high)
+    if isinstance(bounds, bool) or not bounds > 0:
+        raise ValueError(f"clip_denoised must be a positive bound, a DenoisedRange or None, got {bounds!r}")
+    return x0.clamp(-bounds, bounds)
+
+
 # ---------------------------------------------------------------------------------------------------
 # schedules and respacing
 
@@ -327,12 +351,13 @@ class GaussianDiffusion:
         return prediction, variance_values
 
     def p_mean_variance(
-        self, output: Tensor, x_t: Tensor, step: Tensor, *, clip_denoised: float | None = None
+        self, output: Tensor, x_t: Tensor, step: Tensor, *, clip_denoised: float | DenoisedRange | None = None
     ) -> ReversePrediction:
         """``p(x_{s−1} | x_s)`` from the denoiser's ``output`` at ``x_t`` and schedule index ``step`` (B,).
 
-        clip_denoised: clamp the x_0 estimate to [−c, c] before the posterior (FLAME: c = 1 on its raw SMPL 6D
-            features; not meaningful for z-normalised features, hence off by default).
+        clip_denoised: bounds of the x_0 estimate before the posterior (and DDIM's step), see :func:`clamp_x0`:
+            a number c = [−c, c] on every channel (FLAME's ``clip_denoised=True`` is c = 1 on its raw SMPL
+            features), or per-channel :class:`DenoisedRange`; None (default) = no clamp.
         """
         step = self._check_step(step, x_t.shape[0])
         prediction, variance_values = self.split_output(output, x_t)
@@ -348,10 +373,7 @@ class GaussianDiffusion:
             log_variance = fraction * max_log + (1.0 - fraction) * min_log
             variance = log_variance.exp()
         x0 = prediction if self.prediction == "x0" else self.predict_x0_from_eps(x_t, step, prediction)
-        if clip_denoised is not None:
-            if not clip_denoised > 0:
-                raise ValueError(f"clip_denoised must be a positive bound or None, got {clip_denoised!r}")
-            x0 = x0.clamp(-clip_denoised, clip_denoised)
+        x0 = clamp_x0(x0, clip_denoised)
         mean, _ = self.q_posterior(x0, x_t, step)
         return ReversePrediction(mean=mean, variance=variance, log_variance=log_variance, x0=x0)
 

@@ -22,17 +22,21 @@ on the batch it is in (the pipeline's sampling and evaluation do this, as for fl
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from mfm.diffusion import GaussianDiffusion
+from mfm.diffusion import DenoisedRange, GaussianDiffusion
 from mfm.guidance import classifier_free_guidance
 from mfm.editing import as_bool_mask
+from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
 from mfm.solvers import (
     NoiseGenerators,
@@ -72,7 +76,7 @@ def reverse_diffusion(
     generator: NoiseGenerators,
     sampler: str = "ddpm",
     eta: float = 0.0,
-    clip_denoised: float | None = None,
+    clip_denoised: float | DenoisedRange | None = None,
     frame_mask: Tensor | None = None,
     before_step: BeforeStep | None = None,
     return_trajectory: bool = False,
@@ -80,6 +84,7 @@ def reverse_diffusion(
     """Run the reverse chain of ``diffusion`` (every index, N−1 → 0) from ``x_start`` (the noisiest state).
 
     frame_mask: (B, T) valid frames; the state is zeroed elsewhere after every step.
+    clip_denoised: bounds of every step's x_0 estimate (:func:`mfm.diffusion.clamp_x0`); None = none.
     before_step: maps the state before each step's denoiser call (see :func:`replacement_edit`).
     """
     if sampler not in SAMPLERS:
@@ -137,7 +142,7 @@ def sample_diffusion(
     eta: float = 0.0,
     guidance: float = 2.5,
     null_cond: Tensor | None = None,
-    clip_denoised: float | None = None,
+    clip_denoised: float | DenoisedRange | None = None,
     seed: int = 0,
     generator: NoiseGenerators | None = None,
     return_trajectory: bool = False,
@@ -149,7 +154,9 @@ def sample_diffusion(
         (:func:`mfm.diffusion.space_timesteps`: an int K, ``"ddimK"`` or section counts).
     guidance: classifier-free scale (FLAME 8.0, FlowMDM 2.5); mixes the prediction channels only, a learned variance
         comes from the conditional half (FLAME).
-    clip_denoised: clamp x_0 estimates to [−c, c] (FLAME's True = 1.0 on raw SMPL features; None for normalised ones).
+    clip_denoised: bounds of the x_0 estimates (:func:`mfm.diffusion.clamp_x0`): c = [−c, c] on every channel
+        (FLAME's ``True`` = 1.0, on its raw SMPL features), per-channel (:func:`rotation_6d_range`: FLAME's clamp on
+        our normalised features) or None (default).
     feature_dim defaults to ``model.config.feature_dim``.
     """
     device, cond, lengths = sampling_inputs(model, cond, lengths, num_frames)
@@ -186,7 +193,7 @@ def replacement_edit(
     sampler: str = "ddpm",
     eta: float = 0.0,
     lengths: Sequence[int] | Tensor | None = None,
-    clip_denoised: float | None = None,
+    clip_denoised: float | DenoisedRange | None = None,
     restore_known: bool = True,
     seed: int = 0,
     generator: NoiseGenerators | None = None,
@@ -202,7 +209,8 @@ def replacement_edit(
     ``√ᾱ[0]·x1_known + √(1 − ᾱ[0])·z`` and the DDPM step 0 returns the posterior mean, which at step 0 is the x_0
     estimate itself (``posterior_mean_coef2[0] = 0``); DDIM's step 0 returns it too. So FLAME's raw output keeps the
     known part only approximately (exactly for a denoiser that recovers it); FLAME then overwrites the translation with
-    the reference when ``use_reference_translation`` but leaves the kept joints as generated.
+    the reference when ``use_reference_translation`` (:func:`copy_reference_root`, after its smoothing) but leaves the
+    kept joints as generated.
     ``restore_known=True`` (default) copies ``x1_known`` into the kept part of the output, so it equals the source
     exactly; ``False`` returns the raw chain output (FLAME's joints).
 
@@ -253,15 +261,83 @@ class BaselineSampling:
     smoothing_sigma: float
     """Gaussian smoothing of the output over time (frames), σ in frames; 0: none."""
     source: str
+    every_training_step: bool = False
+    """Sample every step of the training schedule (no respacing), whatever step count a sweep asks for."""
+    clip_denoised: bool = False
+    """Clamp every step's x_0 estimate as the authors' sampler does; on our features :func:`rotation_6d_range`."""
+    ema_weights: bool = False
+    """The authors sample the EMA of the weights."""
+
+    def record(self) -> dict[str, Any]:
+        """What a results file says about these settings."""
+        return dataclasses.asdict(self)
 
 
 BASELINE_SAMPLING: dict[str, BaselineSampling] = {
     "flame": BaselineSampling(
-        guidance=8.0, smoothing_sigma=1.0,
-        source="FLAME configs/model/diffusion_hml3d.yaml guidance_scale 8.0; its t2m_sample.py, edit_motion.py and "
-               "test-time metrics smooth every output with scipy gaussian_filter1d(sigma=1, axis=time)"),
+        guidance=8.0, smoothing_sigma=1.0, every_training_step=True, clip_denoised=True, ema_weights=True,
+        source="kakaobrain/flame: configs/model/diffusion_hml3d.yaml: 16 guidance_scale 8.0; t2m_sample.py: 53, "
+               "edit_motion.py: 79-82 and src/models/diffusion_module.py: 174-176 smooth every output with scipy "
+               "gaussian_filter1d(sigma=1, axis=time); diffusion_module.py: 61-65 samples with "
+               "space_timesteps(1000, [1000]) = all 1,000 training steps (sampling_strategy ddpm, "
+               "diffusion_hml3d.yaml: 11); src/utils/sample_util.py: 90 clip_denoised=True (gaussian_diffusion.py: "
+               "322-327 clamps the x0 estimate to [-1, 1]); sample_util.py: 43-68 and edit_motion.py: 64 sample the "
+               "EMA model (diffusion_hml3d.yaml: 8-10 decay 0.99 every 10 steps, copied until step 100)"),
 }
-"""Keyed by :data:`mfm.diffusion.DIFFUSION_PRESETS` name; presets without an entry sample with our defaults."""
+"""Keyed by :data:`mfm.diffusion.DIFFUSION_PRESETS` name; presets without an entry sample with our defaults. (FLAME's
+edits' translation copy belongs to its editing procedure, which every diffusion checkpoint's edits follow:
+:func:`copy_reference_root`.)"""
+
+
+FLAME_X0_BOUND = 1.0
+"""FLAME's ``clip_denoised=True``: improved DDPM's ``x.clamp(-1, 1)`` of the x_0 estimate, in FLAME's raw features."""
+
+
+def rotation_6d_range(layout: FeatureLayout, mean: Tensor, std: Tensor) -> DenoisedRange:
+    """FLAME's x_0 clamp carried to our features: the 6D rotation channels bounded to [−1, 1] in raw units, the
+    others unbounded; as bounds in the training normalisation ``(raw − mean) / std`` the sampler runs in.
+
+    FLAME clamps every channel of its raw 147-D estimate (3 root translation channels in metres + 24 joints × 6D)
+    to [−1, 1]. A 6D channel is a component of two unit columns of a rotation matrix, so on those channels the
+    clamp only trims estimates that leave the range every valid rotation lies in; ours (``layout.slices['rot6d']``)
+    have the same meaning and get the same bound. Its translation channels (absolute AMASS root positions, bounded
+    to a ±1 m box) have no counterpart in our features, whose root is velocities and a height; our joint positions,
+    velocities and foot contacts do not exist in FLAME's features; those stay unclamped. Clamping our normalised
+    features to [−1, 1] instead would bound every channel to ±1 std of the data, nothing like FLAME's clamp.
+    """
+    mean = torch.as_tensor(mean).detach().to("cpu", torch.float64).reshape(-1)
+    std = torch.as_tensor(std).detach().to("cpu", torch.float64).reshape(-1)
+    if mean.shape != (layout.dim,) or std.shape != (layout.dim,):
+        raise ValueError(f"mean and std must have the skeleton's {layout.dim} channels, got {tuple(mean.shape)} and "
+                         f"{tuple(std.shape)}")
+    if not bool((std > 0).all()):
+        raise ValueError("std must be positive on every channel to map the raw bounds into the normalisation")
+    low = torch.full((layout.dim,), -math.inf, dtype=torch.float64)
+    high = torch.full((layout.dim,), math.inf, dtype=torch.float64)
+    rot = layout.slices["rot6d"]
+    low[rot] = (-FLAME_X0_BOUND - mean[rot]) / std[rot]
+    high[rot] = (FLAME_X0_BOUND - mean[rot]) / std[rot]
+    return DenoisedRange(low.float(), high.float())  # on the CPU: clamp_x0 moves them to the estimate's device
+
+
+def copy_reference_root(x: Tensor, reference: Tensor, keep: Tensor | np.ndarray, layout: FeatureLayout) -> Tensor:
+    """FLAME's ``use_reference_translation`` on our features: ``x`` (B, T, D) with the root dims of ``reference``
+    (``layout.root_dims``: rotation velocity, root-frame linear velocity, height) wherever ``keep`` keeps them.
+    FLAME's ``edit_motion.py``: 93–94 (``configs/edit_motion.yaml``: 4 ``use_reference_translation: true``) does
+    it after its smoothing (79–82), so its edited output's translation is the reference's exactly.
+
+    FLAME's translation is the root position itself; ours is integrated from these four dims (the heading from the
+    rotation velocity, the position from the rotated linear velocity, the height as is), so copying them on every
+    frame (a joint edit such as the upper body's, the only kind FLAME's code has) makes the output's root trajectory
+    and heading equal the reference's. On the kept frames of a frame edit (prediction, in-between) it copies the
+    root's motion there; positions after regenerated frames keep the offset those frames integrated. The
+    regenerated frames' root is never copied: there it is what the task asks the model for (FLAME's code would
+    keep the translation on every frame, but has no frame edits).
+    """
+    keep = as_bool_mask(keep, x.shape, x.device)
+    root = torch.zeros(x.shape[-1], dtype=torch.bool, device=x.device)
+    root[torch.as_tensor(layout.root_dims, device=x.device)] = True
+    return torch.where(keep & root, reference.to(x.dtype), x)
 
 
 def smooth_over_time(x: Tensor, lengths: Sequence[int] | Tensor, sigma: float) -> Tensor:

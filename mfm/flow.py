@@ -132,13 +132,14 @@ TERM_WEIGHTINGS = ("data", "loss")
 
 
 def term_weight(t: torch.Tensor, loss_space: str, terms_weighting: str,
-                sigma_min: float = SIGMA_MIN) -> torch.Tensor | None:
+                sigma_min: float = SIGMA_MIN, velocity_weight_cap: float = 0.0) -> torch.Tensor | None:
     """Per-sample weight of the temporal and bone terms (which are errors of the implied motion x̂1).
 
     'data': none, as the terms were introduced: every time counts alike. 'loss': the weight the main loss puts on
     an x̂1 error at that time, relative to the data loss's, so the terms keep the same proportion to the main loss at
     every t: ``1 / max(1 − (1 − σ_min)·t, MIN_NOISE_SCALE)²`` under the velocity loss (the floor the model's
-    velocity conversion uses), 1 under the data loss. Under the velocity loss with 'data', a term weighs 4 against
+    velocity conversion uses; at most ``velocity_weight_cap`` when that is > 0, as :func:`loss_space_weight`
+    caps the main loss), 1 under the data loss. Under the velocity loss with 'data', a term weighs 4 against
     the main loss's 100 at t = 0.9, where a 10-step Euler sampler takes its last step; that last step is what
     leaves the frame-to-frame jitter in the sample.
     """
@@ -146,10 +147,12 @@ def term_weight(t: torch.Tensor, loss_space: str, terms_weighting: str,
         raise ValueError(f"terms_weighting must be one of {TERM_WEIGHTINGS}, got {terms_weighting!r}")
     if terms_weighting == "data" or loss_space == "data":
         return None
-    return (1 - (1 - sigma_min) * t.float()).clamp_min(MIN_NOISE_SCALE).square().reciprocal()
+    weight = (1 - (1 - sigma_min) * t.float()).clamp_min(MIN_NOISE_SCALE).square().reciprocal()
+    return weight.clamp_max(velocity_weight_cap) if velocity_weight_cap > 0 else weight
 
 
-def loss_space_weight(t: torch.Tensor, loss_space: str, sigma_min: float = SIGMA_MIN) -> torch.Tensor | None:
+def loss_space_weight(t: torch.Tensor, loss_space: str, sigma_min: float = SIGMA_MIN,
+                      velocity_weight_cap: float = 0.0) -> torch.Tensor | None:
     """Per-sample weight that turns the velocity error into the error of the motion it implies.
 
     'velocity': none (MFM). 'data': ``(1 − (1 − σ_min)·t)²``; since ``v − u = (x̂1 − x1) / (1 − (1 − σ_min)·t)`` on
@@ -157,11 +160,24 @@ def loss_space_weight(t: torch.Tensor, loss_space: str, sigma_min: float = SIGMA
     ``1/(1 − t)²``, up to 400× (with :data:`mfm.path.MIN_NOISE_SCALE`) at the end of the path, where a
     10-step Euler sampler never evaluates the model, and 4× at t = 0.5: the data loss spreads the model's
     accuracy evenly along the path.
+
+    ``velocity_weight_cap`` > 0 (velocity loss only) caps that x̂1 weight: ``min(1, cap·(1 − (1 − σ_min)·t)²)`` in
+    velocity space, i.e. the velocity loss where ``1/(1 − t)² ≤ cap`` and ``cap`` × the data loss nearer the data
+    end. A loss between the two, in the spirit of Min-SNR-γ weighting (Hang et al. 2023); not MFM's. Why: the
+    velocity loss's largest weights, all within the last few tenths of the path, dominate every batch's gradient,
+    and the x̂1 the network makes from (near) noise, whose frame-to-frame jitter the sampler integrates into the
+    sample, is fitted least (docs/generator-study.md).
     """
-    if loss_space == "velocity":
-        return None
-    if loss_space != "data":
+    if loss_space not in LOSS_SPACES:
         raise ValueError(f"loss_space must be one of {LOSS_SPACES}, got {loss_space!r}")
+    if velocity_weight_cap < 0:
+        raise ValueError(f"velocity_weight_cap must be >= 0 (0 = no cap), got {velocity_weight_cap!r}")
+    if loss_space == "velocity":
+        if velocity_weight_cap == 0:
+            return None
+        return (velocity_weight_cap * (1 - (1 - sigma_min) * t.float()).square()).clamp_max(1.0)
+    if velocity_weight_cap > 0:
+        raise ValueError("velocity_weight_cap applies to the velocity loss only")
     return (1 - (1 - sigma_min) * t.float()).square()
 
 
@@ -183,6 +199,7 @@ def flow_matching_loss(
     geometry: MotionGeometry | None = None,
     time_sampling: tuple[str, float, float] = ("uniform", 0.0, 1.0),
     terms_weighting: str = "data",
+    velocity_weight_cap: float = 0.0,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
     weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
@@ -195,7 +212,8 @@ def flow_matching_loss(
     ``t`` (B,) and ``x0`` (B, T, D), when given, replace the draws (a data-parallel step slices them from the
     global batch's draws so that any world size computes the same thing). ``t``, drawn or given, is a uniform draw
     that ``time_sampling`` = (name, loc, scale) turns into the training time (:func:`warp_time`; 'uniform' keeps
-    it); ``terms_weighting`` weighs the two terms over t (:func:`term_weight`). ``model_kwargs`` go to the model
+    it); ``terms_weighting`` weighs the two terms over t (:func:`term_weight`); ``velocity_weight_cap`` caps the
+    velocity loss's weight of an x̂1 error (:func:`loss_space_weight`). ``model_kwargs`` go to the model
     (per-frame conditions, token features, positional mode of the FlowMDM/FLAME variants).
     Returns the scalar loss and ``{"loss": detached loss, "valid_frames": number of frames averaged}``.
     """
@@ -216,9 +234,9 @@ def flow_matching_loss(
     velocity = model(x_t, t, cond, lengths, cond_mask=cond_mask, generator=model_generator, **(model_kwargs or {}))
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
     target = target_velocity(x0, x1, sigma_min)
-    weight = loss_space_weight(t, loss_space, sigma_min)
+    weight = loss_space_weight(t, loss_space, sigma_min, velocity_weight_cap)
     loss = masked_mse(velocity, target, frame_mask, weight)
-    terms = term_weight(t, loss_space, terms_weighting, sigma_min)
+    terms = term_weight(t, loss_space, terms_weighting, sigma_min, velocity_weight_cap)
     if temporal_weight > 0:
         loss = loss + temporal_weight * temporal_loss(velocity, target, t, frame_mask, sigma_min, terms)
     if bone_weight > 0:
@@ -318,6 +336,7 @@ class FlowMatchingObjective:
     time_loc: float = 0.0
     time_scale: float = 1.0
     terms_weighting: str = "data"
+    velocity_weight_cap: float = 0.0
 
     def __post_init__(self) -> None:
         if self.time_sampling not in TIME_SAMPLINGS or self.time_scale <= 0:
@@ -335,6 +354,9 @@ class FlowMatchingObjective:
                              f"{self.terms_weighting!r}")
         if self.loss_space not in LOSS_SPACES:
             raise ValueError(f"FlowMatchingObjective.loss_space must be one of {LOSS_SPACES}, got {self.loss_space!r}")
+        if self.velocity_weight_cap < 0 or (self.velocity_weight_cap > 0 and self.loss_space != "velocity"):
+            raise ValueError(f"FlowMatchingObjective.velocity_weight_cap must be >= 0 and applies to the velocity "
+                             f"loss only, got {self.velocity_weight_cap!r} with loss_space {self.loss_space!r}")
 
     def loss(
         self,
@@ -354,4 +376,5 @@ class FlowMatchingObjective:
             t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
             temporal_weight=self.temporal_weight, bone_weight=self.bone_weight, geometry=self.geometry,
             time_sampling=(self.time_sampling, self.time_loc, self.time_scale), terms_weighting=self.terms_weighting,
+            velocity_weight_cap=self.velocity_weight_cap,
         )

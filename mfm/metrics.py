@@ -275,21 +275,26 @@ def confidence_interval(values: Any) -> tuple[Any, Any]:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def _per_joint_error(pred_joints: Any, gt_joints: Any) -> np.ndarray:
+def _per_joint_error(pred_joints: Any, gt_joints: Any, metres_per_unit: float = 1.0) -> np.ndarray:
+    """(N, T, J) Euclidean error of each joint in metres, the inputs being in the unit ``metres_per_unit`` says."""
     pred, gt = _as_numpy(pred_joints, "pred_joints"), _as_numpy(gt_joints, "gt_joints")
     _check_joints(pred, "pred_joints")
     if pred.shape != gt.shape:
         raise ValueError(f"pred_joints {pred.shape} and gt_joints {gt.shape} must have the same shape")
-    return np.linalg.norm(pred - gt, axis=-1)  # (N, T, J)
+    if isinstance(metres_per_unit, bool) or not metres_per_unit > 0:
+        raise ValueError(f"metres_per_unit must be > 0, got {metres_per_unit!r}")
+    return np.linalg.norm(pred - gt, axis=-1) * metres_per_unit  # (N, T, J)
 
 
-def ade(pred_joints: Any, gt_joints: Any, lengths: Any = None, mask_frames: Any = None) -> float:
-    """Average Displacement Error: per-joint Euclidean error averaged over joints and frames.
+def ade(pred_joints: Any, gt_joints: Any, lengths: Any = None, mask_frames: Any = None, *,
+        metres_per_unit: float = 1.0) -> float:
+    """Average Displacement Error in metres: per-joint Euclidean error averaged over joints and frames.
 
     Each sample is averaged over its frames ``< lengths[i]`` that are also True in ``mask_frames`` ((N, T) or
-    (T,) bool, e.g. the edited frames), then samples are averaged with equal weight. Inputs (N, T, J, 3).
+    (T,) bool, e.g. the edited frames), then samples are averaged with equal weight. Inputs (N, T, J, 3) in the
+    unit ``metres_per_unit`` says (1 = metres; ``METRES_PER_UNIT[skeleton.unit]``: KIT's joints are millimetres).
     """
-    err = _per_joint_error(pred_joints, gt_joints).mean(axis=-1)  # (N, T): mean over joints
+    err = _per_joint_error(pred_joints, gt_joints, metres_per_unit).mean(axis=-1)  # (N, T): mean over joints
     n, t = err.shape
     valid = np.arange(t)[None, :] < _lengths_or_full(lengths, n, t)[:, None]
     if mask_frames is not None:
@@ -304,10 +309,11 @@ def ade(pred_joints: Any, gt_joints: Any, lengths: Any = None, mask_frames: Any 
     return float(((err * valid).sum(axis=1) / counts).mean())
 
 
-def fde(pred_joints: Any, gt_joints: Any, lengths: Any = None) -> float:
-    """Final Displacement Error: per-joint Euclidean error at each sample's last valid frame (``lengths[i] − 1``),
-    averaged over joints and samples. Inputs (N, T, J, 3)."""
-    err = _per_joint_error(pred_joints, gt_joints).mean(axis=-1)  # (N, T)
+def fde(pred_joints: Any, gt_joints: Any, lengths: Any = None, *, metres_per_unit: float = 1.0) -> float:
+    """Final Displacement Error in metres: per-joint Euclidean error at each sample's last valid frame
+    (``lengths[i] − 1``), averaged over joints and samples. Inputs (N, T, J, 3) in the unit ``metres_per_unit``
+    says (as :func:`ade`)."""
+    err = _per_joint_error(pred_joints, gt_joints, metres_per_unit).mean(axis=-1)  # (N, T)
     n, t = err.shape
     last = _lengths_or_full(lengths, n, t) - 1
     return float(err[np.arange(n), last].mean())

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import pickle
 import re
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -245,9 +245,26 @@ def _check_keys_and_shapes(state: Mapping[str, Tensor], config: ModelConfig, sou
              for theirs, mine in names.items() if tuple(state[theirs].shape) != tuple(ours[mine].shape)]
     if wrong:
         raise ReferenceCheckpointError(f"{source}: inconsistent shapes: {'; '.join(wrong[:8])}")
+    _check_finite(state, [*names, *(t for t in _POSITIONAL_TABLES if t in state)], source)
     for table in _POSITIONAL_TABLES:
         if table in state:
             _check_positional_table(state[table], config.latent_dim, f"{source}: {table}")
+
+
+def _check_finite(state: Mapping[str, Tensor], keys: Sequence[str], source: str) -> None:
+    """Every value of the tensors we take is finite: a NaN or inf weight would make every motion sampled from the
+    converted model NaN (and a NaN positional table would pass the table check, whose comparisons are False)."""
+    bad = []
+    for key in keys:
+        value = state[key]
+        if value.is_floating_point() or value.is_complex():
+            count = int((~torch.isfinite(value)).sum())
+            if count:
+                bad.append(f"{key} ({count} of {value.numel()} values)")
+    if bad:
+        raise ReferenceCheckpointError(f"{source}: non-finite (NaN or inf) weights in {len(bad)} tensor(s): "
+                                       f"{', '.join(bad[:8])}{' …' if len(bad) > 8 else ''}; a model with them "
+                                       "cannot be converted")
 
 
 def _check_positional_table(table: Tensor, dim: int, what: str) -> None:

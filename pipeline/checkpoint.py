@@ -129,8 +129,9 @@ class ResumeConflictError(CheckpointError):
 class ResumeSettingError(CheckpointError):
     """The checkpoint cannot be resumed with this run's settings: ``setting`` (e.g. ``data.batch_size``) was
     ``saved`` when it was written and is ``now`` in this run, and the data position (which samples come next) or the
-    per-rank streams depend on it. Raised before anything in the run folder is written; the message says how to go
-    on (the checkpoint's value, or a new run folder)."""
+    per-rank streams depend on it; or (``train.max_steps``) the checkpoint's step, ``saved``, is already past the
+    run's last step, ``now``. Raised before anything in the run folder is written; the message says how to go on
+    (the checkpoint's value, or a new run folder)."""
 
     def __init__(self, message: str, *, setting: str, saved: Any, now: Any) -> None:
         super().__init__(message)

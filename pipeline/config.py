@@ -19,6 +19,7 @@ string ``"off"``) and ``1e-4`` is a float (PyYAML's 1.1 rules read it as a strin
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 import types
 from collections.abc import Iterable, Mapping
@@ -71,7 +72,10 @@ class DataConfig:
     shards are left out and counted in shard_report.json; during training a record that fails to decode (e.g.
     non-finite features) is left out of its batch, counted and logged, deterministically (exact resume holds); a
     resume after a shard went bad finishes the checkpoint's epoch with its plan without that shard's records and
-    plans later epochs without it (logged as a warning). off: no checks before training."""
+    plans later epochs without it (logged as a warning). Both hash remote shards again as they stream, before any
+    of their records is used: one changed since verification stops a strict run naming its URL (before the next
+    step, so before the next checkpoint) and has its records skipped, counted, in tolerant mode. off: no checks
+    before training nor while streaming."""
     allow_external_shards: bool = False
     """false: every shard path in the manifest must be a relative path under the manifest's own folder or URL; an
     absolute path, a URL (``file://``, another host or scheme) or a '..' segment is refused before anything is read
@@ -182,8 +186,10 @@ class TrainLoopConfig:
     never count here."""
     nonfinite_budget: int = 10
     """With nonfinite=skip: consecutive skipped steps tolerated before the run stops."""
-    wandb: Literal["offline", "online", "disabled"] = "offline"
-    """Weights & Biases mode (offline needs no network; `wandb sync` uploads later)."""
+    wandb: Literal["auto", "offline", "online", "disabled"] = "auto"
+    """Weights & Biases mode (offline needs no network; `wandb sync` uploads later). auto: the environment's
+    WANDB_MODE when set, else offline. An explicit offline/online/disabled (here, in a preset or an override) wins
+    over WANDB_MODE: disabled writes no W&B files whatever the environment says (see :func:`wandb_mode`)."""
     wandb_project: str = "mfm"
     tensorboard: bool = True
     """Write TensorBoard event files to ``<out_dir>/tensorboard/`` (rank 0 only): the scalars of metrics.jsonl,
@@ -219,6 +225,11 @@ class TrainLoopConfig:
     """objective=flow: how the temporal and bone terms are weighted over t (``mfm.flow.term_weight``): 'data' = the
     same at every t (as introduced); 'loss' = as the main loss weighs an x̂1 error at that t (under the velocity
     loss 1/(1 − t)², so the terms keep their proportion to it where the sampler's last steps are). Not MFM's."""
+    flow_velocity_weight_cap: float = 0.0
+    """objective=flow, flow_loss=velocity: cap on the weight the velocity loss puts on an x̂1 error, 1/(1 − t)²
+    (``mfm.flow.loss_space_weight``): the velocity loss where that is at most the cap, the cap times the data loss
+    nearer the data end (9 = from t = 2/3). 0 = no cap (MFM). Not MFM's; in the spirit of Min-SNR-γ (Hang et al.
+    2023). Also caps the terms under flow_terms_weighting=loss."""
     flow_time_sampling: Literal["uniform", "logit_normal"] = "uniform"
     """objective=flow: the density of the training times (``mfm.flow.warp_time``): 'uniform' = MFM; 'logit_normal' =
     sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice)."""
@@ -237,6 +248,10 @@ class TrainLoopConfig:
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
         _require(self.flow_temporal_weight >= 0, f"train.flow_temporal_weight must be >= 0, got {self.flow_temporal_weight}")
         _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
+        _require(self.flow_velocity_weight_cap >= 0,
+                 f"train.flow_velocity_weight_cap must be >= 0 (0 = no cap), got {self.flow_velocity_weight_cap}")
+        _require(self.flow_velocity_weight_cap == 0 or self.flow_loss == "velocity",
+                 f"train.flow_velocity_weight_cap applies to train.flow_loss=velocity, not {self.flow_loss!r}")
         _require(self.log_every >= 1, f"train.log_every must be >= 1, got {self.log_every}")
         _require(self.save_every >= 1, f"train.save_every must be >= 1, got {self.save_every}")
         _require(self.keep_last >= 0, f"train.keep_last must be >= 0 (0 keeps all), got {self.keep_last}")
@@ -286,6 +301,16 @@ class TrainConfig:
                 f"data.window ({self.data.window}) exceeds model.max_frames ({self.model.max_frames}), "
                 "the largest length the length token can embed",
             )
+
+
+def wandb_mode(setting: str, fallback: str = "offline") -> str:
+    """The W&B mode a job runs with, from its ``wandb`` setting (``train.wandb``, the evaluator's ``output.wandb``):
+    an explicit ``offline``/``online``/``disabled`` as given, whatever the environment's ``WANDB_MODE`` says (so
+    ``disabled`` starts no W&B run and writes no wandb folder); ``auto``, the environment's ``WANDB_MODE`` when set,
+    else ``fallback``."""
+    if setting != "auto":
+        return setting
+    return os.environ.get("WANDB_MODE") or fallback
 
 
 def _require(condition: bool, message: str) -> None:

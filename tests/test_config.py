@@ -184,6 +184,10 @@ def test_direct_construction_is_validated_and_coerced():
         TrainLoopConfig(keep_last=-1)
     with pytest.raises(ConfigError, match="mixed_precision"):
         TrainLoopConfig(mixed_precision="fp8")
+    with pytest.raises(ConfigError, match="flow_velocity_weight_cap must be >= 0"):
+        TrainLoopConfig(flow_velocity_weight_cap=-1)
+    with pytest.raises(ConfigError, match="applies to train.flow_loss=velocity"):
+        TrainLoopConfig(flow_loss="data", flow_velocity_weight_cap=9)
     with pytest.raises(TypeError):  # keyword-only: no positional surprises
         DataConfig("manifest.json")
 

@@ -105,7 +105,8 @@ def test_padding_is_masked_in_our_behaviour_and_attended_in_the_reference_behavi
 
 def reference_key_set(feats: int, latent: int, ff: int, layers: int, *, clip_dim: int = 512,
                       num_actions: int = 0) -> dict[str, torch.Tensor]:
-    """Uninitialised tensors with the names and shapes of MDM's ``trans_enc`` state dict (model/mdm.py)."""
+    """Zero tensors with the names and shapes of MDM's ``trans_enc`` state dict (model/mdm.py). (Not uninitialised
+    memory: that may hold NaN bit patterns, which the converter refuses.)"""
     shapes = {
         "sequence_pos_encoder.pe": (5000, 1, latent),
         "embed_timestep.sequence_pos_encoder.pe": (5000, 1, latent),
@@ -126,7 +127,7 @@ def reference_key_set(feats: int, latent: int, ff: int, layers: int, *, clip_dim
                        p + "linear2.weight": (latent, ff), p + "linear2.bias": (latent,),
                        p + "norm1.weight": (latent,), p + "norm1.bias": (latent,),
                        p + "norm2.weight": (latent,), p + "norm2.bias": (latent,)})
-    state = {k: torch.empty(shape) for k, shape in shapes.items()}
+    state = {k: torch.zeros(shape) for k, shape in shapes.items()}
     from mfm.model import sinusoidal_embedding
 
     table = sinusoidal_embedding(torch.arange(5000), latent).unsqueeze(1)
@@ -176,6 +177,30 @@ def test_truncated_renamed_or_foreign_key_sets_are_refused_naming_the_keys():
     other_table["sequence_pos_encoder.pe"] = torch.zeros(5000, 1, 64)
     with pytest.raises(ReferenceCheckpointError, match="differs from MDM's sinusoid table"):
         infer_model_config(other_table)
+
+
+def test_non_finite_weights_are_refused_naming_the_tensor(tmp_path, capsys):
+    """Issue 24, item 9: a reference state dict with a NaN or inf weight converted, and every motion sampled from
+    it was NaN. Now it is refused, naming the tensor(s), before anything is written: one line, exit 2. A NaN in the
+    stored positional table, which the table check's comparisons let through, too."""
+    state = reference_key_set(263, 64, 128, 2)
+    state["seqTransEncoder.layers.1.linear1.weight"][3, 5] = float("nan")
+    state["output_process.poseFinal.bias"][0] = float("inf")
+    source = tmp_path / "model000100000.pt"
+    torch.save(state, source)
+    with pytest.raises(ReferenceCheckpointError, match=r"non-finite.*seqTransEncoder\.layers\.1\.linear1\.weight "
+                                                       r"\(1 of 8192 values\)"):
+        infer_model_config(state)
+    out = tmp_path / "converted"
+    assert convert("--from", "mfm", str(source), "--dataset", "humanml3d", "--out", str(out)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(source) in err[0], err
+    assert "output_process.poseFinal.bias" in err[0] and "seqTransEncoder.layers.1.linear1.weight" in err[0]
+    assert not out.exists()
+    table = reference_key_set(263, 64, 128, 2)
+    table["sequence_pos_encoder.pe"][7, 0, 3] = float("nan")
+    with pytest.raises(ReferenceCheckpointError, match=r"non-finite.*sequence_pos_encoder\.pe"):
+        infer_model_config(table)
 
 
 def test_files_are_read_without_pickle_code(tmp_path):

@@ -13,6 +13,7 @@ import importlib.util
 import os
 import re
 import shutil
+import tarfile
 import threading
 import time
 import uuid
@@ -23,6 +24,7 @@ from pathlib import Path
 import fsspec
 import numpy as np
 import pytest
+from conftest import flip_byte as flip_byte_at
 from fsspec.implementations.memory import MemoryFileSystem
 from test_data import (
     UNEVEN,
@@ -39,15 +41,19 @@ import pipeline.data.stream as data_module
 from pipeline.config import ConfigError, DataConfig
 from pipeline.data.locations import (
     RemoteSupportMissing,
+    fingerprint,
     RetriesExhausted,
     RetryPolicy,
     is_transient,
     resolve_location,
 )
+from pipeline.data.shard_cache import VerificationCache
 from pipeline.data.stream import (
     MotionLoader,
+    ShardChangedError,
     ShardReadError,
     ShardVerificationError,
+    check_shard,
     iter_motions,
     open_manifest,
     read_shard,
@@ -72,13 +78,20 @@ def dataset(tmp_path_factory) -> Path:
 
 
 # ----------------------------------------------------------------------------------------------------------
-# A local HTTP server (GET with Range, HEAD, Last-Modified) that can fail on purpose
+# A local HTTP server (GET with Range, HEAD, Last-Modified, an nginx-style ETag) that can fail on purpose
 # ----------------------------------------------------------------------------------------------------------
 
 
+def nginx_etag(path: Path) -> str:
+    """The ETag nginx sends for a static file: its modification time and size in hex, nothing of its content."""
+    stat = path.stat()
+    return f'"{int(stat.st_mtime):x}-{stat.st_size:x}"'
+
+
 class _Handler(SimpleHTTPRequestHandler):
-    """Serves ``server.root``. ``server.faults[path]`` is a list of failures for the next GETs of that path:
-    an int answers that HTTP status, "cut" sends the headers of the whole file, half of it, and closes."""
+    """Serves ``server.root`` as nginx does (ETag from mtime and size, Last-Modified). ``server.faults[path]`` is a
+    list of failures for the next GETs of that path: an int answers that HTTP status, "cut" sends the headers of
+    the whole file, half of it, and closes."""
 
     protocol_version = "HTTP/1.1"
 
@@ -94,9 +107,21 @@ class _Handler(SimpleHTTPRequestHandler):
             faults = self.server.faults.get(self.path)
             return faults.pop(0) if faults and self.command == "GET" else None
 
+    def _validators(self, path: Path) -> None:
+        self.send_header("Last-Modified", self.date_time_string(int(path.stat().st_mtime)))
+        self.send_header("ETag", nginx_etag(path))
+
     def do_HEAD(self) -> None:
         self._fault()  # recorded; HEAD requests do not fail
-        super().do_HEAD()
+        path = Path(self.translate_path(self.path))
+        if not path.is_file():
+            self.send_error(HTTPStatus.NOT_FOUND)
+            return
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Length", str(path.stat().st_size))
+        self.send_header("Accept-Ranges", "bytes")
+        self._validators(path)
+        self.end_headers()
 
     def do_GET(self) -> None:
         fault = self._fault()
@@ -120,7 +145,7 @@ class _Handler(SimpleHTTPRequestHandler):
             self.send_response(HTTPStatus.OK)
         self.send_header("Content-Length", str(end - start))
         self.send_header("Accept-Ranges", "bytes")
-        self.send_header("Last-Modified", self.date_time_string(int(path.stat().st_mtime)))
+        self._validators(path)
         self.end_headers()
         if fault == "cut":
             self.wfile.write(body[start:start + (end - start) // 2])
@@ -133,21 +158,42 @@ class _Handler(SimpleHTTPRequestHandler):
         self.wfile.write(body[start:end])
 
 
-@pytest.fixture
-def http_root(tmp_path, dataset):
-    """A copy of the dataset served over HTTP: ``(root folder, base URL, server)``."""
-    root = tmp_path / "served"
-    shutil.copytree(dataset.parent, root)
+@contextlib.contextmanager
+def serving(root: Path):
+    """Serve the folder ``root`` over HTTP for the block: ``(base URL, server)``."""
     server = ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
     server.root, server.faults, server.requests, server.lock = root, {}, [], threading.Lock()
     server.daemon_threads = True
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     try:
-        yield root, f"http://127.0.0.1:{server.server_address[1]}", server
+        yield f"http://127.0.0.1:{server.server_address[1]}", server
     finally:
         server.shutdown()
         server.server_close()
+
+
+@pytest.fixture
+def http_root(tmp_path, dataset):
+    """A copy of the dataset served over HTTP: ``(root folder, base URL, server)``."""
+    root = tmp_path / "served"
+    shutil.copytree(dataset.parent, root)
+    with serving(root) as (base, server):
+        yield root, base, server
+
+
+def rewrite_in_place(path: Path) -> None:
+    """Change one byte of a file's content (inside a record's payload for a tar) and put its modification time
+    back: size, mtime, and so nginx's ETag and Last-Modified, are as they were; only the bytes differ."""
+    stat = path.stat()
+    offset = stat.st_size // 2
+    if path.suffix == ".tar":
+        with tarfile.open(path) as tar:
+            member = max(tar.getmembers(), key=lambda m: m.size)
+            offset = member.offset_data + member.size - 3  # the last bytes of an npy array's data
+    flip_byte_at(path, offset)
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert path.stat().st_size == stat.st_size and path.stat().st_mtime_ns == stat.st_mtime_ns
 
 
 needs_http = pytest.mark.skipif(importlib.util.find_spec("aiohttp") is None,
@@ -311,13 +357,15 @@ def test_s3_without_s3fs_names_the_extra_for_real():
 
 
 @needs_http
-@pytest.mark.parametrize("num_workers", [0, 2])
-def test_http_stream_is_the_local_stream_through_transient_failures(dataset, http_root, caplog, num_workers):
+@pytest.mark.parametrize("num_workers, check_remote_bytes", [(0, True), (2, True), (0, False)])
+def test_http_stream_is_the_local_stream_through_transient_failures(dataset, http_root, caplog, num_workers,
+                                                                    check_remote_bytes):
     root, base, server = http_root
-    # One 503 at the open of one shard, one connection cut half way through another (records already yielded).
+    # One 503 at the open of one shard, one connection cut half way through another: while it is downloaded and
+    # hashed, before any of its records is used (check_remote_bytes), or after some were yielded (without).
     server.faults = {"/train/shard-00003.tar": [503], "/train/shard-00006.tar": ["cut"]}
     caplog.set_level("WARNING", logger="pipeline.data.locations")
-    options = opts(num_workers=num_workers, **FAST)
+    options = opts(num_workers=num_workers, check_remote_bytes=check_remote_bytes, **FAST)
     local = list(MotionLoader(dataset, "train", opts(num_workers=num_workers)).iter_epoch())
     remote = list(MotionLoader(f"{base}/manifest.json", "train", options).iter_epoch())
     assert_batches_equal(remote, local)
@@ -326,8 +374,9 @@ def test_http_stream_is_the_local_stream_through_transient_failures(dataset, htt
     assert server.faults == {"/train/shard-00003.tar": [], "/train/shard-00006.tar": []}  # both were hit
     if num_workers == 0:  # worker processes log to their own stderr
         assert "shard-00003.tar: transient error while reading the shard (ClientResponseError (HTTP 503)" in caplog.text
-        assert re.search(r"shard-00006\.tar: transient error while reading the shard \(resuming after record \d+\)"
-                         r" \(ClientPayloadError", caplog.text)
+        resuming = r" \(resuming after record \d+\)" if not check_remote_bytes else ""
+        assert re.search(rf"shard-00006\.tar: transient error while reading the shard{resuming} \(ClientPayloadError",
+                         caplog.text)
 
 
 @needs_http
@@ -546,34 +595,107 @@ def test_cache_off_and_fresh_files_are_hashed_every_time(tmp_path, monkeypatch):
     assert not (tmp_path / "verify-cache").exists()
 
 
-def test_cache_for_a_remote_source_uses_its_metadata(dataset, memory_dataset, monkeypatch, short_racy_window):
+def test_a_remote_shard_is_remembered_only_by_a_content_hash(dataset, memory_dataset, monkeypatch,
+                                                             short_racy_window):
+    """Issue 24, item 2: a URL's metadata other than a content hash (an ETag, a modification time, a version id)
+    is the server's word, not the bytes': such shards are hashed on every start. One whose store reports a content
+    hash (GCS md5Hash, Content-MD5, the Hub's LFS sha256) is remembered, and read again when the hash changes."""
     url, _ = memory_dataset
     time.sleep(0.05)
     reads = counting_reads(monkeypatch)
     assert verify_shards(url, "train").num_from_cache == 0 and len(reads) == len(UNEVEN)
+    assert verify_shards(url, "train").num_from_cache == 0 and len(reads) == 2 * len(UNEVEN)  # "created" only
+
+    real_info = MemoryFileSystem.info
+
+    def info_with_md5(self, path, **kwargs):  # as gcsfs reports an object
+        info = real_info(self, path, **kwargs)
+        return {**info, "md5Hash": hashlib.md5(self.cat_file(path)).hexdigest()} if info["type"] == "file" else info
+
+    monkeypatch.setattr(MemoryFileSystem, "info", info_with_md5)
+    reads.clear()
+    assert verify_shards(url, "train").num_from_cache == 0 and len(reads) == len(UNEVEN)
     assert verify_shards(url, "train").num_from_cache == len(UNEVEN) and len(reads) == len(UNEVEN)
-    # Replace one object with tampered bytes of the same size: its metadata changes, so it is read again.
+    # Replace one object with tampered bytes of the same size: its content hash changes, so it is read again.
     fs = fsspec.filesystem("memory")
     name = url[len("memory://"):].rsplit("/", 1)[0] + "/train/shard-00003.tar"
     content = bytearray(fs.cat(name))
     content[len(content) // 3] ^= 0xFF
-    time.sleep(0.01)
     fs.pipe(name, bytes(content))
     with pytest.raises(ShardVerificationError, match=r"memory://.*/train/shard-00003\.tar: bad shard \(corrupted"):
         verify_shards(url, "train", mode="strict")
 
 
 @needs_http
-def test_cache_over_http_uses_last_modified(dataset, http_root, monkeypatch, short_racy_window):
+def test_a_shard_changed_in_place_with_its_old_etag_is_hashed_again_not_trusted(dataset, http_root,
+                                                                                short_racy_window):
+    """Issue 24, item 2: an nginx-style server derives the ETag from size and mtime, so a shard rewritten in place
+    with its old mtime keeps ETag and Last-Modified. It was trusted from the verification cache and a strict run
+    trained on the changed bytes. Now a URL known only by such validators is hashed on every start, and an entry an
+    earlier version remembered by its ETag is not used."""
     root, base, server = http_root
     old = time.time() - 10  # Last-Modified has a one-second resolution
     for path in root.rglob("*"):
         os.utime(path, (old, old))
-    first = verify_shards(f"{base}/manifest.json", "train")
+    url = f"{base}/manifest.json"
+    assert verify_shards(url, "train").verified
+    shard = split_shards(open_manifest(url), "train")[3]
+    before = fingerprint(shard.url)
+    assert dict(before.fields)["ETag"] == nginx_etag(root / shard.path) and not before.identifies_content
+    cache = VerificationCache.for_manifest(url)  # what an earlier version wrote: the shard remembered by its ETag
+    cache.remember(shard.url, "webdataset", shard.bytes, shard.sha256, shard.num_motions, before,
+                   check_shard(shard).record_ids)
+    cache.save()
+
+    rewrite_in_place(root / shard.path)
+    assert fingerprint(shard.url) == before  # size, ETag and Last-Modified as they were
     server.requests.clear()
-    again = verify_shards(f"{base}/manifest.json", "train")
-    assert first.num_from_cache == 0 and again.num_from_cache == len(UNEVEN)
-    assert {method for method, path in server.requests if path.endswith(".tar")} == {"HEAD"}  # no shard body read
+    with pytest.raises(ShardVerificationError, match=rf"{re.escape(shard.url)}: bad shard \(corrupted"):
+        verify_shards(url, "train", mode="strict")
+    assert ("GET", "/" + shard.path) in server.requests  # read, not taken from the cache
+    server.requests.clear()
+    report = verify_shards(url, "train", mode="tolerant")
+    assert report.bad_paths == (shard.path,) and report.num_from_cache == 0
+    assert {path for method, path in server.requests if method == "GET" and path.endswith(".tar")} == {
+        "/" + s.path for s in split_shards(open_manifest(url), "train")}  # every shard read, every start
+
+
+def shard_ids(manifest: Path, backend: str, index: int) -> set[str]:
+    shard = split_shards(open_manifest(manifest), "train", backend)[index]
+    return set(check_shard(shard, backend).record_ids)
+
+
+@needs_http
+@pytest.mark.parametrize("backend, num_workers", [("webdataset", 0), ("webdataset", 2), ("parquet", 0)])
+def test_a_shard_changed_on_the_server_after_verification_is_never_used(dataset, http_root, backend, num_workers):
+    """Issue 24, item 2: verification passed, then a shard changed on the server keeping size, ETag and
+    Last-Modified. The reader hashes a remote shard as it downloads it and compares it with the manifest before it
+    parses a record: strict stops with ShardChangedError naming the URL, and no batch before the error holds a
+    record of that shard (nothing of it can reach a step, let alone a checkpoint); tolerant leaves its records out
+    of their planned batches, counted."""
+    root, base, server = http_root
+    url = f"{base}/manifest.json"
+    index = 3
+    name = split_shards(open_manifest(dataset), "train", backend)[index].path
+    changed = shard_ids(dataset, backend, index)
+    local = list(MotionLoader(dataset, "train", opts(backend=backend, num_workers=num_workers)).iter_epoch())
+    assert verify_shards(url, "train", backend=backend).verified
+    rewrite_in_place(root / name)
+
+    strict = MotionLoader(url, "train", opts(backend=backend, num_workers=num_workers, **FAST))
+    got = []
+    with pytest.raises(ShardChangedError, match=rf"{re.escape(base)}/{name}: changed since it was verified.*none "
+                                                r"of its records was used"):
+        for batch in strict.iter_epoch():
+            got.append(batch)
+    assert len(got) < len(local) and not changed & {i for b in got for i in b["ids"]}
+    assert_batches_equal(got, local[:len(got)])
+
+    tolerant = MotionLoader(url, "train", opts(backend=backend, num_workers=num_workers, tolerate_bad_data=True,
+                                                 **FAST))
+    remote = list(tolerant.iter_epoch())
+    assert [list(b["ids"]) for b in remote] == [[i for i in b["ids"] if i not in changed] for b in local]
+    assert tolerant.records_skipped == sum(i in changed for b in local for i in b["ids"]) > 0
 
 
 def test_manifest_digest_of_the_cache_key_is_the_location(tmp_path):

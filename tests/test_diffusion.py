@@ -5,6 +5,7 @@ import torch
 
 from mfm.diffusion import (
     DIFFUSION_PRESETS,
+    DenoisedRange,
     GaussianDiffusion,
     cosine_alpha_bar,
     diffusion_from_preset,
@@ -15,18 +16,21 @@ from mfm.diffusion import (
     space_timesteps,
 )
 from mfm.diffusion_sampling import (
+    copy_reference_root,
     ddim_sample,
     ddpm_sample,
     replacement_edit,
     reverse_diffusion,
+    rotation_6d_range,
     sample_diffusion,
 )
 from mfm.editing import edit_mask
+from mfm.features import features_to_joints
 from mfm.flow import masked_mse
 from mfm.guidance import classifier_free_guidance
 from mfm.layout import FeatureLayout
 from mfm.model import ModelConfig, valid_frame_mask
-from mfm.skeleton import HUMANML3D
+from mfm.skeleton import HUMANML3D, KIT
 from mfm.solvers import seeded_generators
 
 COSINE = GaussianDiffusion()  # 1000 cosine steps, built once (the tables are read-only)
@@ -591,3 +595,66 @@ def test_learned_variance_backbone_trains_and_samples():
     result = ddpm_sample(model, diffusion, cond, lengths, num_frames=7, steps=5, guidance=8.0)
     assert result.x1.shape == (3, 7, 6) and result.nfe == 5
     assert bool(torch.isfinite(result.x1).all()) and result.x1[2, 2:].abs().max().item() == 0.0
+
+
+# ---------------------------------------------------------------------------------------------- FLAME's own way
+
+
+def test_flame_clamp_bounds_the_raw_6d_rotations_only():
+    """FLAME clamps its raw x0 estimate to [-1, 1]; on our features the 6D rotation channels (the ones with that
+    range) get that bound in raw units, expressed in the normalisation; every other channel stays free."""
+    for skeleton in (HUMANML3D, KIT):
+        layout = FeatureLayout(skeleton)
+        mean = torch.linspace(-0.5, 0.5, layout.dim)
+        std = torch.linspace(0.1, 2.0, layout.dim)
+        low, high = rotation_6d_range(layout, mean, std)
+        rot = layout.slices["rot6d"]
+        torch.testing.assert_close(low[rot] * std[rot] + mean[rot], torch.full_like(low[rot], -1.0))
+        torch.testing.assert_close(high[rot] * std[rot] + mean[rot], torch.full_like(high[rot], 1.0))
+        others = torch.ones(layout.dim, dtype=torch.bool)
+        others[rot] = False
+        assert bool(torch.isinf(low[others]).all() and torch.isinf(high[others]).all())
+    with pytest.raises(ValueError, match="positive"):
+        rotation_6d_range(FeatureLayout(HUMANML3D), torch.zeros(263), torch.zeros(263))
+
+
+def test_x0_clamp_keeps_every_estimate_in_range_over_flames_1000_steps_and_is_off_when_off():
+    layout = FeatureLayout(HUMANML3D)
+    bounds = rotation_6d_range(layout, torch.zeros(layout.dim), torch.full((layout.dim,), 0.5))  # raw ±1 = ±2 here
+    far = torch.full((layout.dim,), 3.0)  # every channel's data point beyond the 6D bound
+    denoise = point_eps_oracle(COSINE, far)
+    x_start = torch.randn(1, 2, layout.dim, generator=gen(0))
+    clamped = reverse_diffusion(denoise, COSINE, x_start, generator=gen(1), clip_denoised=bounds,
+                                return_trajectory=True)
+    assert clamped.nfe == 1000  # every training step: FLAME's sampler
+    rot = layout.slices["rot6d"]
+    assert float(clamped.x1_hat[..., rot].max()) <= 2.0 + 1e-6 and float(clamped.x1[..., rot].max()) <= 2.0 + 1e-6
+    torch.testing.assert_close(clamped.x1[..., :rot.start], far[:rot.start].expand(1, 2, -1), rtol=0, atol=1e-3)
+    free = reverse_diffusion(denoise, COSINE, x_start, generator=gen(1), clip_denoised=None)
+    torch.testing.assert_close(free.x1, far.expand(1, 2, -1), rtol=0, atol=1e-3)  # no clamp: the data point
+    assert float(free.x1[..., rot].min()) > 2.5
+    with pytest.raises(ValueError, match="channels"):
+        reverse_diffusion(denoise, COSINE, x_start, generator=gen(1),
+                          clip_denoised=DenoisedRange(torch.zeros(3), torch.ones(3)))
+
+
+def test_reference_translation_copy_gives_the_output_the_references_root_trajectory():
+    """FLAME's use_reference_translation: the root dims copied where the edit keeps them. Upper body (FLAME's joint
+    edit): the output's root joint follows the reference on every frame; the other dims stay as generated. A frame
+    edit copies the root on its kept frames only."""
+    layout = FeatureLayout(HUMANML3D)
+    lengths = torch.tensor([16, 16])
+    reference = 0.1 * torch.randn(2, 16, layout.dim, generator=gen(0))
+    generated = 0.1 * torch.randn(2, 16, layout.dim, generator=gen(1))
+
+    def root(features):
+        return features_to_joints(features.double(), HUMANML3D)[..., 0, :]
+
+    assert (root(generated) - root(reference)).abs().max() > 1e-2
+    upper = copy_reference_root(generated, reference, edit_mask("upper_body", lengths, 16, layout), layout)
+    torch.testing.assert_close(root(upper), root(reference), rtol=0, atol=1e-9)
+    torch.testing.assert_close(upper[..., 4:], generated[..., 4:], rtol=0, atol=0)
+    keep = edit_mask("prediction", lengths, 16, layout)  # keeps frames 0-3
+    predicted = copy_reference_root(generated, reference, keep, layout)
+    torch.testing.assert_close(predicted[:, :4, :4], reference[:, :4, :4], rtol=0, atol=0)
+    torch.testing.assert_close(predicted[:, 4:], generated[:, 4:], rtol=0, atol=0)

@@ -156,6 +156,34 @@ def test_units_computing_ape_ave_are_keyed_by_its_definition(monkeypatch):
     assert [s.get("edit_steps_per_preset") for s in settings] == [{"interpolation": 1}, None, None]
 
 
+def test_edit_ade_fde_are_reported_in_metres_for_kit_joints_in_millimetres():
+    """ADE/FDE of an edit batch on KIT (joints in millimetres) come out in metres, as the tables say."""
+    from mfm.layout import FeatureLayout
+    from mfm.skeleton import KIT
+    from pipeline.evaluation.replications import Batch, PointRun
+
+    run = object.__new__(PointRun)  # only what _joint_stats reads
+    run.skeleton, run.layout, run.flame = KIT, FeatureLayout(KIT), False
+    lengths = torch.tensor([8, 8])
+    gt_raw = torch.zeros(2, 8, KIT.feature_dim)
+    raw = gt_raw.clone()
+    raw[..., 3] = 21.0  # the root 21 mm higher on every frame, the other 20 joints where they were: 1 mm per joint
+    batch = Batch(0, "edit:inbetween", np.arange(2), np.arange(2), np.zeros(2, np.int64))
+    stats = run._joint_stats(batch, "edit:inbetween", raw, lengths, gt_raw)
+    assert stats["ade"] == pytest.approx(1e-3) and stats["fde"] == pytest.approx(1e-3)  # 1 mm = 0.001 m
+    # KIT editing units computed before (in millimetres) get new keys, so they run again; HumanML3D's keep theirs
+    from types import SimpleNamespace
+
+    from mfm.skeleton import HUMANML3D
+    from pipeline.evaluation.job import checkpoint_settings
+
+    cfg = load_eval_config("fast")
+    assert checkpoint_settings(SimpleNamespace(objective="flow", skeleton=KIT), cfg) == {"ade_fde_unit": "m"}
+    assert checkpoint_settings(SimpleNamespace(objective="flow", skeleton=HUMANML3D), cfg) == {}
+    no_edits = load_eval_config("fast", overrides=["tasks.editing=[]"])
+    assert checkpoint_settings(SimpleNamespace(objective="flow", skeleton=KIT), no_edits) == {}
+
+
 def test_small_test_sets_reduce_the_protocol_explicitly():
     cfg = load_eval_config("full")
     plan = plan_protocol(cfg, num_items=13, mm_candidates=13)
@@ -757,9 +785,10 @@ def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, text_ru
     # One sweep over a flow and a diffusion checkpoint (MFM's FID vs NFE): each runs its own objective's points.
     # Overrides on both sides of the options (argparse's intermixed parse; a plain parse_args refuses this).
     flow_checkpoint = str(text_run / "checkpoints" / "step-00000001")
+    # sampling.baseline_steps=false: the sweep varies FLAME's step count (by default it runs all 1,000)
     assert evaluate("--checkpoint", flow_checkpoint, "--checkpoint", checkpoint, *common[:2], "--protocol", "fast",
                     "--solver", "euler,ddim", "--steps", "4", "--steps", "ddim=2,3", *common[2:],
-                    "output.plots=true") == 0
+                    "sampling.baseline_steps=false", "output.plots=true") == 0
     results = [json.loads(path.read_text()) for path in (tmp_path / "e" / "results").rglob("*.json")]
     runs = sorted((r["checkpoint"]["objective"], r["sampling"]["solver"], r["nfe"]) for r in results)
     assert runs == [("diffusion", "ddim", 2), ("diffusion", "ddim", 3), ("flow", "euler", 4)]
@@ -767,18 +796,23 @@ def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, text_ru
         if result["checkpoint"]["objective"] == "diffusion":
             assert result["checkpoint"]["diffusion_preset"] == "flame"
         assert np.isfinite(result["metrics"]["fid"]["mean"]) and set(result["editing"]) == {"prediction", "upper_body"}
-        if result["checkpoint"]["objective"] == "diffusion":  # FLAME's replacement, on the point's sampler, no copy
+        if result["checkpoint"]["objective"] == "diffusion":  # FLAME's replacement on the point's sampler; its
+            # root translation copied into the output as FLAME's edit_motion.py, the rest of the kept part not
             assert result["editing_settings"] == {"method": "replacement (FLAME)", "sampler": "ddim",
                                                   "steps": result["sampling"]["steps"], "guidance": 8.0,
-                                                  "restore_known": False}
+                                                  "restore_known": False, "reference_translation": True}
             # sampled as FLAME's authors did: guidance 8.0 (not the sweep's 2.5), output smoothed with σ = 1
             assert (result["sampling"]["guidance"], result["sampling"]["smoothing_sigma"]) == (8.0, 1.0)
-            assert result["sampling"]["baseline_defaults"]["preset"] == "flame"
+            own = result["sampling"]["baseline_defaults"]  # FLAME's settings as run (the sweep varied the steps)
+            assert (own["preset"], own["every_training_step"], own["clip_denoised"], own["ema_weights"]) == (
+                "flame", False, True, True)
+            assert result["checkpoint"]["weights"] == "ema"
         else:
             assert (result["sampling"]["guidance"], result["sampling"]["smoothing_sigma"]) == (2.5, 0.0)
     assert (tmp_path / "e" / "plots" / "fid_vs_nfe_all.png").is_file()  # both runs in one plot
 
-    # Both methods leave the kept part as their sampler made it (FLAME's rule); copying it back is an option.
+    # Both methods leave the kept part as their sampler made it (FLAME's rule for its joints); copying it back is an
+    # option. (generate's reference_translation, FLAME's root copy, is off here: this compares the kept part alone.)
     from pipeline.evaluation.config import SamplingConfig, SamplingPoint
     from pipeline.evaluation.replications import generate
     from pipeline.generation.inference import load_trained_model

@@ -296,3 +296,38 @@ def test_the_temporal_term_weighted_as_the_loss_is_each_sample_times_its_weight(
         term_loss = loss(temporal_weight=2.0, terms_weighting="loss")
         w = 1 / (1 - (1 - SIGMA_MIN) * t[i]) ** 2
         assert torch.allclose(term_loss - plain, (term_data - plain) * w, rtol=1e-4)
+
+
+def test_a_capped_velocity_loss_is_the_velocity_loss_near_the_noise_and_cap_times_the_data_loss_near_the_data():
+    """velocity_weight_cap: the x̂1 weight min(1/(1 − t)², cap), i.e. min(1, cap·(1 − t)²) in velocity space; each
+    sample's loss is the uncapped one there and cap × the data-space loss beyond, and the terms follow under 'loss'."""
+    from mfm.flow import loss_space_weight
+    from mfm.model import ModelConfig, MotionFlowTransformer
+
+    t = torch.tensor([0.0, 0.5, 0.7, 0.95])
+    noise_scale = 1 - (1 - SIGMA_MIN) * t
+    capped = loss_space_weight(t, "velocity", velocity_weight_cap=9.0)
+    torch.testing.assert_close(capped, torch.tensor([1.0, 1.0, float(9 * noise_scale[2] ** 2),
+                                                     float(9 * noise_scale[3] ** 2)]))
+    assert capped[2] < 1  # 1/(1 − 0.7)² ≈ 11 > 9: capped
+    torch.testing.assert_close(term_weight(t, "velocity", "loss", velocity_weight_cap=9.0),
+                               torch.minimum(noise_scale.square().reciprocal(), torch.tensor(9.0)))
+
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(ModelConfig(feature_dim=6, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=3, prediction="data", max_len=64)).eval()
+    x1, cond, lengths = torch.randn(2, 5, 6), torch.randn(2, 3), torch.tensor([5, 4])
+    x0 = torch.randn(2, 5, 6)
+    for time, factor in ((0.2, None), (0.9, 9.0)):  # 1/(1 − 0.2)² < 9: unchanged; at 0.9: 9 × the data loss
+        tt = torch.full((2,), time)
+        got, _ = flow_matching_loss(model, x1, cond, lengths, t=tt, x0=x0, velocity_weight_cap=9.0)
+        if factor is None:
+            expected, _ = flow_matching_loss(model, x1, cond, lengths, t=tt, x0=x0)
+        else:
+            data_loss, _ = flow_matching_loss(model, x1, cond, lengths, t=tt, x0=x0, loss_space="data")
+            expected = factor * data_loss
+        torch.testing.assert_close(got, expected, rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="velocity loss only"):
+        FlowMatchingObjective(loss_space="data", velocity_weight_cap=9.0)
+    with pytest.raises(ValueError, match="velocity_weight_cap"):
+        FlowMatchingObjective(velocity_weight_cap=-1.0)

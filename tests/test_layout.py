@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = "shared"  # pipeline/config.py, distributed.py, checkpoint.py
+SHARED = "shared"  # pipeline/config.py, distributed.py, checkpoint.py, claims.py
 JOB_PACKAGES = ("data", "training", "generation", "evaluation")
 
 # What each part of pipeline/ may import from pipeline/ (besides itself).
@@ -67,7 +67,7 @@ def test_the_layout_has_the_job_packages():
         assert init.is_file(), f"pipeline/{package}/ is not a package"
         assert ast.get_docstring(ast.parse(init.read_text(encoding="utf-8"))), f"{init}: no module docstring"
     shared = sorted(p.stem for p in (ROOT / "pipeline").glob("*.py") if p.stem != "__init__")
-    assert shared == ["checkpoint", "config", "distributed"], f"pipeline/ top level holds {shared}"
+    assert shared == ["checkpoint", "claims", "config", "distributed"], f"pipeline/ top level holds {shared}"
 
 
 @pytest.mark.parametrize("path", python_files("pipeline"), ids=lambda p: str(p.relative_to(ROOT)))

@@ -176,6 +176,19 @@ def test_ade_fde_on_hand_made_trajectories():
         metrics.ade(pred, gt, lengths, mask_frames=np.array([[False, False, False, True, True]] * 2))
 
 
+def test_ade_fde_are_metres_for_a_skeleton_in_millimetres():
+    """KIT's joints are millimetres: ADE/FDE in metres divide by 1000 (METRES_PER_UNIT), not report 1000x."""
+    gt = np.zeros((1, 4, 2, 3))
+    pred = gt.copy()
+    pred[..., 1] = 30.0  # every joint 30 mm high on every frame: 0.03 m
+    scale = metrics.METRES_PER_UNIT["mm"]
+    assert metrics.ade(pred, gt, metres_per_unit=scale) == pytest.approx(0.03)
+    assert metrics.fde(pred, gt, metres_per_unit=scale) == pytest.approx(0.03)
+    assert metrics.ade(pred / 1000, gt) == pytest.approx(metrics.ade(pred, gt, metres_per_unit=scale))
+    with pytest.raises(ValueError, match="metres_per_unit"):
+        metrics.fde(pred, gt, metres_per_unit=0.0)
+
+
 # ------------------------------------------------------------------------------------------------ jerk
 
 

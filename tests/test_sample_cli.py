@@ -4,6 +4,7 @@ synthetic dataset test_trainer.py builds, then sampling, editing and the files r
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -254,6 +255,34 @@ def test_bad_requests_fail_with_a_clear_message(text_run, tmp_path, capsys):
     assert "not empty" in fails("--text", "x", "--no-video", "--no-bvh")
     assert sample_entry.main(["--checkpoint", str(tmp_path / "nothing"), "--out", str(tmp_path / "p"), "--text", "x"]) == 2
     assert "no checkpoint" in capsys.readouterr().err
+
+
+def test_a_damaged_checkpoint_or_a_missing_device_is_one_line_and_exit_2(text_run, tmp_path, monkeypatch, capsys):
+    """Issue 24, item 9: a damaged state.pt, --device cuda on a machine without a GPU and --device gpu0 were
+    tracebacks and exit 1. Now one ``error:`` line naming the file or the device, exit 2, nothing written."""
+    def refused(checkpoint: Path, *args: str) -> str:
+        out = tmp_path / "out"
+        assert sample_entry.main(["--checkpoint", str(checkpoint), "--out", str(out), "--text", "x", *args]) == 2
+        err = capsys.readouterr().err
+        errors = [line for line in err.splitlines() if line.startswith("error: ")]
+        assert len(errors) == 1 and "Traceback" not in err and not out.exists(), err
+        return errors[0]
+
+    step = next((text_run / "checkpoints").glob("step-*"))
+    damaged = tmp_path / "damaged"
+    shutil.copytree(step, damaged)
+    state = damaged / "state.pt"
+    state.write_bytes(state.read_bytes()[:1000])  # cut short, as by a full disk or an interrupted copy
+    assert f"{state}: 1000 bytes, the marker says" in refused(damaged)
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # this machine, with or without a GPU
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+    assert "device 'cuda': no CUDA GPU is visible" in refused(text_run, "--device", "cuda")
+    assert "device 'cuda:1': no CUDA GPU is visible" in refused(text_run, "--device", "cuda:1")
+    assert "device 'gpu0': not a device this program samples on" in refused(text_run, "--device", "gpu0")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # one GPU: cuda:1 is not there
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert "device 'cuda:1': this machine has 1 visible CUDA GPU(s)" in refused(text_run, "--device", "cuda:1")
 
 
 def test_embedded_deepmimic_action_demo(tmp_path_factory, tmp_path):

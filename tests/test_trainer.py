@@ -19,6 +19,7 @@ import socket
 import subprocess
 import sys
 import tarfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -27,12 +28,21 @@ import torch
 import yaml
 from conftest import REPO_ROOT, flip_byte, load_launch_script
 
+import pipeline.training.run_folder as run_folder_module
 import pipeline.training.trainer as trainer_module
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, from_dict, load_config, to_dict
 from pipeline.data.stream import ShardVerificationError
 from pipeline.distributed import Dist
-from pipeline.training.run_folder import RUN_MARKER, RunFolderError, check_run_folder, write_run_marker
+from pipeline.training.run_folder import (
+    RUN_LOCK,
+    RUN_MARKER,
+    RunFolderError,
+    RunFolderInUseError,
+    RunFolderLock,
+    check_run_folder,
+    write_run_marker,
+)
 from pipeline.training.trainer import NonFiniteLossError, Trainer
 
 train_entry = load_launch_script("train")  # launch/train.py, whose main() the in-process tests call
@@ -401,8 +411,8 @@ def test_strict_verification_fails_before_training_naming_the_shard(corrupted_da
     manifest, bad, _ = corrupted_dataset
     run = tmp_path / "run"
     assert train_entry.main(["--config", "tiny", *base_overrides(manifest, run, "data.verify=strict")]) == 2
-    (line,) = capsys.readouterr().err.strip().splitlines()  # one line, no traceback (the error contract)
-    assert bad in line and "corrupted" in line
+    error = one_error_line(capsys)  # one line and exit 2, not a traceback (issue 24, item 9)
+    assert bad in error and "corrupted" in error
     cfg = load_config(TrainConfig, "tiny", base_overrides(manifest, run, "data.verify=strict"))
     with Dist(mixed_precision="no", cpu=True) as dist, pytest.raises(ShardVerificationError, match=re.escape(bad)):
         Trainer(cfg, dist)  # the trainer's own exception, which launch/train.py turns into that line
@@ -636,6 +646,20 @@ def test_a_refused_resume_leaves_the_run_folder_untouched(four_step_run, dataset
     assert snapshot(run) == before
 
 
+def test_resuming_with_a_max_steps_below_the_checkpoints_step_is_refused_untouched(four_step_run, dataset, tmp_path,
+                                                                                     monkeypatch, capsys):
+    """Issue 24, item 9: train.max_steps=3 on a run at step 4 trained nothing, exited 0 and rewrote config.yaml
+    with max_steps 3 (and wrote a new TensorBoard file and loss.png). Now it is refused, and every file of the run
+    is as it was, none added."""
+    run = copy_of(four_step_run, tmp_path)
+    before = snapshot(run)
+    forbid_training(monkeypatch)
+    assert train_entry.main(["--config", "tiny", *continue_overrides(dataset, run, "train.max_steps=3")]) == 2
+    error = one_error_line(capsys)
+    assert "step-00000004" in error and "already at step 4 > train.max_steps=3" in error
+    assert snapshot(run) == before
+
+
 def test_a_resume_refused_for_a_changed_data_setting_is_one_line_through_the_script(four_step_run, dataset,
                                                                                      tmp_path):
     """Item 8: a data setting the saved data position depends on changed (data.batch_size 4 -> 2) between the
@@ -653,6 +677,132 @@ def test_a_resume_refused_for_a_changed_data_setting_is_one_line_through_the_scr
     assert "step-00000004" in errors[0] and "data.batch_size was 4 in the checkpoint and is 2 now" in errors[0]
     assert "Resume with data.batch_size=4" in errors[0] and "another train.out_dir" in errors[0]
     assert snapshot(run) == before
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# One trainer per run folder (issue 24, item 5)
+# ---------------------------------------------------------------------------------------------------------------
+
+# A stand-in for a trainer holding its run folder: it takes the lock as rank 0 does, says so, then dies at once
+# without releasing it (kill -9) or stays alive holding it.
+_HOLDING_TRAINER = """
+import os, signal, sys, time
+from pipeline.training.run_folder import RunFolderLock
+RunFolderLock.acquire(sys.argv[1])
+print("held", flush=True)
+if sys.argv[2] == "die":
+    os.kill(os.getpid(), signal.SIGKILL)
+time.sleep(600)
+"""
+
+
+def holding_trainer(run: Path, then: str) -> subprocess.Popen:
+    """A process holding ``run``'s lock; ``then`` is 'die' (returns once it is dead and reaped) or 'live'."""
+    proc = subprocess.Popen([sys.executable, "-c", _HOLDING_TRAINER, str(run), then], cwd=REPO_ROOT,
+                            env={**clean_env(), "PYTHONPATH": str(REPO_ROOT)}, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "held"
+    if then == "die":
+        assert proc.wait(timeout=30) == -signal.SIGKILL
+    return proc
+
+
+def test_a_second_trainer_on_a_running_run_is_refused_and_the_run_loses_nothing(dataset, tmp_path, capsys):
+    """Issue 24, item 5: two trainers on one run folder. The second resumed from the first's checkpoint and both
+    wrote metrics.jsonl (60 of 150 steps were lost). Now run A (a real trainer, paused in the middle of step 8
+    after checkpoints 3 and 6) holds the folder; a second start there is refused in one line naming A (pid, host,
+    start time), exit 2, writing nothing; A then finishes with every step logged once and every checkpoint."""
+    out, run = tmp_path / "a", tmp_path / "a" / "run"
+    overrides = base_overrides(dataset, run, "train.max_steps=12", "train.save_every=3", "train.keep_last=0")
+    out.mkdir()
+    (out / "spec.json").write_text(json.dumps([{**fit_scenario(out, overrides), "pause_at": [0, 8]}]))
+    first = subprocess.Popen([sys.executable, str(WORKER), str(out / "spec.json")], cwd=REPO_ROOT, env=clean_env(),
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not (out / "paused-rank0").exists():
+            assert first.poll() is None and time.monotonic() < deadline, output_of(first)
+            time.sleep(0.1)
+        assert complete_steps(run) == [3, 6] and (run / RUN_LOCK).is_file()
+        before = snapshot(run)
+        assert train_entry.main(["--config", "tiny", *overrides]) == 2
+        error = one_error_line(capsys)
+        assert f"in use by another training run: pid {first.pid} on {socket.gethostname()}, started 20" in error
+        assert snapshot(run) == before  # the second start wrote nothing
+    finally:
+        (out / "go").write_text("")
+        stdout, stderr = first.communicate(timeout=240)
+    assert first.returncode == 0, f"{stdout[-3000:]}\n{stderr[-6000:]}"
+    assert sorted(metrics_by_step(run)) == list(range(1, 13)) and complete_steps(run) == [3, 6, 9, 12]
+    assert sorted(ids_by_step(out, 0)) == list(range(1, 13))
+    assert not (run / RUN_LOCK).exists()  # released at the end
+
+
+def test_a_killed_trainers_lock_is_taken_over_and_a_live_ones_refused(four_step_run, dataset, tmp_path, monkeypatch,
+                                                                        capsys, caplog):
+    """A live holder: refused before anything is written (also before the shards are verified), naming it. Once it
+    is killed (its lock file stays behind, naming a dead pid) the same command takes the folder over, says so, and
+    trains on; the lock file is gone at the end. A folder holding only a killed trainer's lock counts as empty."""
+    run = copy_of(four_step_run, tmp_path)
+    holder = holding_trainer(run, "live")
+    try:
+        before = snapshot(run)
+        verified = []
+        monkeypatch.setattr(trainer_module, "verify_shards", lambda *a, **k: verified.append(a))
+        forbid_training(monkeypatch)
+        with pytest.raises(RunFolderInUseError, match=rf"pid {holder.pid} on "):
+            with Dist(cpu=True) as dist:
+                Trainer(load_config(TrainConfig, "tiny", continue_overrides(dataset, run)), dist)
+        assert verified == [] and snapshot(run) == before
+        monkeypatch.undo()
+    finally:
+        holder.kill()
+        holder.wait(timeout=30)
+    assert json.loads((run / RUN_LOCK).read_text())["pid"] == holder.pid  # left behind by the killed holder
+    caplog.set_level("WARNING")
+    assert train_entry.main(["--config", "tiny", *continue_overrides(dataset, run)]) == 0
+    assert f"taking over {RUN_LOCK} from pid {holder.pid} on {socket.gethostname()}, started 20" in caplog.text
+    assert "no longer running" in caplog.text
+    assert complete_steps(run) == [2, 4, 6] and sorted(metrics_by_step(run)) == list(range(1, 7))
+    assert not (run / RUN_LOCK).exists()
+
+    fresh = tmp_path / "fresh"
+    holding_trainer(fresh, "die")
+    assert [p.name for p in fresh.iterdir()] == [RUN_LOCK]
+    check_run_folder(fresh)  # a new run killed before it wrote anything: its folder is still an empty one
+
+
+def test_the_run_folder_lock_is_one_per_folder_and_released(tmp_path):
+    lock = RunFolderLock.acquire(tmp_path / "run")
+    record = json.loads((tmp_path / "run" / RUN_LOCK).read_text())
+    assert (record["pid"], record["host"]) == (os.getpid(), socket.gethostname()) and record["since"] <= time.time()
+    with pytest.raises(RunFolderInUseError, match=rf"pid {os.getpid()} on "):  # also from this very process
+        RunFolderLock.acquire(tmp_path / "run")
+    assert (tmp_path / "run" / RUN_LOCK).is_file() and lock.held
+    lock.release()
+    lock.release()
+    assert not (tmp_path / "run" / RUN_LOCK).exists()
+    RunFolderLock.acquire(tmp_path / "run").release()
+
+
+def test_without_file_locks_the_record_decides(tmp_path, monkeypatch, caplog):
+    """A filesystem without POSIX locks (lockf: ENOLCK): the holder's record alone decides, as for the evaluator's
+    claims. A holder certainly dead on this host is taken over, any other is refused, saying how to free the folder."""
+    def no_locks(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(run_folder_module.fcntl, "lockf", no_locks)
+    run = tmp_path / "run"
+    run.mkdir()
+    for holder, refused in ((dead_pid(), False), (os.getppid(), True)):
+        (run / RUN_LOCK).write_text(json.dumps({"host": socket.gethostname(), "pid": holder, "since": time.time()}))
+        if refused:
+            with pytest.raises(RunFolderInUseError, match=rf"pid {holder} on .*no file locks.*remove {re.escape(str(run))}"):
+                RunFolderLock.acquire(run)
+            continue
+        caplog.set_level("WARNING")
+        RunFolderLock.acquire(run).release()
+        assert f"taking over {RUN_LOCK} from pid {holder}" in caplog.text and "does not support file locks" in caplog.text
+        assert not (run / RUN_LOCK).exists()
 
 
 @pytest.mark.parametrize("kind", ["file", "folder_that_is_not_a_run"])

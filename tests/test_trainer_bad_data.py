@@ -7,7 +7,10 @@
   same at two ranks, where the other rank's samples still train: tests/test_trainer_multirank.py);
 * a shard that goes bad after a checkpoint: the tolerant resume finishes the checkpoint's epoch with its plan
   without that shard's records (exactly the batches that were due, minus those records), plans later epochs
-  without it and says so; a strict resume refuses with a hint that names a real option.
+  without it and says so; a strict resume refuses with a hint that names a real option;
+* a remote shard that changes on the server after verification, keeping its size, ETag and Last-Modified (issue
+  24, item 2): strict stops before any step trains on it (every checkpoint predates it), tolerant leaves its
+  records out of their planned batches, counted.
 
 The runs are in-process (launch/train.py's ``main``); the interruption is a SIGINT in the middle of a step, after
 which the trainer writes a checkpoint of that step and returns 130.
@@ -26,19 +29,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_data_remote import needs_http, rewrite_in_place, serving
 from test_trainer import (
     MAX_STEPS,
     SignalAtStep,
     assert_runs_identical,
+    base_overrides,
     build_dataset_once,
     complete_steps,
     flip_byte,
     metrics_by_step,
+    one_error_line,
     patch_loss,
     resume_overrides,
     train_entry,
 )
 
+import pipeline.training.trainer as trainer_module
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, load_config
 from pipeline.data.stages import RecordError
@@ -132,14 +139,14 @@ def fit(monkeypatch, overrides: list[str], signal_at_step: int = NEVER,
     return train_entry.main(["--config", "tiny", *overrides])
 
 
-def test_tolerant_training_skips_a_nonfinite_record_and_resumes_bit_exactly(dataset, tmp_path, monkeypatch):
+def test_tolerant_training_skips_a_nonfinite_record_and_resumes_bit_exactly(dataset, tmp_path, monkeypatch, capsys):
     manifest = copy_dataset(dataset, tmp_path / "data")
     strict = resume_overrides(manifest, tmp_path / "strict")
     bad_id = planned_batches(manifest, strict)[9][0]  # trained at step 10, after the interruption at step 7
     write_nan_into(manifest, bad_id)
 
-    with pytest.raises(RecordError, match=rf"record '{bad_id}': features contain NaN"):  # strict: as before
-        fit(monkeypatch, strict)
+    assert fit(monkeypatch, strict) == 2  # strict: the run stops, one line naming the shard and the record
+    assert f"record '{bad_id}': features contain NaN" in one_error_line(capsys)
 
     run_a, run_b = tmp_path / "a", tmp_path / "b"
     assert fit(monkeypatch, resume_overrides(manifest, run_a, "data.verify=tolerant")) == 0
@@ -218,10 +225,8 @@ def test_tolerant_resume_after_a_shard_went_bad_finishes_the_epoch_without_it(da
     lost = ids_in_shard(manifest, bad)
     flip_byte(manifest.parent / bad, (manifest.parent / bad).stat().st_size // 2)
 
-    capsys.readouterr()
-    assert fit(monkeypatch, resume_overrides(manifest, run, "data.verify=strict")) == 2  # refused in one line
-    (line,) = capsys.readouterr().err.strip().splitlines()
-    assert re.search(rf"{bad}: bad shard \(corrupted.*data\.verify=tolerant", line), line
+    assert fit(monkeypatch, resume_overrides(manifest, run, "data.verify=strict")) == 2
+    assert re.search(rf"{bad}: bad shard \(corrupted.*data\.verify=tolerant", one_error_line(capsys))
 
     trained: dict[int, list[str]] = {}
     real_step = Trainer.train_step
@@ -250,3 +255,111 @@ def test_tolerant_resume_after_a_shard_went_bad_finishes_the_epoch_without_it(da
         metrics[step]["records_skipped"] for step in metrics)  # never decreases
     report = json.loads((run / "shard_report.json").read_text())
     assert [b["path"] for b in report["bad"]] == [bad] and not report["verified"]
+
+
+@needs_http
+@pytest.mark.parametrize("verify", ["strict", "tolerant"])
+def test_a_remote_shard_changed_after_verification_is_never_trained_on(dataset, tmp_path, monkeypatch, capsys,
+                                                                       verify):
+    """Issue 24, item 2, through the real trainer and no kill: the dataset is served over HTTP by a server that, like
+    nginx, derives the ETag from size and mtime. Right after the trainer verified the train split, the shard read
+    last in epoch 0 is rewritten in place with its old mtime (size, ETag, Last-Modified unchanged). It used to be
+    trained on. Strict: the run stops with ShardChangedError (one line naming the URL, exit 2) before any step saw a
+    record of it, so every checkpoint on disk (saved every 2 steps) predates it. Tolerant: the run ends; every step trained exactly
+    its planned batch without the shard's records, counted in records_skipped."""
+    root = tmp_path / "served"
+    shutil.copytree(dataset.parent, root)
+    local = root / "manifest.json"
+    steps = 13  # epoch 0 at one rank
+    planned = planned_batches(local, base_overrides(local, tmp_path / "plan"))
+    first_use = {}
+    for step, ids in enumerate(planned, start=1):
+        for sample_id in ids:
+            first_use.setdefault(shard_of(local, sample_id), step)
+    changed = max(first_use, key=first_use.get)
+    lost = ids_in_shard(local, changed)
+    assert first_use[changed] > 4  # read after checkpoints 2 and 4
+
+    trained: dict[int, list[str]] = {}
+    real_step, real_verify = Trainer.train_step, trainer_module.verify_shards
+
+    def recording_step(self, micro_batches, draws=None):
+        trained[self.step + 1] = [i for b in micro_batches for i in b["ids"]]
+        return real_step(self, micro_batches, draws)
+
+    def verify_then_change(manifest, split, **kwargs):
+        report = real_verify(manifest, split, **kwargs)
+        if split == "train":
+            rewrite_in_place(root / changed)
+        return report
+
+    monkeypatch.setattr(Trainer, "train_step", recording_step)
+    monkeypatch.setattr(trainer_module, "verify_shards", verify_then_change)
+    run = tmp_path / "run"
+    with serving(root) as (base, _):
+        argv = ["--config", "tiny", *base_overrides(f"{base}/manifest.json", run, f"train.max_steps={steps}",
+                                                    "train.save_every=2", "train.keep_last=0", f"data.verify={verify}")]
+        if verify == "strict":
+            assert train_entry.main(argv) == 2  # ShardChangedError: one line, exit 2 (the error contract)
+            assert f"{base}/{changed}: changed since it was verified" in one_error_line(capsys)
+            assert not lost & {i for ids in trained.values() for i in ids}
+            # the step that met the shard runs with an empty stand-in and stops every rank before its update
+            assert sorted(trained) == list(range(1, max(trained) + 1)) and max(trained) <= first_use[changed]
+            assert complete_steps(run) == list(range(2, first_use[changed], 2))  # saved before the shard was read
+            return
+        assert train_entry.main(argv) == 0
+    assert trained == {step: [i for i in planned[step - 1] if i not in lost] for step in range(1, steps + 1)}
+    skipped = sum(i in lost for ids in planned for i in ids)
+    assert skipped > 0 and metrics_by_step(run)[steps]["records_skipped"] == skipped
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Bad data stops the run with one line and exit 2, before training or at the step that meets it (issue 24, item 9)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def overcount_shard(manifest: Path, index: int = 1) -> str:
+    """Make the manifest say one record more than train shard ``index`` holds (the shard's bytes untouched, so
+    only a count of its records can tell); returns the shard's path."""
+    data = json.loads(manifest.read_text())
+    entry = data["splits"]["train"]["shards"][index]
+    entry["num_motions"] += 1
+    manifest.write_text(json.dumps(data, indent=1))
+    return entry["path"]
+
+
+@pytest.mark.parametrize("bad, verify, workers", [
+    ("count", "strict", 0),  # verification counts the records before training
+    ("count", "off", 0),  # the reader counts them when it reaches the shard's end, during training
+    ("count", "off", 2),  # ... in a DataLoader worker process
+    ("nan", "strict", 2),  # a non-finite record, decoded in a worker
+])
+def test_bad_data_stops_the_run_with_one_line_and_exit_2(dataset, tmp_path, monkeypatch, capsys, bad, verify,
+                                                         workers):
+    """These were a traceback and exit 1 (from a worker: a message holding the worker's traceback); the README
+    promises one ``error:`` line naming the file and the reason, and exit 2. A run that met the bad data during
+    training stopped at that step, before its update: no metrics line, no checkpoint after it."""
+    manifest = copy_dataset(dataset, tmp_path / "data")
+    run = tmp_path / "run"
+    overrides = resume_overrides(manifest, run, f"data.verify={verify}", f"data.num_workers={workers}")
+    if bad == "count":
+        shard = overcount_shard(manifest)
+        says = (f"{shard}: bad shard (record count: holds 10 records, manifest says 11)" if verify == "strict"
+                else f"{shard}: holds 10 records where the manifest says 11")
+    else:
+        # due at step 4; not the batch's first record, which the batcher reads with the batch before
+        bad_id = planned_batches(manifest, overrides)[3][1]
+        write_nan_into(manifest, bad_id)
+        says = f"{shard_of(manifest, bad_id)}: record '{bad_id}': features contain NaN or inf"
+
+    assert fit(monkeypatch, overrides) == 2
+    assert says in one_error_line(capsys)
+    if verify == "strict" and bad == "count":
+        assert not (run / "metrics.jsonl").exists() and complete_steps(run) == []  # refused before training
+        return
+    logged = sorted(metrics_by_step(run))
+    stopped_at = logged[-1] + 1
+    assert logged == list(range(1, stopped_at)) and stopped_at <= MAX_STEPS
+    assert all(step < stopped_at for step in complete_steps(run))
+    if bad == "nan":
+        assert stopped_at == 4  # the bad record's step: the worker's error comes in that batch's place

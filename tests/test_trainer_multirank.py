@@ -35,6 +35,7 @@ from test_trainer import (
     clean_env,
     complete_steps,
     fit_scenario,
+    holding_trainer,
     ids_by_step,
     metrics_by_step,
     output_of,
@@ -42,12 +43,12 @@ from test_trainer import (
     resume_overrides,
     run_worker,
 )
-from test_trainer_bad_data import copy_dataset, planned_batches, write_nan_into
+from test_trainer_bad_data import copy_dataset, planned_batches, shard_of, write_nan_into
 
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, load_config
 from pipeline.distributed import Dist
-from pipeline.training.run_folder import write_run_marker
+from pipeline.training.run_folder import RUN_LOCK, write_run_marker
 from pipeline.training.trainer import Trainer
 
 pytestmark = [pytest.mark.multirank, pytest.mark.slow]
@@ -238,6 +239,36 @@ def test_an_empty_slice_on_one_rank_weighs_nothing_in_the_global_mean(empty_batc
 
 
 # ---------------------------------------------------------------------------------------------------------------
+# Bad data met by one rank during training (strict mode; issue 24, item 9)
+# ---------------------------------------------------------------------------------------------------------------
+
+BAD_RECORD_STEP = 3  # rank 1's batch at this step holds a record that decodes to NaN
+
+
+def test_bad_data_met_by_one_rank_stops_every_rank_at_that_step_with_its_error(dataset, workdir):
+    """Rank 1 alone reads the bad record. It used to raise there, alone: rank 0, waiting in the step's
+    all-reduce, died on the broken connection with a traceback (under NCCL it would wait for the collective
+    timeout). Now the error travels in the step's flags: both ranks stop at that step, before its update, with rank
+    1's error (launch/train.py prints it in one line, exit 2). The subprocess timeout turns a hang into a failure."""
+    root = workdir / "bad-record"
+    manifest = copy_dataset(dataset, root / "data")
+    overrides = [f"data.manifest={manifest}", "data.verify=strict", "train.log_every=1", "train.max_steps=6",
+                 "train.save_every=100", f"train.out_dir={root / 'run'}"]
+    bad_id = planned_batches(manifest, overrides, rank=1, world_size=2)[BAD_RECORD_STEP - 1][1]  # not the first:
+    write_nan_into(manifest, bad_id)  # the batcher reads a batch's first record with the batch before
+    proc = run_worker(TORCHRUN, [fit_scenario(root, overrides)], root, timeout=120)
+    assert proc.returncode != 0
+    outcomes = results(root, 2)
+    assert [o.get("error") for o in outcomes] == ["RecordError"] * 2, output_of(proc)
+    assert outcomes[0]["message"] == outcomes[1]["message"]
+    assert f"{shard_of(manifest, bad_id)}: record '{bad_id}': features contain NaN" in outcomes[0]["message"]
+    assert sorted(ids_by_step(root, 0)) == sorted(ids_by_step(root, 1)) == list(range(1, BAD_RECORD_STEP + 1))
+    assert ids_by_step(root, 1)[BAD_RECORD_STEP] == [[]]  # rank 1 took part in that step with an empty stand-in
+    assert sorted(metrics_by_step(root / "run")) == list(range(1, BAD_RECORD_STEP))  # that step never completed
+    assert complete_steps(root / "run") == []
+
+
+# ---------------------------------------------------------------------------------------------------------------
 # SIGTERM, SIGKILL and exact resume
 # ---------------------------------------------------------------------------------------------------------------
 
@@ -347,3 +378,22 @@ def test_a_resume_refused_on_rank_0_ends_every_rank_before_training(dataset, tmp
     for result in results(tmp_path / "out", 2):
         assert result["error"] == "ResumeConflictError" and "train.resume_discard_newer=true" in result["message"]
     assert complete_steps(run) == [2, 4] and not (run / "config.yaml").exists()
+
+
+def test_a_run_folder_held_by_another_trainer_is_refused_on_every_rank(dataset, tmp_path):
+    """Issue 24, item 5: only rank 0 checks and takes the run folder's lock; when another trainer holds the folder,
+    every rank raises the same one-line refusal (naming the holder) at once instead of waiting for rank 0 in a
+    collective, and nothing is written."""
+    run = tmp_path / "run"
+    holder = holding_trainer(run, "live")
+    try:
+        scenario = fit_scenario(tmp_path / "out", [f"data.manifest={dataset}", f"train.out_dir={run}",
+                                                   "train.max_steps=4"])
+        proc = run_worker(TORCHRUN, [scenario], tmp_path / "out", timeout=120)
+    finally:
+        holder.kill()
+        holder.wait(timeout=30)
+    assert proc.returncode != 0, output_of(proc)
+    for result in results(tmp_path / "out", 2):
+        assert result["error"] == "RunFolderInUseError" and f"pid {holder.pid} on " in result["message"], result
+    assert [p.name for p in run.iterdir()] == [RUN_LOCK]  # the holder's, nothing of the refused run

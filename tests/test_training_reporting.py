@@ -8,6 +8,8 @@ from __future__ import annotations
 import json
 import logging
 import struct
+import sys
+import types
 from pathlib import Path
 
 import pytest
@@ -16,10 +18,12 @@ from test_trainer import assert_identical, build_dataset_once, metrics_by_step
 from test_trainer_bad_data import copy_dataset
 
 import pipeline.training.reporting as reporting
+from mfm.model import ModelConfig
 from pipeline import checkpoint as ckpt
-from pipeline.config import ConfigError, TrainConfig, load_config
+from pipeline.config import ConfigError, TrainConfig, load_config, wandb_mode
 from pipeline.data.stream import ShardVerificationError
 from pipeline.distributed import Dist
+from pipeline.evaluation.store import log_to_wandb
 from pipeline.training.trainer import Trainer
 from preprocess.shards import derive_dataset_id
 
@@ -136,6 +140,30 @@ def test_a_bad_val_shard_is_refused_before_step_1_in_strict_mode(dataset, tmp_pa
     assert not (tmp_path / "run" / "metrics.jsonl").exists()
 
 
+@pytest.mark.parametrize("damage, verify", [("flipped byte", "strict"), ("record count", "off")])
+def test_a_bad_val_shard_through_the_script_is_one_line_and_exit_2(dataset, tmp_path, capsys, damage, verify):
+    """Issue 24, item 9: was a traceback and exit 1. Strict verification finds a flipped byte; without it, reading
+    the val batches finds a shard holding fewer records than the manifest says. Either way before step 1, and
+    nothing in the run folder is written."""
+    if damage == "flipped byte":
+        manifest, shard = corrupt_val_shard(dataset, tmp_path / "data")
+    else:
+        manifest = copy_dataset(dataset, tmp_path / "data")
+        data = json.loads(manifest.read_text())
+        entry = data["splits"]["val"]["shards"][0]
+        entry["num_motions"] += 1
+        manifest.write_text(json.dumps(data, indent=1))
+        shard = entry["path"]
+    run = tmp_path / "run"
+    code = load_launch_script("train").main(["--config", "tiny", f"data.manifest={manifest}", f"train.out_dir={run}",
+                                             f"train.val_every={VAL_EVERY}", f"data.verify={verify}"])
+    err = capsys.readouterr().err
+    errors = [line for line in err.splitlines() if line.startswith("error: ")]
+    assert code == 2 and len(errors) == 1 and "Traceback" not in err, err
+    assert shard in errors[0]
+    assert not run.exists() or not any(run.iterdir())
+
+
 def test_a_bad_val_shard_is_left_out_in_tolerant_mode(dataset, tmp_path, caplog):
     manifest, _ = corrupt_val_shard(dataset, tmp_path / "data")
     with caplog.at_level(logging.INFO):
@@ -203,6 +231,69 @@ def test_a_train_shard_outside_the_manifests_folder_is_read_only_when_allowed(da
     assert len(err) == 1 and f"shard path '{outside}' is absolute" in err[0] and "data.allow_external_shards" in err[0]
     run = fit(manifest, tmp_path / "allowed", "data.allow_external_shards=true")
     assert json.loads((run / "shard_report.json").read_text())["verified"] is True
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# W&B: an explicit mode wins over WANDB_MODE (issue 24, item 9)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class FakeWandb(types.ModuleType):
+    """Stands in for the wandb package (not a dependency): records the mode of every run started, and makes the
+    wandb folder the real package would."""
+
+    def __init__(self) -> None:
+        super().__init__("wandb")
+        self.modes: list[str] = []
+
+    def init(self, *, mode: str, dir: str, **settings):  # wandb.init's own argument names
+        self.modes.append(mode)
+        (Path(dir) / "wandb").mkdir(exist_ok=True)
+        run = types.SimpleNamespace(config=types.SimpleNamespace(update=lambda *a, **k: None))
+        run.log = run.define_metric = run.finish = lambda *a, **k: None
+        return run
+
+
+@pytest.fixture
+def fake_wandb(monkeypatch) -> FakeWandb:
+    fake = FakeWandb()
+    monkeypatch.setitem(sys.modules, "wandb", fake)
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.delenv("WANDB_DIR", raising=False)
+    return fake
+
+
+@pytest.mark.parametrize("setting, environment, used", [
+    ("disabled", "offline", None),  # was: the environment's offline, and a wandb folder in the run
+    ("offline", "disabled", "offline"),
+    ("auto", "online", "online"),  # auto (the default) follows WANDB_MODE ...
+    ("auto", None, "offline"),  # ... else offline, as before
+])
+def test_an_explicit_train_wandb_wins_over_wandb_mode(fake_wandb, tmp_path, monkeypatch, setting, environment,
+                                                      used):
+    if environment is not None:
+        monkeypatch.setenv("WANDB_MODE", environment)
+    run = tmp_path / "run"
+    run.mkdir()
+    cfg = load_config(TrainConfig, "tiny", [f"train.out_dir={run}", f"train.wandb={setting}",
+                                            "train.tensorboard=false"])
+    with Dist(mixed_precision="no", cpu=True) as dist:
+        reporting.MetricsSink(run, cfg, dist, ModelConfig(), num_parameters=0).close()
+    assert fake_wandb.modes == ([used] if used else [])
+    assert (run / "wandb").exists() == bool(used)
+
+
+def test_an_explicit_evaluation_wandb_wins_over_wandb_mode(fake_wandb, tmp_path, monkeypatch):
+    """The evaluator's output.wandb: the same rule; auto follows WANDB_MODE, else the training run's mode."""
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    assert not log_to_wandb(tmp_path, wandb_mode("disabled"), "mfm", 4, {"fid": 1.0}, {})
+    assert fake_wandb.modes == [] and not (tmp_path / "wandb").exists()
+    assert wandb_mode("auto", fallback=wandb_mode("disabled")) == "offline"  # the environment's, for auto
+    monkeypatch.delenv("WANDB_MODE")
+    assert wandb_mode("auto", fallback=wandb_mode("disabled")) == "disabled"  # the training run's
+    assert wandb_mode("auto", fallback=wandb_mode("auto")) == "offline"
+    assert log_to_wandb(tmp_path, wandb_mode("online"), "mfm", 4, {"fid": 1.0}, {})
+    assert fake_wandb.modes == ["online"]
 
 
 # ---------------------------------------------------------------------------------------------------------------

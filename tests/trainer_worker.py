@@ -15,6 +15,8 @@ torch processes is most of the cost). Each scenario is a dict:
     record_ids    fit: append {"step", "ids"} per train_step to OUT/ids-rank{r}.jsonl (sample ids per step)
     kill_at       fit: [rank, step]: SIGKILL this process in the middle of that step (inside the loss)
     signal_at     fit: [rank, step, "SIGTERM"|"SIGINT"]: send the signal to this process in the middle of that step
+    pause_at      fit: [rank, step]: in the middle of that step write OUT/paused-rank{r} and wait (at most 300 s) until
+                  OUT/go exists: the run is alive, holding its folder, while the test does something beside it
     nan_at        fit: [rank, [steps]]: the loss VALUE is NaN on that rank at those steps (gradients stay finite,
                   so only the cross-rank flag can make the other ranks skip)
     overflow_at   fit: [rank, [steps]]: with fp16, one gradient of that rank is set to inf after the backward
@@ -41,6 +43,7 @@ import logging
 import os
 import signal
 import sys
+import time
 from collections.abc import Mapping, Sequence
 from datetime import timedelta
 from pathlib import Path
@@ -76,6 +79,8 @@ class Faults:
         nan = scenario.get("nan_at")
         self.nan_steps = set(nan[1]) if nan and nan[0] == rank else set()
         self.overflow_steps = _steps_for_rank(scenario.get("overflow_at"), rank)
+        self.pause_at = _step_for_rank(scenario.get("pause_at"), rank)
+        self.out, self.rank = Path(scenario["out"]), rank
         self.step_in_progress = 0
         self.real_loss = None  # the objective's real loss, set when the trainer builds its objective
 
@@ -86,6 +91,13 @@ class Faults:
             os.kill(os.getpid(), signal.SIGKILL)
         if self.signal_at is not None and step == self.signal_at[0]:
             os.kill(os.getpid(), self.signal_at[1])  # the trainer's handler runs here, mid-step
+        if step == self.pause_at:
+            (self.out / f"paused-rank{self.rank}").write_text(str(os.getpid()))
+            deadline = time.monotonic() + 300
+            while not (self.out / "go").exists():
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"paused at step {step}: {self.out / 'go'} never appeared")
+                time.sleep(0.05)
         if step in self.nan_steps:
             loss = loss + loss.detach() * float("nan")  # NaN value, finite gradient
         return loss, stats

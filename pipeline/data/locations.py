@@ -324,9 +324,12 @@ def call_with_retries(fn: Callable[[], T], location: str, what: str, policy: Ret
 # Fingerprints: has a file changed since it was hashed? (the verification cache, pipeline.data.stream)
 # ----------------------------------------------------------------------------------------------------------
 
-# Metadata that changes whenever an object's content does: a content hash or a version id.
-_STRONG_KEYS = ("ETag", "etag", "generation", "md5Hash", "crc32c", "Content-MD5", "Digest", "VersionId",
-                "version_id", "blob_id", "lfs")
+# Metadata that is a hash of an object's content: equal values mean equal bytes, whoever wrote them and when.
+_CONTENT_HASH_KEYS = ("md5Hash", "Content-MD5", "Digest", "lfs", "blob_id")
+# Validators that change when an object is rewritten but are not its content hash: an ETag is whatever the server
+# makes of it (nginx and Apache derive it from the size and the modification time, so a file changed in place with
+# its old mtime keeps it), GCS's crc32c is a 32-bit checksum, generations and version ids are per upload.
+_VALIDATOR_KEYS = ("ETag", "etag", "generation", "crc32c", "VersionId", "version_id")
 # Modification times (a rewrite within their resolution is invisible: see Fingerprint.trusted).
 _TIME_KEYS = ("LastModified", "Last-Modified", "last_modified", "updated", "mtime", "modified", "created")
 
@@ -338,15 +341,24 @@ class Fingerprint:
     size: int | None
     fields: tuple[tuple[str, str], ...]
     modified: float | None  # seconds since the epoch, when known
-    strong: bool  # a content hash or version id is among the fields
+    local: bool  # a local file: size, mtime, ctime and inode from os.stat
+    content_hash: bool  # a content hash is among the fields (a URL whose store hashes its objects)
+
+    @property
+    def identifies_content(self) -> bool:
+        """Whether an unchanged fingerprint can stand for unchanged bytes at all: a local file's (its ctime and inode
+        cannot be set back by users), or a URL's with a content hash. A URL's other metadata (ETag, Last-Modified, a
+        version id) is the server's word: a server that derives the ETag from size and mtime keeps it through an
+        in-place rewrite that puts the old mtime back."""
+        return bool(self.fields) and self.size is not None and (self.local or self.content_hash)
 
     def trusted(self, hashed_at: float, racy_s: float) -> bool:
-        """Can this fingerprint stand for the bytes hashed from ``hashed_at`` on? Yes with a content hash or a
-        version id; with times only, when the file was last changed more than ``racy_s`` before: a rewrite in
-        the same clock tick as the version hashed would otherwise keep its time (git's "racy" entries)."""
-        if not self.fields or self.size is None:
+        """Can this fingerprint stand for the bytes hashed from ``hashed_at`` on? A URL's with a content hash,
+        always; a local file's when it was last changed more than ``racy_s`` before: a rewrite in the same clock
+        tick as the version hashed would otherwise keep its time (git's "racy" entries)."""
+        if not self.identifies_content:
             return False
-        return self.strong or (self.modified is not None and self.modified < hashed_at - racy_s)
+        return self.content_hash or (self.modified is not None and self.modified < hashed_at - racy_s)
 
     def as_json(self) -> dict[str, Any]:
         return {"size": self.size, **dict(self.fields)}
@@ -372,18 +384,20 @@ def _epoch_seconds(value: Any) -> float | None:
 def fingerprint(location: str, policy: RetryPolicy | None = None) -> Fingerprint:
     """The file's size and version metadata: ``os.stat`` for a local file (size, mtime, ctime, inode: a copy,
     an edit, even one that puts the old mtime back, changes ctime), the filesystem's ``info`` for a URL (object
-    stores: ETag / generation; HTTP: ETag or Last-Modified). Raises FileNotFoundError/PermissionError (and
+    stores: ETag, generation, md5Hash; HTTP: ETag, Last-Modified, Content-MD5). Raises FileNotFoundError/PermissionError (and
     :class:`RetriesExhausted`) like opening it would."""
     path = local_path(location)
     if path is not None:
         st = os.stat(path)
-        return Fingerprint(size=st.st_size, strong=False, modified=max(st.st_mtime_ns, st.st_ctime_ns) / 1e9,
+        return Fingerprint(size=st.st_size, local=True, content_hash=False,
+                           modified=max(st.st_mtime_ns, st.st_ctime_ns) / 1e9,
                            fields=(("mtime_ns", str(st.st_mtime_ns)), ("ctime_ns", str(st.st_ctime_ns)),
                                    ("ino", str(st.st_ino))))
     fs, remote = remote_filesystem(location)
     info = call_with_retries(lambda: fs.info(remote), location, "reading its metadata", policy)
     size = info.get("size")
-    fields = tuple((key, str(info[key])) for key in _STRONG_KEYS + _TIME_KEYS if info.get(key) not in (None, ""))
+    keys = _CONTENT_HASH_KEYS + _VALIDATOR_KEYS + _TIME_KEYS
+    fields = tuple((key, str(info[key])) for key in keys if info.get(key) not in (None, ""))
     modified = next((t for t in (_epoch_seconds(info.get(key)) for key in _TIME_KEYS) if t is not None), None)
     return Fingerprint(size=int(size) if isinstance(size, (int, float)) else None, fields=fields, modified=modified,
-                       strong=any(info.get(key) not in (None, "") for key in _STRONG_KEYS))
+                       local=False, content_hash=any(info.get(key) not in (None, "") for key in _CONTENT_HASH_KEYS))

@@ -5,9 +5,15 @@ An entry says: the file at ``url`` was read in full, its size, sha256 and record
 entry ``(bytes, sha256, num_motions)``, its records are ``record_ids``, and its metadata was ``fingerprint``
 (:class:`pipeline.data.locations.Fingerprint`) before and after that read. A later check whose manifest entry and
 fingerprint are the same takes the verdict and the ids from the entry instead of reading the file; anything
-different (another manifest entry, a changed size / mtime / ctime / inode / ETag / generation, another
-backend) reads and hashes the file again. Only good shards are remembered, and only when the fingerprint can be
-trusted (:meth:`Fingerprint.trusted`); a shard found bad is forgotten.
+different (another manifest entry, a changed size / mtime / ctime / inode / content hash, another backend) reads
+and hashes the file again. Only good shards are remembered, and only when the fingerprint can be trusted
+(:meth:`Fingerprint.trusted`); a shard found bad is forgotten.
+
+Which files are remembered: local files (size, mtime, ctime, inode), and URLs whose store reports a content hash
+(GCS ``md5Hash``, HTTP ``Content-MD5`` / ``Digest``, the Hub's LFS sha256 or git blob id). A URL known only by its
+ETag, Last-Modified or version id is hashed on every start: a weak validator is not a content hash (nginx's ETag is
+the file's mtime and size, so a shard changed in place with its old mtime keeps it), and an entry remembered by one
+(an earlier version did) is never used.
 
 One JSON file per manifest location, under ``$MFM_VERIFY_CACHE`` (a folder; ``off`` disables the cache) or
 ``$XDG_CACHE_HOME/motion-flow-matching/verified-shards`` (``~/.cache/...``). It is written atomically (temporary
@@ -100,7 +106,7 @@ class VerificationCache:
                fp: Fingerprint) -> tuple[str, ...] | None:
         """The record ids of a shard verified before with this manifest entry and this fingerprint, else None."""
         entry = self._entries.get(url)
-        if not isinstance(entry, dict) or not fp.fields:
+        if not isinstance(entry, dict) or not fp.identifies_content:
             return None
         if {k: entry.get(k) for k in ("backend", "bytes", "sha256", "num_motions", "fingerprint")} != \
                 self._key(backend, bytes_, sha256, num_motions, fp):

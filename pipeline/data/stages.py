@@ -37,7 +37,15 @@ _TAG_CAPTION = 1
 _TAG_CROP = 2
 
 
-class RecordError(ValueError):
+class DataError(Exception):
+    """Bad data met while checking or reading a dataset: a shard or record that contradicts its manifest or the
+    format. The message names the file and the reason, and the fix is the data's (rebuild or repair it, or leave it
+    out with tolerant verification), so entry points print it as one ``error:`` line and exit with code 2.
+    Subclasses keep the one-message constructor: the error is pickled to cross from a DataLoader worker or
+    another rank."""
+
+
+class RecordError(DataError, ValueError):
     """A record whose content contradicts the dataset format (shapes, spans, missing members)."""
 
 

@@ -35,10 +35,11 @@ what has been consumed, so a resumed loader recomputes the slot orders, drops th
 ``batches_in_epoch`` batches' worth of sample positions before reading, and produces bit-identical next
 batches. Cost of the fast-forward: shards whose samples were all consumed are not opened; the (at most a
 shuffle buffer's worth of) remaining shards are read from their start, but skipped records are not decoded;
-Parquet reads only the row groups that hold needed rows. A changed world size, worker count, batch size or
-seed is refused. With workers, the DataLoader takes batches from workers round-robin; the workers are rotated
-on resume so that worker ``k`` of the new iterator plays the reader that owns the next batch, and each batch
-carries its (epoch, index) stamp, which the loader checks.
+Parquet reads only the row groups that hold needed rows (a remote part checked while read is downloaded
+whole). A changed world size, worker count, batch size or seed is refused. With workers, the DataLoader takes
+batches from workers round-robin; the workers are rotated on resume so that worker ``k`` of the new iterator
+plays the reader that owns the next batch, and each batch carries its (epoch, index) stamp, which the loader
+checks.
 
 Verification. Every reader of shards (training, the evaluator's ground truth, evaluator training, tools)
 checks them first with :func:`verify_shards`: the split's totals against its shard counts and lengths, and
@@ -49,8 +50,18 @@ records the derived id). ``strict`` refuses a bad shard, an unlisted file, an in
 naming the file or manifest and the reason; ``tolerant`` leaves bad shards out (``exclude_shards``), goes on under the
 derived id, and reports everything it found (``verified`` false). A shard read and
 found good is remembered in a small cache (``pipeline.data.shard_cache``: manifest entry, record ids, and the file's
-size + mtime/ctime/inode, or ETag/generation/Last-Modified for a URL); a later start takes an unchanged shard's
-verdict from it without reading it (``VerificationReport.num_from_cache``).
+size + mtime/ctime/inode, or a URL's content hash such as GCS's md5Hash); a later start takes an unchanged shard's
+verdict from it without reading it (``VerificationReport.num_from_cache``). A URL known only by a weak validator
+(an ETag, which nginx derives from size and mtime, Last-Modified, a version id) is hashed on every start.
+
+Remote shards are checked again as they are read (``LoaderOptions.check_remote_bytes``; every mode but ``off``):
+the reader downloads a remote shard whole into a local spool, hashing it as the bytes arrive (the one read it
+makes anyway), and compares size and sha256 with the manifest before it parses a single record
+(:func:`checked_remote_copy`). A shard changed since verification is therefore never used, whenever it changed (an
+in-place rewrite that keeps the server's ETag, an object replaced between two epochs): strict raises
+:class:`ShardChangedError` naming the URL from the batch iterator, so the trainer stops before the next step, let
+alone the next checkpoint; tolerant skips the shard's records (counted, logged), keeping the batch plan. Local
+shards are not re-hashed while read (their stat fingerprint was checked at start).
 
 Where data lives. Shard and manifest locations are local paths or any fsspec URL (``s3://``, ``gs://``,
 ``https://``, ``memory://``, ...; ``pipeline.data.locations``; the cloud packages are the ``remote`` extra). Shard paths
@@ -94,6 +105,7 @@ import json
 import logging
 import os
 import tarfile
+import tempfile
 import time
 import urllib.parse
 from collections import Counter
@@ -107,6 +119,7 @@ from webdataset.tariterators import group_by_keys, tar_file_expander
 
 from pipeline.data.locations import (  # noqa: F401  (is_url, resolve_location, open_binary: part of this module's API)
     DEFAULT_RETRY,
+    READ_BUFFER,
     RemoteSupportMissing,
     RetriesExhausted,
     RetryPolicy,
@@ -130,6 +143,7 @@ from pipeline.data.stages import (
     SKIPPED_RECORDS_KEY,
     Collate,
     CropToWindow,
+    DataError,
     DecodeParquetRow,
     DecodeTarRecord,
     MotionRecord,
@@ -475,7 +489,7 @@ VERIFICATION_CHECKS = ("manifest_totals", "size", "sha256", "record_count", "uni
                        "dataset_id")
 
 
-class ShardVerificationError(RuntimeError):
+class ShardVerificationError(DataError, RuntimeError):
     """A shard is missing, truncated, corrupted or does not hold the records the manifest says, or the
     manifest contradicts itself (strict verification). The message names the file and the reason."""
 
@@ -653,8 +667,9 @@ def check_shard(shard: ShardInfo, backend: str = "webdataset", *, retry: RetryPo
     lowered or raised in the manifest leaves the shard's bytes (and so its hash) unchanged.
 
     With a ``cache``, a shard hashed by an earlier check whose manifest entry and fingerprint (size and mtime,
-    ctime, inode; ETag / generation / Last-Modified for URLs) are unchanged is taken as verified without reading
-    it; a shard that is read and passes is remembered, when its fingerprint can be trusted. Transient errors
+    ctime, inode; a content hash for URLs: ``Fingerprint.identifies_content`` in pipeline.data.locations) are unchanged is taken as verified
+    without reading it; a shard that is read and passes is remembered, when its fingerprint can be trusted (a URL
+    with only an ETag / Last-Modified / version id never is: it is hashed on every start). Transient errors
     (connection reset, timeout, HTTP 5xx/429) are retried per ``retry``; one that outlasts the retries raises
     :class:`~pipeline.data.locations.RetriesExhausted` (it says nothing about the shard). 404 / missing is
     ``missing``, 403 / permission ``unreadable``."""
@@ -892,20 +907,62 @@ class DataResumeError(ValueError):
         self.key, self.saved, self.now = key, saved, now
 
 
-class ShardReadError(RuntimeError):
+class ShardReadError(DataError, RuntimeError):
     """A shard that cannot be read or does not match its manifest entry, discovered while training."""
 
 
-def read_tar_shard(shard: ShardInfo, wanted: np.ndarray) -> Iterator[tuple[int, dict]]:
+class ShardChangedError(ShardReadError):
+    """A remote shard read for use is not the file its manifest entry describes (another size or sha256): it changed
+    since it was verified. Raised once its bytes are all read and hashed, before any of its records is parsed, so
+    nothing of it has been used."""
+
+
+SPOOL_IN_MEMORY_BYTES = 64 << 20
+"""A remote shard being checked is held in memory up to this size, beyond it in a temporary file ($TMPDIR)."""
+
+
+@contextlib.contextmanager
+def checked_remote_copy(shard: ShardInfo) -> Iterator[BinaryIO]:
+    """A remote shard's bytes, read once front to back and hashed as they arrive, held in a local spool and checked
+    against the manifest's size and sha256 before the spool is handed out: the records parsed from it are exactly
+    the bytes hashed, and a shard changed since verification (a server that keeps its ETag or Last-Modified through
+    an in-place rewrite, an object replaced between two epochs) raises :class:`ShardChangedError` before any of them
+    is used. Transient errors of the download propagate (:func:`read_shard` retries the shard from its start)."""
+    with open_binary(shard.url) as stream, tempfile.SpooledTemporaryFile(max_size=SPOOL_IN_MEMORY_BYTES) as spool:
+        reader = _HashingReader(stream)
+        while block := reader.read(READ_BUFFER):
+            spool.write(block)
+        if reader.size != shard.bytes or reader.sha256 != shard.sha256:
+            raise ShardChangedError(
+                f"{shard.url}: changed since it was verified: the bytes read now are {reader.size} bytes with sha256 "
+                f"{reader.sha256[:16]}…, the manifest says {shard.bytes} bytes with sha256 {shard.sha256[:16]}…; "
+                "none of its records was used. Restore the shard or rebuild the dataset (training: "
+                "data.verify=tolerant leaves its records out)")
+        spool.seek(0)
+        yield spool
+
+
+def _open_for_reading(shard: ShardInfo, check_remote_bytes: bool) -> contextlib.AbstractContextManager[BinaryIO]:
+    """A local shard as it is (checked before the run: its stat fingerprint or its hash); a remote one checked
+    while it is read, when ``check_remote_bytes`` (:func:`checked_remote_copy`)."""
+    if check_remote_bytes and local_path(shard.url) is None:
+        return checked_remote_copy(shard)
+    return open_binary(shard.url)
+
+
+def read_tar_shard(shard: ShardInfo, wanted: np.ndarray, check_remote_bytes: bool = True
+                   ) -> Iterator[tuple[int, dict]]:
     """Yield ``(position, raw webdataset sample)`` for the wanted positions of one tar shard, in order.
     After the last wanted record the rest is counted without being kept: a shard that holds fewer or more
-    records than the manifest says is an error (in whichever verification mode, even ``off``)."""
+    records than the manifest says is an error (in whichever verification mode, even ``off``). With
+    ``check_remote_bytes`` a remote shard is hashed as it is read, before any record is parsed
+    (:func:`checked_remote_copy`)."""
     positions = np.flatnonzero(wanted)
     if positions.size == 0:
         return
     count = 0
     try:
-        with open_binary(shard.url) as stream:
+        with _open_for_reading(shard, check_remote_bytes) as stream:
             for position, raw in enumerate(_tar_records(stream, shard.url)):
                 count = position + 1
                 if position < shard.num_motions and wanted[position]:
@@ -917,19 +974,24 @@ def read_tar_shard(shard: ShardInfo, wanted: np.ndarray) -> Iterator[tuple[int, 
                              "(truncated or replaced shard, or a wrong count in the manifest?)")
 
 
-def read_parquet_part(shard: ShardInfo, wanted: np.ndarray) -> Iterator[tuple[int, ParquetRow]]:
-    """Yield ``(position, ParquetRow)`` for the wanted rows, reading only row groups that hold one."""
+def read_parquet_part(shard: ShardInfo, wanted: np.ndarray, check_remote_bytes: bool = True
+                      ) -> Iterator[tuple[int, ParquetRow]]:
+    """Yield ``(position, ParquetRow)`` for the wanted rows, reading only row groups that hold one. With
+    ``check_remote_bytes`` a remote part is read whole and hashed first (:func:`checked_remote_copy`), and its row
+    groups are read from that copy."""
     import pyarrow.parquet as pq
 
-    source = None
-    try:
-        source = open_seekable(shard.url)
-        part = pq.ParquetFile(source)
-    except (OSError, ValueError) as exc:
-        if source is not None and not isinstance(source, str):
-            source.close()
-        raise ShardReadError(f"{shard.url}: cannot read Parquet part: {type(exc).__name__}: {exc}") from exc
-    with part, (contextlib.nullcontext() if isinstance(source, str) else source):
+    with contextlib.ExitStack() as opened:
+        checked = check_remote_bytes and local_path(shard.url) is None
+        source = opened.enter_context(checked_remote_copy(shard)) if checked else None
+        try:
+            if source is None:
+                source = open_seekable(shard.url)
+                if not isinstance(source, str):
+                    opened.enter_context(source)
+            part = opened.enter_context(pq.ParquetFile(source))
+        except (OSError, ValueError) as exc:
+            raise ShardReadError(f"{shard.url}: cannot read Parquet part: {type(exc).__name__}: {exc}") from exc
         if part.metadata.num_rows != shard.num_motions:
             raise ShardReadError(f"{shard.url}: holds {part.metadata.num_rows} rows where the manifest says "
                                  f"{shard.num_motions}")
@@ -947,7 +1009,7 @@ def read_parquet_part(shard: ShardInfo, wanted: np.ndarray) -> Iterator[tuple[in
             start += rows
 
 
-_READERS: dict[str, Callable[[ShardInfo, np.ndarray], Iterator[tuple[int, Any]]]] = {
+_READERS: dict[str, Callable[[ShardInfo, np.ndarray, bool], Iterator[tuple[int, Any]]]] = {
     "webdataset": read_tar_shard,
     "parquet": read_parquet_part,
 }
@@ -957,7 +1019,8 @@ _RESTART_WITH_REMAINING = {"webdataset": False, "parquet": True}
 
 
 def read_shard(shard: ShardInfo, wanted: np.ndarray, backend: str = "webdataset",
-               retry: RetryPolicy | None = None) -> Iterator[tuple[int, Any]]:
+               retry: RetryPolicy | None = None, *, check_remote_bytes: bool = True,
+               tolerate_bad_data: bool = False) -> Iterator[tuple[int, Any]]:
     """Stage 5's reader: ``(position, raw record)`` for the wanted positions of one shard, in order, riding out
     transient errors (connection reset, timeout, HTTP 5xx/429).
 
@@ -968,7 +1031,13 @@ def read_shard(shard: ShardInfo, wanted: np.ndarray, backend: str = "webdataset"
     ``retry.retries`` consecutive failed attempts are made (the count starts again once an attempt has yielded a
     record), each logged as a warning; then :class:`ShardReadError` naming the URL. A permanent error (missing
     / 404, permission / 403, a damaged shard, a wrong record count) is raised at once, as a
-    :class:`ShardReadError` naming the URL."""
+    :class:`ShardReadError` naming the URL.
+
+    ``check_remote_bytes``: a remote shard (a URL) is read whole and hashed before any of its records is parsed
+    (:func:`checked_remote_copy`), so a shard that changed since verification while keeping its size, ETag and
+    Last-Modified is never used: :class:`ShardChangedError`, or with ``tolerate_bad_data`` a
+    :class:`SkippedRecord` in place of each of its wanted records (:func:`left_out_records`), counted and logged
+    as tolerant mode's other skipped records are, with the batch boundaries where the plan put them."""
     read, policy = _READERS[backend], retry or DEFAULT_RETRY
     last = -1  # the last position yielded
     failures = 0
@@ -977,7 +1046,7 @@ def read_shard(shard: ShardInfo, wanted: np.ndarray, backend: str = "webdataset"
         if last >= 0 and _RESTART_WITH_REMAINING[backend]:
             mask = wanted.copy()
             mask[:last + 1] = False
-        records = read(shard, mask)
+        records = read(shard, mask, check_remote_bytes)
         try:
             with contextlib.closing(records):  # closes the file when the consumer stops early, too
                 for position, raw in records:
@@ -985,6 +1054,15 @@ def read_shard(shard: ShardInfo, wanted: np.ndarray, backend: str = "webdataset"
                         continue
                     yield position, raw
                     last, failures = position, 0
+            return
+        except ShardChangedError as exc:
+            if not tolerate_bad_data:
+                raise
+            logger.warning("tolerant mode: %s", exc)
+            remaining = wanted.copy()
+            remaining[:last + 1] = False
+            yield from left_out_records(shard, remaining, "changed since it was verified (its bytes are not the "
+                                                          "manifest's sha256): its records are left out")
             return
         except ImportError:
             raise
@@ -1003,8 +1081,9 @@ _DECODERS = {"webdataset": DecodeTarRecord, "parquet": DecodeParquetRow}
 
 
 def left_out_records(shard: ShardInfo, wanted: np.ndarray, reason: str) -> Iterator[tuple[int, SkippedRecord]]:
-    """A shard excluded since the epoch was planned: a :class:`SkippedRecord` in place of each wanted record,
-    without opening the file, so the epoch's batch boundaries stay where the plan put them."""
+    """A shard whose records are not used (excluded since the epoch was planned, or found changed while read in
+    tolerant mode): a :class:`SkippedRecord` in place of each wanted record, so the epoch's batch boundaries stay
+    where the plan put them."""
     skipped = SkippedRecord(f"{shard.url}: {reason}")  # one reason per shard: logged once, counted per record
     for position in np.flatnonzero(wanted):
         yield int(position), skipped
@@ -1064,13 +1143,17 @@ class VerifiedSplit:
 
     def iter_motions(self) -> Iterator[MotionRecord]:
         """Every record of the good shards once, in manifest order, decoded and not cropped. In tolerant mode
-        a record that fails to decode or validate is skipped, counted and logged."""
+        a record that fails to decode or validate is skipped, counted and logged. A remote shard is hashed again
+        as it is read (unless verification is off): one that changed since it was verified raises
+        :class:`ShardChangedError` (tolerant: its records are skipped) before any of its records is read."""
         decode = _DECODERS[self.backend](self.manifest.record_spec)
-        if self.report.mode == "tolerant":
+        tolerant = self.report.mode == "tolerant"
+        if tolerant:
             decode = SkipBadRecords(decode)
         self.records_skipped = 0
         for shard in self.shards:
-            for _, raw in read_shard(shard, np.ones(shard.num_motions, dtype=bool), self.backend, self.retry):
+            for _, raw in read_shard(shard, np.ones(shard.num_motions, dtype=bool), self.backend, self.retry,
+                                     check_remote_bytes=self.report.mode != "off", tolerate_bad_data=tolerant):
                 record = decode(raw)
                 if isinstance(record, SkippedRecord):
                     self.records_skipped += 1
@@ -1105,8 +1188,8 @@ def iter_motions(manifest: Manifest | str | os.PathLike, split: str, backend: st
 @dataclass(frozen=True, kw_only=True)
 class LoaderOptions:
     """How the stream is cut, shuffled and batched. Everything here except ``backend``, ``tolerate_bad_data``,
-    ``prefetch_factor``, ``pin_memory``, ``multiprocessing_context``, ``retries`` and ``retry_backoff_s`` is part
-    of the resume state and must not change on resume."""
+    ``check_remote_bytes``, ``prefetch_factor``, ``pin_memory``, ``multiprocessing_context``, ``retries`` and
+    ``retry_backoff_s`` is part of the resume state and must not change on resume."""
 
     batch_size: int
     """Samples per batch on each rank."""
@@ -1132,6 +1215,11 @@ class LoaderOptions:
     """Tolerant mode (training's ``data.verify=tolerant``): a record that fails to decode or validate is left out
     of its batch (counted, logged) instead of stopping the stream, and a resume whose excluded shards changed
     finishes the checkpoint's epoch with its plan (see the module docstring). False: both raise."""
+    check_remote_bytes: bool = True
+    """Hash every remote shard (a URL) as it is read and compare it with the manifest's sha256 before any of its
+    records is used (:func:`checked_remote_copy`): a shard changed since it was verified stops the stream
+    (:class:`ShardChangedError`) or, with ``tolerate_bad_data``, has its records skipped. Training passes
+    ``data.verify != "off"``. Local shards are checked before the run only."""
     prefetch_factor: int = 2
     pin_memory: bool = False
     multiprocessing_context: str | None = None
@@ -1227,6 +1315,10 @@ def batches_before(position: int, reader: int, readers: int) -> int:
     return max(0, (position - reader + readers - 1) // readers)
 
 
+_DATA_ERROR_KEY = "_data_error"
+"""The key of the item a DataLoader worker yields in place of a batch when it met bad data (the DataError)."""
+
+
 class _RankStream(IterableDataset):
     """One rank's batches, forever, starting at (epoch, batch). In DataLoader worker ``w`` it plays reader
     ``(w + start_batch) % readers``, so the DataLoader's round-robin resumes on the right reader."""
@@ -1242,9 +1334,17 @@ class _RankStream(IterableDataset):
             raise RuntimeError(f"stream built for {readers} workers runs under {info.num_workers}")
         reader = (worker + self.start_batch) % readers
         skip = batches_before(self.start_batch, reader, readers)
-        for epoch in itertools.count(self.start_epoch):
-            yield from self.reader_epoch(epoch, reader, skip)
-            skip = 0
+        try:
+            for epoch in itertools.count(self.start_epoch):
+                yield from self.reader_epoch(epoch, reader, skip)
+                skip = 0
+        except DataError as err:
+            if info is None:
+                raise
+            # In a DataLoader worker: hand the error on whole, in the batch's place (MotionLoader._checked raises
+            # it in the rank's process). Raised here, the DataLoader would raise a new error there whose message
+            # is this worker's traceback, not the one line naming the file and the reason.
+            yield {_DATA_ERROR_KEY: err}
 
     def reader_epoch(self, epoch: int, reader: int, skip_batches: int) -> Iterator[dict]:
         spec, opts = self.spec, self.spec.options
@@ -1266,7 +1366,9 @@ class _RankStream(IterableDataset):
             sample_stages = [SkipBadRecords(stage) for stage in sample_stages]
         pipeline = wds.DataPipeline(
             functools.partial(ordered_records, shards, emission,
-                              functools.partial(read_shard, backend=opts.backend, retry=opts.retry_policy),
+                              functools.partial(read_shard, backend=opts.backend, retry=opts.retry_policy,
+                                                check_remote_bytes=opts.check_remote_bytes,
+                                                tolerate_bad_data=opts.tolerate_bad_data),
                               spec.left_out(epoch)),
             *[wds.map(stage) for stage in sample_stages],
             wds.batched(batch_size, collation_fn=Collate(opts.window, spec.action_classes, spec.record_spec),
@@ -1355,6 +1457,11 @@ class MotionLoader:
     def batches_per_epoch(self, epoch: int | None = None) -> int:
         """Batches this rank (and every other rank) yields in the epoch."""
         return self._spec.checked_plan(self.epoch if epoch is None else epoch).batches_per_rank
+
+    def empty_batch(self) -> dict[str, Any]:
+        """A batch of this stream with no sample (every key, the trailing sizes of a real batch, zero rows): what
+        the trainer steps through in place of a batch it could not read, to stay in step with the other ranks."""
+        return Collate(self.options.window, self._spec.action_classes, self._spec.record_spec).empty_batch()
 
     def samples_dropped(self, epoch: int | None = None) -> int:
         """Samples of the split (all ranks) not used in the epoch so that all readers yield equal batches."""
@@ -1477,6 +1584,8 @@ class MotionLoader:
             if generation != self._generation:
                 raise RuntimeError("this batch iterator is stale: the loader's state was loaded or another "
                                    "iterator was created since; call iter_batches() again")
+            if _DATA_ERROR_KEY in batch:  # a worker met bad data (see _RankStream.__iter__)
+                raise batch[_DATA_ERROR_KEY]
             position = tuple(batch.pop("_position"))  # robust to list conversion by collate/pin_memory
             if position != (self.epoch, self.batches_in_epoch):
                 raise RuntimeError(f"data stream out of order: got batch {position}, expected "

@@ -162,10 +162,22 @@ class SamplingConfig:
     named with the first of their step counts."""
     guidance: tuple[float, ...] = (2.5,)
     use_ema: bool = True
+    """Sample the EMA of the weights (a checkpoint that kept none falls back to its raw weights, recorded as
+    ``checkpoint.weights``, except for a baseline whose authors sample the EMA, FLAME: refused)."""
     baseline_defaults: bool = True
     """Diffusion checkpoints of a preset whose authors sampled it their own way run that way
-    (mfm.diffusion_sampling.BASELINE_SAMPLING; FLAME: guidance 8.0 instead of ``guidance``, and the output smoothed
-    over time with σ = 1 frame). false: every checkpoint samples with ``guidance`` and no smoothing."""
+    (mfm.diffusion_sampling.BASELINE_SAMPLING; FLAME: guidance 8.0 instead of ``guidance``, the output smoothed
+    over time with σ = 1 frame, every training step and the x0 clamp below, its EMA weights). false: every
+    checkpoint samples with ``guidance``, the sweep's steps, no smoothing and no clamp. Results record the settings
+    that ran (``sampling.baseline_defaults``)."""
+    baseline_steps: bool = True
+    """With baseline_defaults: a baseline whose authors sample every training step (FLAME: all 1,000) runs every
+    step whatever ``steps`` (its points with other step counts collapse into one); false: the sweep's steps,
+    respaced (the FID-vs-NFE sweep of a diffusion baseline)."""
+    baseline_clip_denoised: bool = True
+    """With baseline_defaults: a baseline whose sampler clamps its x0 estimate (FLAME: [-1, 1] on its raw
+    features) gets that clamp on ours: the 6D rotation channels bounded to [-1, 1] in raw units, the rest free
+    (mfm.diffusion_sampling.rotation_6d_range). false: no clamp."""
     batch_size: int = 64
     """Motions generated per forward batch (per rank)."""
     rtol: float = 1e-5
@@ -247,8 +259,15 @@ class TasksConfig:
     edit_guidance: float | None = None
     """Guidance scale of a flow edit; null: the settings'."""
     edit_restore_known: bool = False
-    """Diffusion edits: copy the source into the kept part of the output after the last step. false (FLAME, and
-    what the flow edits do): the kept part is what the sampler made of it, so both methods are scored alike."""
+    """Diffusion edits: copy the source into the kept part of the output after the last step. false (FLAME's kept
+    joints, and what the flow edits do): the kept part is what the sampler made of it, so both methods are scored
+    alike (the root translation aside: ``edit_reference_translation``)."""
+    edit_reference_translation: bool = True
+    """Diffusion edits (FLAME's replacement procedure): copy the source's root translation into the output after
+    the smoothing, as FLAME's edit_motion.py (use_reference_translation: true): on our features the root dims
+    (rotation velocity, linear velocity, height) wherever the edit keeps the root, every frame of an upper-body edit
+    (mfm.diffusion_sampling.copy_reference_root). false: the chain's output. Flow edits (MFM's procedure) never
+    copy. Results record it (``editing_settings.reference_translation``); only diffusion units' keys carry it."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)
@@ -386,7 +405,8 @@ class OutputConfig:
     """--watch without --once: seconds between scans of the run folder."""
     order: Literal["newest", "oldest"] = "newest"
     wandb: Literal["auto", "offline", "online", "disabled"] = "auto"
-    """auto: the training run's mode (config.yaml train.wandb); WANDB_MODE wins."""
+    """auto: the environment's WANDB_MODE when set, else the training run's mode (config.yaml train.wandb; its auto
+    is offline). An explicit offline/online/disabled wins over WANDB_MODE (pipeline.config.wandb_mode)."""
     plots: bool = True
 
     def __post_init__(self) -> None:

@@ -24,6 +24,11 @@ Table 3 names them but its public code has no formula), the metrics FLAME's pape
 (APE/AVE in TEMOS's definition, not FLAME's code's: mfm.metrics.ape_ave; mCLIP, MID, per-text joint variance), and
 for action models FID / accuracy / Diversity /
 MultiModality in the action classifier's feature space. NFE and generation seconds per motion are reported.
+A diffusion baseline (FLAME) samples as its authors did unless ``sampling.baseline_*`` says otherwise: guidance 8.0,
+σ = 1 output smoothing, every one of its 1,000 training steps, its x0 clamp carried to our features, its EMA weights
+(a checkpoint without them is refused); every diffusion checkpoint's edits follow FLAME's procedure, the source's
+root translation copied into the output (``tasks.edit_reference_translation``); results record them
+(``sampling.baseline_defaults``, ``editing_settings.reference_translation``).
 Plausibility (mfm.metrics.plausibility, on joints recovered from the features): bone-length range and relative
 deviation, floor penetration, foot skating ratio / contact and skating foot speeds, mean jerk and its ratio to the
 paired ground-truth clip's, as medians over the clips of a replication, for generated and edited motions (metric
@@ -39,7 +44,9 @@ point and ``composition.switch`` point (pipeline.evaluation.composition); ``task
 
 Identity. A unit's key hashes the checkpoint id (its COMPLETE marker, which lists every file's sha256), the
 evaluator id, the ground-truth identity (dataset id, split, crops; with the protocol's seed and redraw_items, every
-replication's draw), the protocol, tasks and sampling point; the
+replication's draw), the protocol, tasks and sampling point, and for a diffusion baseline its authors' sampling
+settings as run (FLAME: steps, x0 clamp, smoothing; sampling.baseline_*) and its edits' translation copy
+(``checkpoint_settings``); the
 result and every table row carry the evaluator id and the dataset id, so numbers from different evaluators are
 never mixed up. Re-running on the same checkpoint finds the result and skips it. The dataset id is the one derived
 from the manifest's shard list when it is read (never the one written in it); a job whose test set (that id and the
@@ -61,7 +68,7 @@ from typing import Any
 import numpy as np
 
 from pipeline import checkpoint as ckpt
-from pipeline.config import ConfigError, parse_yaml, to_dict
+from pipeline.config import ConfigError, parse_yaml, to_dict, wandb_mode
 from pipeline.data.stream import Manifest, ManifestError, backend_for_format, open_manifest
 from pipeline.distributed import Dist
 from pipeline.evaluation.composition import (
@@ -79,6 +86,7 @@ from pipeline.evaluation.replications import (
     PointRun,
     action_labels,
     baseline_sampling,
+    check_weights,
     output_smoothing,
     plan_protocol,
     points_for,
@@ -141,13 +149,37 @@ def checkpoint_id(folder: Path) -> str:
 
 
 def baseline_record(trained: TrainedModel, sampling: Any) -> dict[str, Any]:
-    """What a result says about the output smoothing and whose sampling settings ran (a baseline's own, or ours)."""
-    baseline = baseline_sampling(trained, sampling.baseline_defaults)
+    """What a result says about the output smoothing and whose sampling settings ran (a baseline's own, as run:
+    guidance, smoothing, every training step, x0 clamp, EMA weights, and where the numbers come from; or ours)."""
+    baseline = baseline_sampling(trained, sampling)
     if baseline is None:
         return {"smoothing_sigma": output_smoothing(trained, sampling.baseline_defaults), "baseline_defaults": None}
-    return {"smoothing_sigma": baseline.smoothing_sigma,
-            "baseline_defaults": {"preset": trained.diffusion_preset, "guidance": baseline.guidance,
-                                  "smoothing_sigma": baseline.smoothing_sigma, "source": baseline.source}}
+    record = {"preset": trained.diffusion_preset, **baseline.record()}
+    if baseline.clip_denoised:
+        record["clip_denoised_range"] = "6D rotation channels in [-1, 1] (raw units); others unclamped"
+    return {"smoothing_sigma": baseline.smoothing_sigma, "baseline_defaults": record}
+
+
+ADE_FDE_UNIT = "m"
+"""Hashed into the keys of editing units of a skeleton not in metres (KIT): ADE/FDE are in metres since issue 25
+(before, in the skeleton's millimetres), so results computed before are not taken as done."""
+
+
+def checkpoint_settings(trained: TrainedModel, cfg: EvalConfig) -> dict[str, Any]:
+    """The settings whose effect depends on the kind of checkpoint, as they run; only its units' keys carry them, so
+    the others' keys stay as they were: a diffusion checkpoint's baseline sampling settings (FLAME's) and, when it
+    edits, its edits' translation copy (``tasks.edit_reference_translation``); on a skeleton not in metres (KIT),
+    when it edits, the unit of ADE/FDE. Empty for a flow checkpoint on a metre skeleton."""
+    out: dict[str, Any] = {}
+    if trained.objective == "diffusion":
+        baseline = baseline_sampling(trained, cfg.sampling)
+        if baseline is not None:  # the settings, not the text citing where they come from
+            out["baseline"] = {k: v for k, v in baseline.record().items() if k != "source"}
+        if cfg.tasks.editing:
+            out["edit_reference_translation"] = cfg.tasks.edit_reference_translation
+    if cfg.tasks.editing and trained.skeleton.unit != "m":
+        out["ade_fde_unit"] = ADE_FDE_UNIT
+    return out
 
 
 def check_compatible(trained: TrainedModel, manifest: Manifest) -> None:
@@ -214,7 +246,8 @@ class CheckpointScorer:
                 wanted = self.cfg.sampling_points(trained.skeleton.name)
             except ConfigError as exc:
                 raise EvaluationError(f"{trained.checkpoint}: {exc}") from exc
-            points = points_for(trained, wanted, baseline_defaults=self.cfg.sampling.baseline_defaults)
+            points = points_for(trained, wanted, self.cfg.sampling)
+            check_weights(trained, self.cfg.sampling)
             manifest = self.manifest_for(trained)
             check_compatible(trained, manifest)
             space = self.space_for(trained, manifest)
@@ -258,10 +291,15 @@ class CheckpointScorer:
         return CheckpointContext(trained, checkpoint_id(folder), manifest, gt, space, emb, cached, plan, labels,
                                  candidates, points, tuple(notes), gt_figures, draws, cache_dir)
 
-    def unit_for(self, folder: Path, ctx_ids: Mapping[str, str], point: SamplingPoint) -> Unit:
+    def unit_for(self, folder: Path, ctx_ids: Mapping[str, str], point: SamplingPoint,
+                 kind_settings: Mapping[str, Any] | None = None) -> Unit:
+        """The unit of a text-to-motion point; ``kind_settings``: the settings only its kind of checkpoint runs
+        (:func:`checkpoint_settings`), which its key then carries."""
         cfg = self.cfg
-        # The task switches are not settings of a text-to-motion unit: turning composition on keeps its key.
-        tasks = {k: v for k, v in to_dict(cfg.tasks).items() if k not in ("text_to_motion", "composition")}
+        # The task switches are not settings of a text-to-motion unit: turning composition on keeps its key; nor is
+        # a setting only diffusion edits read (kind_settings carries it for them): flow units keep their keys.
+        tasks = {k: v for k, v in to_dict(cfg.tasks).items()
+                 if k not in ("text_to_motion", "composition", "edit_reference_translation")}
         settings = {"format": RESULT_FORMAT, "ids": dict(ctx_ids), "point": dataclasses.asdict(point),
                     "protocol": protocol_key(cfg.protocol), "tasks": tasks, "split": cfg.data.split,
                     "sampling": {"use_ema": cfg.sampling.use_ema, "rtol": cfg.sampling.rtol,
@@ -271,6 +309,8 @@ class CheckpointScorer:
                      if setup["steps_per_preset"][p] != setup["steps"]}
         if own_steps:  # a preset with its own step count (reference-debug's interpolation: 1 since issue 25)
             settings["edit_steps_per_preset"] = own_steps
+        if kind_settings:  # settings of its kind of checkpoint change its numbers (only its units' keys carry them)
+            settings["checkpoint_kind"] = dict(kind_settings)
         if tasks.get("flame"):
             # Issue 25 changed APE/AVE (TEMOS's floor in millimetres, every skeleton in metres): results computed
             # before carry the metre-floor bias, so units with the FLAME-paper metrics get new keys and run again.
@@ -285,7 +325,8 @@ class CheckpointScorer:
         points = ctx.points
         out = []
         if self.cfg.tasks.text_to_motion:
-            out += [Work(self.unit_for(folder, ids, point), point) for point in points]
+            kind = checkpoint_settings(ctx.trained, self.cfg)
+            out += [Work(self.unit_for(folder, ids, point, kind), point) for point in points]
         if comp is not None:
             out += [Work(composition_unit(folder.name, ids, point, switch, self.cfg, comp.cset), point, switch)
                     for point in points for switch in self.cfg.composition.switch_times()]
@@ -708,9 +749,8 @@ class EvaluationJob:
     def _publish(self, store: ResultsStore, folder: Path, result: Mapping[str, Any]) -> None:
         """W&B (under the training run) and the plots; failures are logged, never fatal."""
         run_dir = ckpt.run_dir_of(folder)
-        mode, project = _training_wandb(run_dir)
-        if self.cfg.output.wandb != "auto":
-            mode = self.cfg.output.wandb
+        trained_mode, project = _training_wandb(run_dir)
+        mode = wandb_mode(self.cfg.output.wandb, fallback=wandb_mode(trained_mode))
         prefix = f"{result['sampling']['solver']}-{result['sampling']['steps']}-g{result['sampling']['guidance']:g}"
         if result.get("task") == "composition":
             prefix = f"compose-{prefix}-s{result['sampling']['switch']:.4g}-{result['composition']['scenario']}"

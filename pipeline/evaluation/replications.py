@@ -44,7 +44,9 @@ from mfm.composition import BoundInputs
 from mfm.diffusion_sampling import (
     SAMPLERS,
     BaselineSampling,
+    copy_reference_root,
     replacement_edit,
+    rotation_6d_range,
     sample_diffusion,
     smooth_over_time,
 )
@@ -602,23 +604,28 @@ def check_point(trained: TrainedModel, point: SamplingPoint) -> None:
                               "sampler; use an ODE solver (euler, midpoint, heun, rk4, dopri5, ...)")
 
 
-def points_for(trained: TrainedModel, points: Sequence[SamplingPoint], *,
-               baseline_defaults: bool = False) -> tuple[SamplingPoint, ...]:
+def points_for(trained: TrainedModel, points: Sequence[SamplingPoint],
+               sampling: SamplingConfig | None = None) -> tuple[SamplingPoint, ...]:
     """The points of a sweep that fit ``trained``: ODE solvers for a flow model, ddpm/ddim for a diffusion model.
     One sweep may so list both kinds for flow and diffusion checkpoints (MFM's FID-vs-NFE comparison); the others
     are logged as skipped. None fitting, or a fitting one the model cannot run: :class:`EvaluationError`.
-    ``baseline_defaults``: a diffusion baseline with its authors' own guidance (FLAME: 8.0) runs at that scale."""
+    A diffusion baseline run with its authors' settings (``sampling``, :func:`baseline_sampling`) runs at their
+    guidance (FLAME: 8.0) and, with ``every_training_step``, every step of its training schedule (FLAME: 1,000);
+    points that differ only there become one."""
     wanted = trained.objective == "diffusion"
     fitting = tuple(point for point in points if (point.solver in SAMPLERS) == wanted)
-    baseline = baseline_sampling(trained, baseline_defaults)
+    baseline = baseline_sampling(trained, sampling)
     if baseline is not None:
-        fitting = tuple(dict.fromkeys(dataclasses.replace(p, guidance=baseline.guidance) for p in fitting))
+        own = {"guidance": baseline.guidance}
+        if baseline.every_training_step:
+            own["steps"] = trained.diffusion.num_train_steps
+        fitting = tuple(dict.fromkeys(dataclasses.replace(p, **own) for p in fitting))
     for point in fitting or points[:1]:
         check_point(trained, point)
     skipped = [point.name for point in points if point not in fitting]
     if skipped:
-        logger.info("%s is a %s model: skipping the sweep's points for the other objective: %s", trained.checkpoint,
-                    trained.objective, ", ".join(skipped))
+        logger.info("%s is a %s model: skipping the sweep's points for the other objective, or run at its "
+                    "authors' settings instead: %s", trained.checkpoint, trained.objective, ", ".join(skipped))
     return fitting
 
 
@@ -631,9 +638,26 @@ def edit_points(point: SamplingPoint, edit_setup: Mapping[str, Any], objective: 
         for preset, steps in edit_setup["steps_per_preset"].items()}
 
 
-def baseline_sampling(trained: TrainedModel, enabled: bool) -> BaselineSampling | None:
-    """The diffusion baseline's own sampling settings when ``enabled`` (sampling.baseline_defaults) and it has any."""
-    return trained.baseline_sampling if enabled else None
+def baseline_sampling(trained: TrainedModel, sampling: SamplingConfig | None) -> BaselineSampling | None:
+    """The diffusion baseline's own sampling settings as this evaluation runs them: None without ``sampling``,
+    with ``sampling.baseline_defaults=false`` or for a checkpoint without such settings; each of the authors'
+    settings that its ``sampling.baseline_*`` option turns off reads False."""
+    baseline = trained.baseline_sampling if sampling is not None and sampling.baseline_defaults else None
+    if baseline is None:
+        return None
+    return dataclasses.replace(
+        baseline, every_training_step=baseline.every_training_step and sampling.baseline_steps,
+        clip_denoised=baseline.clip_denoised and sampling.baseline_clip_denoised)
+
+
+def check_weights(trained: TrainedModel, sampling: SamplingConfig) -> None:
+    """A baseline whose authors sample the EMA of the weights (FLAME) is not silently scored with its raw weights:
+    with ``sampling.use_ema`` its checkpoint must hold EMA weights."""
+    baseline = baseline_sampling(trained, sampling)
+    if baseline is not None and baseline.ema_weights and sampling.use_ema and trained.weights != "ema":
+        raise EvaluationError(f"{trained.checkpoint} holds no EMA weights, which its authors' sampling "
+                              f"({trained.diffusion_preset}) uses: set sampling.use_ema=false to score its raw "
+                              "weights")
 
 
 def output_smoothing(trained: TrainedModel, enabled: bool) -> float:
@@ -646,7 +670,7 @@ def output_smoothing(trained: TrainedModel, enabled: bool) -> float:
 def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], lengths: Tensor,
              seeds: Sequence[int], point: SamplingPoint, sampling: SamplingConfig, *, known: Tensor | None = None,
              keep: Tensor | None = None, rewrite_until: float = 1.0, restore_known: bool = False,
-             window: int | None = None) -> tuple[Tensor, int]:
+             reference_translation: bool = False, window: int | None = None) -> tuple[Tensor, int]:
     """Sample (or, with ``known``/``keep``, edit) one batch with the sampling code; raw (un-normalised) features,
     zero past each length, and the number of (guided) model evaluations.
 
@@ -660,7 +684,11 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
     Flow models: ``mfm.solvers.solve`` of the guided velocity (``mfm.editing.edit`` for edits), each motion's
     initial noise from its own seed. Diffusion models (FLAME / FlowMDM baselines): ``sample_diffusion`` /
     FLAME's ``replacement_edit`` on the schedule respaced to ``point.steps``, each motion's initial and per-step
-    noise from its own seed's stream. So a motion's sample does not depend on the batch size or world size.
+    noise from its own seed's stream. So a motion's sample does not depend on the batch size or world size. A
+    diffusion baseline run with its authors' settings (:func:`baseline_sampling`, FLAME) gets their x0 clamp
+    (``mfm.diffusion_sampling.rotation_6d_range``). ``reference_translation`` (``tasks.edit_reference_translation``):
+    a diffusion edit gets the source's root copied into the output after the smoothing, as FLAME's procedure
+    (``copy_reference_root``); flow edits ignore it.
     ``extras``: per-motion model inputs (cross-attention token features), bound with ``BoundInputs``.
     """
     model = BoundInputs(trained.model, dict(extras)) if extras else trained.model
@@ -668,16 +696,22 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
     windowed = window is not None and keep is None
     if windowed:
         num_frames = max(int(window), num_frames)
+    layout = FeatureLayout(trained.skeleton)
     if trained.objective == "diffusion":
         schedule = trained.diffusion.respaced(point.steps)
         generator = seeded_generators(seeds)
+        baseline, clamp = baseline_sampling(trained, sampling), None
+        if baseline is not None and baseline.clip_denoised:  # FLAME's clip_denoised, carried to our features
+            clamp = rotation_6d_range(layout, trained.mean, trained.std)
+            clamp = type(clamp)(*(bound.to(trained.device) for bound in clamp))
         if keep is None:
             result = sample_diffusion(model, schedule, cond, lengths, num_frames=num_frames, feature_dim=dim,
-                                      sampler=point.solver, guidance=point.guidance, generator=generator)
+                                      sampler=point.solver, guidance=point.guidance, generator=generator,
+                                      clip_denoised=clamp)
         else:
             denoise = classifier_free_guidance(model, cond, scale=point.guidance, lengths=lengths, guided_channels=dim)
             result = replacement_edit(denoise, schedule, known, keep, sampler=point.solver, lengths=lengths,
-                                      generator=generator, restore_known=restore_known)
+                                      generator=generator, restore_known=restore_known, clip_denoised=clamp)
     else:
         velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths)
         x0 = draw_noise((len(seeds), num_frames, dim), seeded_generators(seeds),
@@ -689,6 +723,8 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
             result = edit(velocity, known, keep, steps=point.steps, rewrite_until=rewrite_until,
                           solver=point.solver, x0=x0, lengths=lengths)
     x1 = smooth_over_time(result.x1.float(), lengths, output_smoothing(trained, sampling.baseline_defaults))
+    if keep is not None and reference_translation and trained.objective == "diffusion":
+        x1 = copy_reference_root(x1, known.float(), keep, layout)  # after the smoothing, as FLAME's edit_motion.py
     if windowed:
         return trained.denormalize(x1), result.nfe
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)
@@ -818,7 +854,8 @@ class PointRun:
                 raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.edit_points[preset],
                                     self.cfg.sampling,
                                     known=known, keep=keep, rewrite_until=self.edit_setup["rewrite_until"][preset],
-                                    restore_known=self.cfg.tasks.edit_restore_known)
+                                    restore_known=self.cfg.tasks.edit_restore_known,
+                                    reference_translation=self.cfg.tasks.edit_reference_translation)
             else:
                 raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.point, self.cfg.sampling,
                                     window=self.window)
@@ -869,8 +906,9 @@ class PointRun:
             return {**stats, "ape_ave": ape, "frames": int(lens.sum())}
         keep = edit_mask(kind[5:], lengths.cpu(), raw.shape[1], self.layout).numpy()
         regenerated = ~keep.all(axis=-1)  # frames with at least one generated dim
-        return {**stats, "ade": metrics.ade(joints, gt_joints, lens, mask_frames=regenerated),
-                "fde": metrics.fde(joints, gt_joints, lens)}
+        scale = metrics.METRES_PER_UNIT[self.skeleton.unit]  # ADE/FDE in metres (KIT joints are millimetres)
+        return {**stats, "ade": metrics.ade(joints, gt_joints, lens, mask_frames=regenerated, metres_per_unit=scale),
+                "fde": metrics.fde(joints, gt_joints, lens, metres_per_unit=scale)}
 
     # -- metrics (rank 0) ----------------------------------------------------------------------------------------
 
@@ -970,10 +1008,12 @@ class PointRun:
 
     def _editing_settings(self) -> dict[str, Any]:
         """How the edits ran: flow trajectory rewriting with the edit settings, or FLAME's replacement on the
-        point's sampler; and whether the kept part was copied into the output."""
+        point's sampler; and whether the kept part, or the source's root translation, was copied into the
+        output."""
         if self.trained.objective == "diffusion":
             return {"method": "replacement (FLAME)", "sampler": self.point.solver, "steps": self.point.steps,
-                    "guidance": self.point.guidance, "restore_known": self.cfg.tasks.edit_restore_known}
+                    "guidance": self.point.guidance, "restore_known": self.cfg.tasks.edit_restore_known,
+                    "reference_translation": self.cfg.tasks.edit_reference_translation}
         setup = {k: v for k, v in self.edit_setup.items() if k != "diffusion_restore_known"}
         return {"method": "trajectory rewriting (MFM)", "solver": "euler", **setup,
                 "rewrite_until": {p: setup["rewrite_until"][p] for p in self.edit_presets},

@@ -28,7 +28,7 @@ write; the page itself is also written only over a page of ours (pipeline/genera
 
 Concurrency. Any number of jobs (cron, Slurm array, Kubernetes CronJob, two shells) may watch the same run. A unit
 is claimed by creating its claim file with ``O_CREAT | O_EXCL`` while holding an exclusive ``flock`` on
-``claims/.lock``; the holder refreshes the file's mtime (heartbeat) as it progresses. A claim records its holder's
+``claims/.lock`` (``pipeline.claims.take_claim``, shared with the trainer's run-folder lock); the holder refreshes the file's mtime (heartbeat) as it progresses. A claim records its holder's
 host, pid and pid namespace: a claim from this host (and namespace) whose pid is no longer alive is stale at once, so
 a restarted job picks up the units of the job it replaces (a killed job must not block its checkpoint for
 ``output.claim_timeout_s``). Claims from other hosts, or whose pid is alive (or reused), are stale only without a
@@ -42,19 +42,24 @@ two claims.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import logging
 import os
 import re
-import socket
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.checkpoint import process_exists
+from pipeline.claims import (  # noqa: F401  (this_pid_namespace: part of this module's API)
+    ClaimHolder,
+    exclusive_lock,
+    parse_record,
+    read_record_text,
+    take_claim,
+    this_pid_namespace,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -159,22 +164,6 @@ class Unit:
 
 
 @dataclass(frozen=True)
-class ClaimHolder:
-    """Who holds a unit, as its claim file says: what a job that had to skip the unit reports."""
-
-    host: str | None
-    pid: int | None
-    since: float | None
-    """When the claim was made (epoch seconds)."""
-    heartbeat_age_s: float
-    """Seconds since the holder last refreshed the claim."""
-
-    def describe(self) -> str:
-        who = f"pid {self.pid} on {self.host}" if self.host is not None else "an unknown job (unreadable claim)"
-        return f"{who}, heartbeat {self.heartbeat_age_s:.0f} s ago"
-
-
-@dataclass(frozen=True)
 class SeenCheckpoint:
     """A complete checkpoint an evaluator job has listed (one line of ``checkpoints_seen.jsonl``)."""
 
@@ -183,30 +172,6 @@ class SeenCheckpoint:
     name: str
     step: int
     checkpoint_id: str
-
-
-def this_pid_namespace() -> str | None:
-    """The pid namespace of this process (Linux), recorded in claims: two containers may share a host name while
-    their pids mean different processes, so a pid is only checked within the namespace that wrote it."""
-    try:
-        return os.readlink("/proc/self/ns/pid")
-    except OSError:
-        return None
-
-
-def dead_holder(claim: Mapping[str, Any] | None) -> str | None:
-    """Why the claim's holder is certainly dead (its pid is gone on this very host and pid namespace), or None
-    when that cannot be told from here (another host or namespace, an unreadable claim, a live pid)."""
-    if not claim or claim.get("host") != socket.gethostname():
-        return None
-    pid, namespace = claim.get("pid"), claim.get("pid_ns")
-    if not isinstance(pid, int) or isinstance(pid, bool) or pid <= 0:  # os.kill(0 or -n) would signal a group
-        return None
-    if namespace is not None and namespace != this_pid_namespace():
-        return None
-    if process_exists(pid):  # a reused pid reads as alive: only delays the takeover to the heartbeat timeout
-        return None
-    return f"its job, pid {pid} on this host ({claim['host']}), is no longer running"
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -218,19 +183,6 @@ def atomic_write_text(path: Path, text: str) -> None:
         handle.flush()
         os.fsync(handle.fileno())
     os.replace(tmp, path)
-
-
-@contextlib.contextmanager
-def exclusive_lock(path: Path) -> Iterator[None]:
-    """Hold an exclusive ``flock`` on ``path`` (created if needed) for the block."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        os.close(fd)
 
 
 class ResultsStore:
@@ -282,40 +234,10 @@ class ResultsStore:
         """Claim ``unit`` for this process: False when it is done or another live job holds it."""
         if self.is_done(unit):
             return False
-        path = self.claim_path(unit)
         with exclusive_lock(self.root / CLAIMS_SUBDIR / ".lock"):
             if self.is_done(unit):  # finished by another job while we waited for the lock
                 return False
-            if path.exists() and not self._break_if_stale(path):
-                return False
-            try:
-                fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                return False
-            with os.fdopen(fd, "w", encoding="utf-8") as handle:
-                json.dump({"host": socket.gethostname(), "pid": os.getpid(), "pid_ns": this_pid_namespace(),
-                           "since": time.time(), "unit": unit.key}, handle)
-        return True
-
-    def _break_if_stale(self, path: Path) -> bool:
-        """Remove the claim at ``path`` if its job is dead (at once when its pid is gone on this host, else after
-        ``claim_timeout_s`` without a heartbeat); True when the unit is free now. Called under the claims lock."""
-        try:
-            age = time.time() - path.stat().st_mtime
-        except FileNotFoundError:  # released meanwhile (release() does not take the lock)
-            return True
-        text = _read_claim(path)
-        reason = dead_holder(_parse_claim(text))
-        if reason is not None:
-            logger.warning("taking over claim %s at once: %s (claim: %s)", path.name, reason, text)
-        elif age < self.claim_timeout_s:
-            return False
-        else:
-            logger.warning("breaking stale claim %s (no heartbeat for %.0f s > %.0f s): %s", path.name, age,
-                           self.claim_timeout_s, text)
-        with contextlib.suppress(FileNotFoundError):
-            path.unlink()
-        return True
+            return take_claim(self.claim_path(unit), self.claim_timeout_s, unit=unit.key)
 
     def holder(self, unit: Unit) -> ClaimHolder | None:
         """The job holding ``unit`` per its claim file, or None when the unit is not claimed."""
@@ -324,10 +246,7 @@ class ResultsStore:
             age = time.time() - path.stat().st_mtime
         except FileNotFoundError:
             return None
-        claim = _parse_claim(_read_claim(path)) or {}
-        host, pid, since = claim.get("host"), claim.get("pid"), claim.get("since")
-        return ClaimHolder(host if isinstance(host, str) else None, pid if isinstance(pid, int) else None,
-                           float(since) if isinstance(since, (int, float)) else None, max(age, 0.0))
+        return ClaimHolder.from_record(parse_record(read_record_text(path)), max(age, 0.0))
 
     def heartbeat(self, unit: Unit) -> None:
         """Refresh the claim so that long evaluations are not taken for dead ones."""
@@ -465,22 +384,6 @@ def write_parquet(rows: Sequence[Mapping[str, Any]], path: Path) -> None:
     os.replace(tmp, path)
 
 
-def _read_claim(path: Path) -> str:
-    try:
-        return path.read_text(encoding="utf-8")
-    except OSError as exc:
-        return f"<unreadable: {exc}>"
-
-
-def _parse_claim(text: str) -> dict[str, Any] | None:
-    """The claim's fields, or None for a claim cut short (its job killed between creating and writing it)."""
-    try:
-        claim = json.loads(text)
-    except json.JSONDecodeError:
-        return None
-    return claim if isinstance(claim, dict) else None
-
-
 # ---------------------------------------------------------------------------------------------------------------
 # Weights & Biases
 # ---------------------------------------------------------------------------------------------------------------
@@ -492,9 +395,9 @@ def log_to_wandb(run_dir: Path, mode: str, project: str, step: int, scalars: Map
 
     Training logs with W&B's own step; evaluation arrives later and out of order, so it gets its own step metric
     and never collides. Without the id file a separate run grouped under the run folder's name is created.
-    Returns False (and logs why) when W&B is disabled or fails: evaluation results never depend on it.
+    Returns False (and logs why) when W&B is disabled or fails: evaluation results never depend on it. ``mode`` is
+    the resolved one (pipeline.config.wandb_mode): ``WANDB_MODE`` does not override it here.
     """
-    mode = os.environ.get("WANDB_MODE", mode)
     if mode == "disabled":
         return False
     try:

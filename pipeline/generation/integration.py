@@ -12,6 +12,7 @@ import torch
 
 from mfm.diffusion import GaussianDiffusion
 from mfm.diffusion_sampling import SAMPLERS
+from pipeline import checkpoint as ckpt
 from pipeline.generation.inference import TrainedModel, load_trained_model
 from pipeline.generation.request import (
     DEFAULT_DIFFUSION_SAMPLER,
@@ -47,11 +48,12 @@ class Integrator:
         return info
 
 def load_for_request(request: SampleRequest) -> TrainedModel:
-    """The request's checkpoint on its device (a checkpoint that cannot be loaded is a SamplingError)."""
+    """The request's checkpoint on its device (a checkpoint that cannot be loaded, e.g. a damaged state.pt, and a
+    device this machine does not have are a SamplingError: one line naming the file or the device)."""
+    device = resolve_device(request.device)
     try:
-        return load_trained_model(request.checkpoint, use_ema=request.weights == "ema",
-                                  device=resolve_device(request.device))
-    except ValueError as err:
+        return load_trained_model(request.checkpoint, use_ema=request.weights == "ema", device=device)
+    except (ValueError, ckpt.CheckpointError) as err:
         raise SamplingError(str(err)) from err
 
 def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integrator:
@@ -80,9 +82,33 @@ def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integra
                             f"{trained.diffusion.num_train_steps}: {err}") from err
     return Integrator("diffusion", sampler, steps, schedule)
 
+DEVICE_TYPES = ("cpu", "cuda", "mps")
+
+
 def resolve_device(device: str) -> str:
+    """The device to sample on: ``auto`` is cuda when a GPU is visible, else cpu; ``cpu``, ``cuda``, ``cuda:N`` and
+    ``mps`` are used as given once this machine is seen to have them. Anything else, or a GPU that is not there,
+    is a :class:`SamplingError` (torch would fail later, with a traceback, in its CUDA initialisation)."""
     if device == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError, TypeError):
+        parsed = None
+    if parsed is None or parsed.type not in DEVICE_TYPES:
+        raise SamplingError(f"device {device!r}: not a device this program samples on (auto, cpu, cuda, cuda:N or "
+                            "mps)")
+    if parsed.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise SamplingError(f"device {device!r}: no CUDA GPU is visible on this machine; use --device cpu (or "
+                                "auto, which picks cuda only when there is one)")
+        if parsed.index is not None and parsed.index >= count:
+            raise SamplingError(f"device {device!r}: this machine has {count} visible CUDA GPU(s), cuda:0 to "
+                                f"cuda:{count - 1}")
+    if parsed.type == "mps" and not torch.backends.mps.is_available():
+        raise SamplingError(f"device {device!r}: Apple's MPS backend is not available on this machine; use --device "
+                            "cpu")
     return device
 
 def synchronize(device: torch.device) -> None:

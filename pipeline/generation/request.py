@@ -113,7 +113,8 @@ class SampleRequest:
     weights: str = "ema"
     """ema (falls back to the raw weights when the run kept none) or model."""
     device: str = "auto"
-    """auto (cuda when available), cpu, cuda, cuda:1, ..."""
+    """auto (cuda when available), cpu, cuda, cuda:1, ..., mps; a device this machine does not have is refused
+    before the checkpoint is loaded (pipeline.generation.integration.resolve_device)."""
     text_weights: str | None = None
     """CLIP datasets: the text encoder weights file, checked against the checkpoint's hash."""
     edit: str | None = None

@@ -26,7 +26,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pipeline.config import ConfigError, TrainConfig, to_dict
+from pipeline.config import ConfigError, TrainConfig, to_dict, wandb_mode
 
 if TYPE_CHECKING:
     from tqdm import tqdm
@@ -100,9 +100,10 @@ class TensorBoardWriter:
 
 
 class MetricsSink:
-    """Rank 0's outputs: the tqdm postfix, ``metrics.jsonl`` in the run folder, W&B (offline by default;
-    ``WANDB_MODE`` wins), TensorBoard (``train.tensorboard``), and ``loss.png`` on :meth:`close`. A W&B,
-    TensorBoard or plotting failure is logged and never stops training. On other ranks every method is a no-op.
+    """Rank 0's outputs: the tqdm postfix, ``metrics.jsonl`` in the run folder, W&B (``train.wandb``: auto follows
+    ``WANDB_MODE``, else offline; an explicit mode wins over ``WANDB_MODE``), TensorBoard (``train.tensorboard``),
+    and ``loss.png`` on :meth:`close`. A W&B, TensorBoard or plotting failure is logged and never stops training.
+    On other ranks every method is a no-op.
     """
 
     def __init__(self, out_dir: Path, cfg: TrainConfig, dist: Dist, model_config: ModelConfig, num_parameters: int,
@@ -119,7 +120,7 @@ class MetricsSink:
         self.jsonl = open(metrics_path, "a", encoding="utf-8")
         dist.log0("model: %.2f M parameters; world size %d; device %s; precision %s",
                   num_parameters / 1e6, dist.world_size, dist.device, dist.mixed_precision, log=logger)
-        mode = os.environ.get("WANDB_MODE", cfg.train.wandb)
+        mode = wandb_mode(cfg.train.wandb)
         if mode != "disabled":
             try:
                 import wandb

@@ -12,15 +12,18 @@ validation loss every ``train.val_every`` steps (fixed val batches and draws, se
 over ranks) is :mod:`pipeline.training.validation`.
 
 Nothing is written into the run folder before the resume decision: rank 0 first checks train.out_dir
-(:mod:`pipeline.training.run_folder`), removes unfinished checkpoint folders of dead processes and resolves train.resume
-(auto skips, and sets aside, corrupt checkpoints; an explicit older one is refused while newer ones exist). A save
+(:mod:`pipeline.training.run_folder`), takes its lock (one trainer per folder; a second start is refused, on every
+rank, naming the holder; the lock is held until fit() returns or raises), removes unfinished checkpoint folders of
+dead processes and resolves train.resume (auto skips, and sets aside, corrupt checkpoints; an explicit older one is
+refused while newer ones exist). A save
 that fails (a full disk) stops the run on every rank with :class:`CheckpointSaveError`; the same command continues
 from the newest complete checkpoint once there is space.
 
 Decisions that every rank must take together (skip a non-finite step, skip the update of a step with no sample,
-stop on SIGTERM/SIGINT) come from ONE all-reduce (SUM) of a small flag vector per optimizer step, which also
-carries the loss and the sample count, so the logged loss is the mean over all ranks at no extra cost; that and
-the ``.tolist()`` reading it are the only host syncs outside log steps.
+stop on SIGTERM/SIGINT, stop on bad data that one rank met reading its batch) come from ONE all-reduce (SUM) of a
+small flag vector per optimizer step, which also carries the loss and the sample count, so the logged loss is the
+mean over all ranks at no extra cost; that and the ``.tolist()`` reading it are the only host syncs outside log
+steps.
 
 Bad records (``data.verify=tolerant``). A record that fails to decode is left out of its batch, and a batch
 whose every record was left out is an EMPTY batch, never passed over: every rank takes exactly one planned
@@ -81,6 +84,7 @@ from mfm.skeleton import get_skeleton
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
 from pipeline.data.locations import RetryPolicy
+from pipeline.data.stages import DataError
 from pipeline.data.stream import (
     DataResumeError,
     LoaderOptions,
@@ -93,8 +97,15 @@ from pipeline.data.stream import (
 from pipeline.distributed import Dist
 from pipeline.training.loss_scaling import LossScaler
 from pipeline.training.reporting import MetricsSink, require_tensorboard
-from pipeline.training.run_folder import RunFolderError, check_run_folder, write_run_marker
+from pipeline.training.run_folder import (
+    RunFolderError,
+    RunFolderLock,
+    check_run_folder,
+    refuse_if_in_use,
+    write_run_marker,
+)
 from pipeline.training.validation import Validator, build_validator, has_val_split
+from preprocess.shards import ManifestError
 
 logger = logging.getLogger(__name__)
 
@@ -326,7 +337,8 @@ def build_objective(cfg: TrainConfig, manifest: Manifest):
                                      bone_weight=cfg.train.flow_bone_weight, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
-                                     terms_weighting=cfg.train.flow_terms_weighting)
+                                     terms_weighting=cfg.train.flow_terms_weighting,
+                                     velocity_weight_cap=cfg.train.flow_velocity_weight_cap)
     return diffusion_from_preset(cfg.train.diffusion)
 
 
@@ -404,6 +416,8 @@ class Trainer:
                 # tolerant: skip (count, log) records that fail to decode, and on a resume whose excluded shards
                 # changed finish the checkpoint's epoch with its plan (pipeline.data.stream, "Tolerant mode at run time")
                 tolerate_bad_data=cfg.data.verify == "tolerant",
+                # remote shards are hashed again as they stream: one changed since verification is never trained on
+                check_remote_bytes=cfg.data.verify != "off",
                 retries=cfg.data.retries,
                 retry_backoff_s=cfg.data.retry_backoff_s,
             ),
@@ -420,6 +434,8 @@ class Trainer:
         self.empty_steps = 0  # steps with no sample on any rank (tolerant mode): stepped through, no update
         self.scaler_skips = 0  # fp16: steps whose update was skipped for a gradient overflow (not bad data)
         self.stop_signal = StopSignal()
+        self._run_lock: RunFolderLock | None = None  # rank 0's hold of train.out_dir, from resume() to fit()'s end
+        self._data_error: DataError | None = None  # bad data this rank met reading the current step's batches
         self._last_saved_step = -1
         self._validator: Validator | None = None  # built by the first validate() (train.val_every)
         self._validator_built = False
@@ -428,6 +444,7 @@ class Trainer:
 
     def _check_before_start(self) -> None:
         check_run_folder(self.out_dir)
+        refuse_if_in_use(self.out_dir)  # a second trainer on the folder: refused now, not after verifying the data
         require_tensorboard(self.cfg.train.tensorboard)
 
     def _verified_bad_shards(self, split: str) -> tuple[tuple[str, ...], dict[str, Any]]:
@@ -436,25 +453,15 @@ class Trainer:
         that list and the report (for shard_report.json)."""
         mode = self.cfg.data.verify
         backend = backend_for_format(self.cfg.data.format)
-        report = None
-        error: Exception | None = None
-        if self.dist.is_main:
-            try:
-                report = verify_shards(self.manifest, split, mode=mode, backend=backend, retry=self.retry)
-            except Exception as err:  # re-raised on every rank below, so no rank waits forever
-                error = err
-        error_text = self.dist.broadcast_object(None if error is None else f"{type(error).__name__}: {error}")
-        if error_text is not None:
-            if error is not None:
-                raise error
-            raise RuntimeError(f"rank 0 failed verifying the shards: {error_text}")
-        bad = self.dist.broadcast_object(tuple(report.bad_paths) if report is not None else ())
+        report = self._decided_by_main(
+            lambda: verify_shards(self.manifest, split, mode=mode, backend=backend, retry=self.retry))
+        bad = tuple(report.bad_paths)
         if bad:
             self.dist.log0(
                 "tolerant shard verification: skipping %d bad shard(s) of the %s split (%d samples): %s",
-                len(bad), split, report.samples_lost if report else -1, ", ".join(bad), level=logging.WARNING,
+                len(bad), split, report.samples_lost, ", ".join(bad), level=logging.WARNING,
             )
-        return bad, (report.as_dict() if report is not None else {"bad": list(bad)})
+        return bad, report.as_dict()
 
     # -- one optimizer step -----------------------------------------------------------------------------------
 
@@ -592,11 +599,15 @@ class Trainer:
         else:
             nonfinite, overflow = loss_nonfinite | grad_nonfinite, found_inf > 0  # found_inf is 0 here
         samples = sum(len(batch["ids"]) for batch in micro_batches)
-        host_flags = torch.tensor([*self.stop_signal.flags(), float(samples)], device=device)
+        host_flags = torch.tensor([*self.stop_signal.flags(), float(samples), float(self._data_error is not None)],
+                                  device=device)
         flags = self.dist.all_reduce_sum(torch.cat([nonfinite.float().view(1), overflow.float().view(1),
                                                     loss_mean.float().view(1), host_flags]))
         # The one host sync per step: every rank reads the same sums, so every rank decides alike.
-        nonfinite_ranks, overflow_ranks, loss_sum, *signal_counts, total_samples = flags.tolist()
+        nonfinite_ranks, overflow_ranks, loss_sum, *signal_counts, total_samples, data_error_ranks = flags.tolist()
+        if data_error_ranks > 0:  # before any update: the run stops here on every rank
+            self.optimizer.zero_grad(set_to_none=True)
+            raise self._data_error_of_some_rank()
         skip = nonfinite_ranks > 0
         empty = total_samples == 0
         overflowed = overflow_ranks > 0 and not (skip or empty)
@@ -616,6 +627,25 @@ class Trainer:
         loss = loss_sum / self.dist.world_size
         return StepResult(loss, grad_norm, skip, StopSignal.from_flags(signal_counts), empty=empty and not skip,
                           overflow=overflowed)
+
+    def _next_micro_batches(self, window: "WindowStats", batches: Iterator[dict[str, Any]]) -> list[dict[str, Any]]:
+        """The step's micro-batches. Bad data met reading them (a record that fails to decode in strict mode, a
+        shard that does not hold what the manifest says) must not end this rank alone, while the others wait for it
+        in the step's collectives: the rank keeps the error and steps through empty batches (a stand-in with weight
+        0, as for tolerant mode's empty batches), its flag travels in the step's one all-reduce, and every rank
+        stops there before the update (:meth:`train_step`)."""
+        try:
+            return window.timed_next(batches, self.cfg.optim.grad_accum)
+        except DataError as err:
+            self._data_error = err
+            return [self.loader.empty_batch() for _ in range(self.cfg.optim.grad_accum)]
+
+    def _data_error_of_some_rank(self) -> DataError:
+        """The bad-data error every rank stops with, once the step's flags say some rank met one: this rank's own,
+        else the lowest such rank's (one more collective, on this path only), so every rank's entry point prints
+        the same line naming the file and the reason."""
+        errors = self.dist.all_gather_object(self._data_error)
+        return self._data_error or next(err for err in errors if err is not None)
 
     def _handle_nonfinite(self, result: StepResult) -> None:
         if result.overflow:  # fp16: a normal event, counted apart; the non-finite policy and budget untouched
@@ -725,6 +755,15 @@ class Trainer:
         if path is None:
             return None
         model_state, ema_state, state = ckpt.load_checkpoint(path)
+        if state["step"] > self.cfg.train.max_steps:
+            # Training on would do nothing, and the run files written after this point (config.yaml with the
+            # smaller max_steps, a new TensorBoard file, loss.png) would say otherwise: refused, nothing written.
+            raise ckpt.ResumeSettingError(
+                f"cannot resume from {path}: the run is already at step {state['step']} > "
+                f"train.max_steps={self.cfg.train.max_steps}: nothing to train, and nothing of the run was "
+                f"written. Give train.max_steps > {state['step']} to train on, or use another train.out_dir for a "
+                "new run",
+                setting="train.max_steps", saved=state["step"], now=self.cfg.train.max_steps)
         if state["world_size"] != self.dist.world_size:
             raise ckpt.ResumeSettingError(
                 f"cannot resume from {path}: it was written by {state['world_size']} rank(s) and this run has "
@@ -778,9 +817,10 @@ class Trainer:
                            self.dist.mixed_precision)
 
     def _decided_by_main(self, decide: Callable[[], T]) -> T:
-        """Take a start-up decision on rank 0 only (it may touch the run folder) and hand the answer to every rank.
-        If rank 0 refuses, every rank raises (the refusal itself when it is one of the user-facing kinds), so no
-        rank waits forever in a collective."""
+        """Take a start-up decision on rank 0 only (it may touch the run folder, or verify every shard) and hand the
+        answer to every rank. If rank 0 refuses, every rank raises (the refusal itself when it is one of the
+        user-facing kinds: a bad run folder, checkpoint, manifest or shard), so no rank waits forever in a
+        collective."""
         answer: T | None = None
         refusal: Exception | None = None
         if self.dist.is_main:
@@ -789,7 +829,8 @@ class Trainer:
             except Exception as err:  # noqa: BLE001 - raised again below, on every rank
                 refusal = err
         shared = refusal
-        if refusal is not None and not isinstance(refusal, (RunFolderError, ckpt.CheckpointError, OSError)):
+        if refusal is not None and not isinstance(refusal, (RunFolderError, ckpt.CheckpointError, OSError, DataError,
+                                                            ManifestError)):
             shared = RuntimeError(f"rank 0 could not start the run: {type(refusal).__name__}: {refusal}")
         answer, shared = self.dist.broadcast_object((answer, shared))
         if refusal is not None:
@@ -799,11 +840,13 @@ class Trainer:
         return answer
 
     def _open_run_folder(self) -> Path | None:
-        """Rank 0's start-up decisions, before anything is written: the run folder is one this run may use, the
-        unfinished checkpoint folders of dead writers are removed (they may hold the space the run needs), and
-        train.resume is resolved (resume=auto sets corrupt checkpoints aside; an explicit older one is refused
-        while newer checkpoints exist, unless train.resume_discard_newer)."""
+        """Rank 0's start-up decisions, before anything is written: the run folder is one this run may use, no other
+        trainer holds it (its lock, held from here to the end of fit()), the unfinished checkpoint folders of dead
+        writers are removed (they may hold the space the run needs), and train.resume is resolved (resume=auto sets
+        corrupt checkpoints aside; an explicit older one is refused while newer checkpoints exist, unless
+        train.resume_discard_newer)."""
         check_run_folder(self.out_dir)
+        self._run_lock = RunFolderLock.acquire(self.out_dir)
         ckpt.remove_stale_tmp(self.ckpt_root)
         train = self.cfg.train
         return ckpt.resolve_resume(train.resume, self.ckpt_root, discard_newer=train.resume_discard_newer)
@@ -811,7 +854,16 @@ class Trainer:
     # -- the loop ---------------------------------------------------------------------------------------------
 
     def fit(self) -> int:
-        """Train to ``train.max_steps``; returns the process exit code (0, or 128 + signal after a clean stop)."""
+        """Train to ``train.max_steps``; returns the process exit code (0, or 128 + signal after a clean stop). Rank 0
+        holds the run folder's lock from the start of resume() until this returns or raises."""
+        try:
+            return self._fit()
+        finally:
+            if self._run_lock is not None:
+                self._run_lock.release()
+                self._run_lock = None
+
+    def _fit(self) -> int:
         cfg = self.cfg
         self.resume()  # decided (and possibly refused) before anything in the run folder is written
         if self._validation_ahead():
@@ -828,7 +880,7 @@ class Trainer:
                         desc="train", dynamic_ncols=True)
         try:
             while self.step < cfg.train.max_steps:
-                micro_batches = window.timed_next(batches, cfg.optim.grad_accum)
+                micro_batches = self._next_micro_batches(window, batches)
                 result = self.train_step(micro_batches)
                 self.step += 1
                 self.samples_seen += cfg.data.batch_size * cfg.optim.grad_accum * self.dist.world_size

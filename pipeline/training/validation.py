@@ -150,7 +150,8 @@ def build_validator(cfg: TrainConfig, manifest: Manifest, dist: Dist, *, exclude
     options = LoaderOptions(
         batch_size=min(cfg.data.batch_size, motions), num_workers=0, seed=cfg.data.seed, window=cfg.data.window,
         unit_length=cfg.data.unit_length, shuffle=False, shuffle_buffer=0, caption_policy=cfg.data.caption_policy,
-        backend=backend, tolerate_bad_data=cfg.data.verify == "tolerant", retries=cfg.data.retries,
+        backend=backend, tolerate_bad_data=cfg.data.verify == "tolerant",
+        check_remote_bytes=cfg.data.verify != "off", retries=cfg.data.retries,
         retry_backoff_s=cfg.data.retry_backoff_s)
     loader = MotionLoader(manifest, VAL_SPLIT, options, exclude_shards=exclude_shards)
     count = min(cfg.train.val_batches, loader.batches_per_epoch())

@@ -1,0 +1,132 @@
+"""The FLAME row run as FLAME's authors ran it (issue 25): every training step, the x0 clamp and the EMA weights
+(``sampling.baseline_*`` options), and FLAME's editing procedure's reference translation for every diffusion edit
+(``tasks.edit_reference_translation``); results record them and the units' keys carry them.
+
+Tiny in-memory models (no training): what is checked is that each setting reaches the sampler and what it does to
+the output, not the quality of the samples.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from mfm.diffusion import diffusion_from_preset
+from mfm.editing import edit_mask
+from mfm.layout import FeatureLayout
+from mfm.model import ModelConfig, MotionFlowTransformer, valid_frame_mask
+from mfm.skeleton import HUMANML3D
+from pipeline.evaluation.config import SamplingConfig, SamplingPoint, load_eval_config
+from pipeline.evaluation.job import CheckpointScorer, baseline_record, checkpoint_settings
+from pipeline.evaluation.replications import check_weights, generate, points_for
+from pipeline.evaluation.spaces import EvaluationError
+from pipeline.generation.inference import TrainedModel
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+
+LAYOUT = FeatureLayout(HUMANML3D)
+ROT = LAYOUT.slices["rot6d"]
+
+
+def tiny_model(objective: str = "diffusion", preset: str | None = "flame", weights: str = "ema") -> TrainedModel:
+    """An untrained tiny HumanML3D-layout model; unit normalisation, so raw = normalised features."""
+    config = ModelConfig(feature_dim=LAYOUT.dim, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2, cond_dim=4,
+                         max_len=64, output_dim=2 * LAYOUT.dim if preset == "flame" else None)
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(config).eval()
+    data = {"normalization": {"mean": [0.0] * LAYOUT.dim, "std": [1.0] * LAYOUT.dim},
+            "feature_spec": {"skeleton": "humanml3d", "fps": 20}}
+    diffusion = diffusion_from_preset(preset) if objective == "diffusion" else None
+    return TrainedModel(model, config, Path(f"{preset}-step-1"), 1, weights, data, torch.device("cpu"), 64,
+                        objective, preset if objective == "diffusion" else None, diffusion)
+
+
+def sample(trained: TrainedModel, sampling: SamplingConfig, point: SamplingPoint, **edit) -> torch.Tensor:
+    lengths = torch.tensor([10, 7])
+    cond = torch.randn(2, 4, generator=torch.Generator().manual_seed(1))
+    raw, _ = generate(trained, cond, {}, lengths, [1, 2], point, sampling, **edit)
+    return raw
+
+
+def test_flame_row_runs_all_its_training_steps_unless_the_sweep_is_asked_to_vary_them():
+    flame = tiny_model()
+    sweep = [SamplingPoint("ddpm", 10, 2.5), SamplingPoint("ddpm", 50, 2.5), SamplingPoint("euler", 10, 2.5)]
+    # FLAME's diffusion_module.py: 61-65 samples every one of its 1,000 steps, at its guidance 8.0
+    assert points_for(flame, sweep, SamplingConfig()) == (SamplingPoint("ddpm", 1000, 8.0),)
+    assert points_for(flame, sweep, SamplingConfig(baseline_steps=False)) == (
+        SamplingPoint("ddpm", 10, 8.0), SamplingPoint("ddpm", 50, 8.0))
+    assert points_for(flame, sweep, SamplingConfig(baseline_defaults=False)) == tuple(sweep[:2])
+    flowmdm = tiny_model(preset="flowmdm")  # no settings of its authors': the sweep as given
+    assert points_for(flowmdm, sweep, SamplingConfig()) == tuple(sweep[:2])
+
+
+def test_flame_row_clamps_its_x0_estimates_as_flame_on_the_6d_rotations():
+    flame, point = tiny_model(), SamplingPoint("ddpm", 3, 8.0)
+    clamped = sample(flame, SamplingConfig(), point)
+    free = sample(flame, SamplingConfig(baseline_clip_denoised=False), point)
+    assert float(clamped[..., ROT].abs().max()) <= 1.0 + 1e-5  # raw 6D components in [-1, 1], smoothing included
+    assert float(free[..., ROT].abs().max()) > 1.5  # the untrained model's estimates leave the range unclamped
+    assert float(clamped[..., : ROT.start].abs().max()) > 1.5  # the other channels are not clamped
+
+
+def test_diffusion_edits_copy_the_reference_root_after_the_smoothing_and_mfm_edits_do_not():
+    lengths = torch.tensor([10, 7])
+    valid = valid_frame_mask(lengths, 10).unsqueeze(-1)
+    known = torch.randn(2, 10, LAYOUT.dim, generator=torch.Generator().manual_seed(2)) * valid
+    keep = edit_mask("upper_body", lengths, 10, LAYOUT)
+    point = SamplingPoint("ddpm", 3, 8.0)
+    for diffusion in (tiny_model(), tiny_model(preset="flowmdm")):  # FLAME's procedure: smoothed (FLAME) or not
+        copied = sample(diffusion, SamplingConfig(), point, known=known, keep=keep, reference_translation=True)
+        # FLAME's edit_motion.py: 79-82 smooths, then 93-94 overwrites the translation: the source's root exactly
+        torch.testing.assert_close(copied[..., :4] * valid, known[..., :4], rtol=0, atol=1e-6)
+        raw = sample(diffusion, SamplingConfig(), point, known=known, keep=keep, reference_translation=False)
+        assert float((raw[..., :4] - known[..., :4]).abs().max()) > 1e-2
+        torch.testing.assert_close(copied[..., 4:], raw[..., 4:], rtol=0, atol=0)  # only the root dims change
+    flow = tiny_model(objective="flow", preset=None)  # the MFM row keeps its own procedure: no copy
+    edited = sample(flow, SamplingConfig(), SamplingPoint("euler", 3, 1.0), known=known, keep=keep,
+                    reference_translation=True)
+    assert float((edited[..., :4] - known[..., :4]).abs().max()) > 1e-2
+    assert load_eval_config("fast").tasks.edit_reference_translation  # on by default
+
+
+def test_flame_row_is_not_silently_scored_with_raw_weights():
+    without_ema = tiny_model(weights="model")
+    with pytest.raises(EvaluationError, match="no EMA weights.*sampling.use_ema=false"):
+        check_weights(without_ema, SamplingConfig())
+    check_weights(without_ema, SamplingConfig(use_ema=False))  # asked for: scored, recorded as checkpoint.weights
+    check_weights(without_ema, SamplingConfig(baseline_defaults=False))
+    check_weights(tiny_model(), SamplingConfig())
+    check_weights(tiny_model(objective="flow", preset=None, weights="model"), SamplingConfig())  # ours: fallback
+
+
+def test_results_record_the_flame_settings_and_units_are_keyed_by_them():
+    flame = tiny_model()
+    record = baseline_record(flame, SamplingConfig())
+    assert record["smoothing_sigma"] == 1.0
+    own = record["baseline_defaults"]
+    assert (own["preset"], own["guidance"], own["every_training_step"], own["clip_denoised"],
+            own["ema_weights"]) == ("flame", 8.0, True, True, True)
+    assert "6D rotation" in own["clip_denoised_range"] and "sample_util.py: 90" in own["source"]
+    off = baseline_record(flame, SamplingConfig(baseline_steps=False, baseline_clip_denoised=False))
+    assert (off["baseline_defaults"]["every_training_step"], off["baseline_defaults"]["clip_denoised"]) == (False,
+                                                                                                           False)
+    assert "clip_denoised_range" not in off["baseline_defaults"]
+    assert baseline_record(flame, SamplingConfig(baseline_defaults=False))["baseline_defaults"] is None
+
+    ids, point = {"checkpoint": "c", "evaluator": "e", "gt": "g"}, SamplingPoint("ddpm", 1000, 8.0)
+
+    def key(trained, *overrides):
+        cfg = load_eval_config("fast", overrides=list(overrides))
+        return CheckpointScorer(cfg, None).unit_for(Path("s"), ids, point, checkpoint_settings(trained, cfg)).key
+
+    keys = [key(flame), key(flame, "sampling.baseline_steps=false"), key(flame, "sampling.baseline_clip_denoised=false"),
+            key(flame, "tasks.edit_reference_translation=false"), key(tiny_model(preset="flowmdm")),
+            key(tiny_model(preset="flowmdm"), "tasks.edit_reference_translation=false")]
+    assert len(set(keys)) == len(keys)
+    # flow checkpoints read none of these: their keys are what they were before the settings existed
+    flow = tiny_model(objective="flow", preset=None)
+    plain = CheckpointScorer(load_eval_config("fast"), None).unit_for(Path("s"), ids, point).key
+    assert checkpoint_settings(flow, load_eval_config("fast")) == {}
+    assert key(flow) == key(flow, "tasks.edit_reference_translation=false", "sampling.baseline_steps=false") == plain
