@@ -108,7 +108,9 @@ def run_evaluation_bench(settings: EvalBenchSettings) -> dict[str, Any] | None:
         manifest = bench_manifest(settings.text_dim)
         evaluator_config = ContrastiveEvaluatorConfig(feature_dim=DIM, text_dim=settings.text_dim)
         torch.manual_seed(0)
-        save_evaluator(Path(tmp) / "ev.safetensors", ContrastiveEvaluator(evaluator_config), evaluator_config, "bench")
+        # the id a manifest reader derives from its (here empty) shard list, as a trained evaluator records it
+        save_evaluator(Path(tmp) / "ev.safetensors", ContrastiveEvaluator(evaluator_config), evaluator_config,
+                       manifest.dataset_id)
         space = ContrastiveSpace(Path(tmp) / "ev.safetensors", manifest, dist.device)
         gt = synthetic_ground_truth(settings.items, 0, settings.text_dim)
         timer = PhaseTimer(dist.device)
