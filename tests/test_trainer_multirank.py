@@ -24,6 +24,7 @@ from typing import Any
 
 import pytest
 import torch
+from conftest import flip_byte
 from test_trainer import (
     KILL_STEP,
     MAX_STEPS,
@@ -266,6 +267,22 @@ def test_bad_data_met_by_one_rank_stops_every_rank_at_that_step_with_its_error(d
     assert ids_by_step(root, 1)[BAD_RECORD_STEP] == [[]]  # rank 1 took part in that step with an empty stand-in
     assert sorted(metrics_by_step(root / "run")) == list(range(1, BAD_RECORD_STEP))  # that step never completed
     assert complete_steps(root / "run") == []
+
+
+def test_a_shard_that_fails_strict_verification_stops_every_rank_with_the_same_error(dataset, workdir):
+    """Rank 0 verifies the shards and decides; the other ranks must end with the same error (which launch/train.py
+    prints in one line, exit 2), not a generic one, and nothing is written into the run folder."""
+    root = workdir / "bad-shard"
+    manifest = copy_dataset(dataset, root / "data")
+    bad = json.loads(manifest.read_text())["splits"]["train"]["shards"][1]["path"]
+    flip_byte(manifest.parent / bad, (manifest.parent / bad).stat().st_size // 2)
+    overrides = [f"data.manifest={manifest}", "data.verify=strict", "train.max_steps=4", f"train.out_dir={root / 'run'}"]
+    proc = run_worker(TORCHRUN, [fit_scenario(root, overrides)], root, timeout=120)
+    assert proc.returncode != 0
+    outcomes = results(root, 2)
+    assert [o.get("error") for o in outcomes] == ["ShardVerificationError"] * 2, output_of(proc)
+    assert outcomes[0]["message"] == outcomes[1]["message"] and bad in outcomes[0]["message"]
+    assert not (root / "run" / "metrics.jsonl").exists() and complete_steps(root / "run") == []
 
 
 # ---------------------------------------------------------------------------------------------------------------
