@@ -130,3 +130,26 @@ def test_results_record_the_flame_settings_and_units_are_keyed_by_them():
     plain = CheckpointScorer(load_eval_config("fast"), None).unit_for(Path("s"), ids, point).key
     assert checkpoint_settings(flow, load_eval_config("fast")) == {}
     assert key(flow) == key(flow, "tasks.edit_reference_translation=false", "sampling.baseline_steps=false") == plain
+
+
+def test_an_explicit_output_smoothing_is_what_every_checkpoint_samples_with_and_results_record_and_keys_carry():
+    """sampling.output_smoothing: one σ for every checkpoint (0 = the network's raw output) in place of each one's
+    own (model.output_smoothing; FLAME's σ = 1); unset, the keys stay what they were."""
+    from mfm.diffusion_sampling import smooth_over_time
+
+    flow, point = tiny_model(objective="flow", preset=None), SamplingPoint("euler", 2, 2.5)
+    raw = sample(flow, SamplingConfig(output_smoothing=0.0), point)
+    smoothed = sample(flow, SamplingConfig(output_smoothing=1.0), point)
+    lengths = torch.tensor([10, 7])
+    expected = smooth_over_time(raw, lengths, 1.0) * valid_frame_mask(lengths, raw.shape[1]).unsqueeze(-1)
+    torch.testing.assert_close(smoothed, expected)
+    assert float((smoothed - raw).abs().max()) > 1e-3
+    assert baseline_record(flow, SamplingConfig(output_smoothing=0.7))["smoothing_sigma"] == 0.7
+    assert baseline_record(tiny_model(), SamplingConfig(output_smoothing=0.0))["smoothing_sigma"] == 0.0  # FLAME
+    ids = {"checkpoint": "c", "evaluator": "e", "gt": "g"}
+
+    def key(*overrides):
+        return CheckpointScorer(load_eval_config("fast", overrides=list(overrides)), None).unit_for(
+            Path("s"), ids, point).key
+
+    assert key() == key("sampling.output_smoothing=null") != key("sampling.output_smoothing=0.7")

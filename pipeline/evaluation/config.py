@@ -178,6 +178,11 @@ class SamplingConfig:
     """With baseline_defaults: a baseline whose sampler clamps its x0 estimate (FLAME: [-1, 1] on its raw
     features) gets that clamp on ours: the 6D rotation channels bounded to [-1, 1] in raw units, the rest free
     (mfm.diffusion_sampling.rotation_6d_range). false: no clamp."""
+    output_smoothing: float | None = None
+    """Gaussian smoothing of every generated motion over time, σ in frames, for every checkpoint: 0 scores the
+    network's raw output. None (default): each checkpoint's own (its ``model.output_smoothing``; a baseline's
+    authors' σ with ``baseline_defaults``, FLAME's 1; else none). Results record the σ that ran
+    (``smoothing_sigma``)."""
     batch_size: int = 64
     """Motions generated per forward batch (per rank)."""
     rtol: float = 1e-5
@@ -194,6 +199,8 @@ class SamplingConfig:
             _require(bool(steps) and all(s >= 1 for s in steps),
                      f"sampling.steps_per_solver.{solver} must list step counts >= 1, got {steps}")
         _require(self.batch_size >= 1, f"sampling.batch_size must be >= 1, got {self.batch_size}")
+        _require(self.output_smoothing is None or self.output_smoothing >= 0,
+                 f"sampling.output_smoothing must be >= 0 (or null: each checkpoint's own), got {self.output_smoothing}")
 
     def points(self) -> list[SamplingPoint]:
         points = []

@@ -660,10 +660,13 @@ def check_weights(trained: TrainedModel, sampling: SamplingConfig) -> None:
                               "weights")
 
 
-def output_smoothing(trained: TrainedModel, enabled: bool) -> float:
-    """σ (frames) of the smoothing the checkpoint's own sampling defaults apply (a diffusion baseline's, or the
-    model's ``output_smoothing``) when ``enabled`` (sampling.baseline_defaults); 0 otherwise."""
-    return trained.default_smoothing if enabled else 0.0
+def output_smoothing(trained: TrainedModel, sampling: SamplingConfig) -> float:
+    """σ (frames) of the output smoothing: ``sampling.output_smoothing`` when set; else the checkpoint's own
+    sampling defaults' (a diffusion baseline's, or the model's ``model.output_smoothing``) with
+    ``sampling.baseline_defaults``, 0 without."""
+    if sampling.output_smoothing is not None:
+        return sampling.output_smoothing
+    return trained.default_smoothing if sampling.baseline_defaults else 0.0
 
 
 @torch.no_grad()
@@ -722,7 +725,7 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
         else:
             result = edit(velocity, known, keep, steps=point.steps, rewrite_until=rewrite_until,
                           solver=point.solver, x0=x0, lengths=lengths)
-    x1 = smooth_over_time(result.x1.float(), lengths, output_smoothing(trained, sampling.baseline_defaults))
+    x1 = smooth_over_time(result.x1.float(), lengths, output_smoothing(trained, sampling))
     if keep is not None and reference_translation and trained.objective == "diffusion":
         x1 = copy_reference_root(x1, known.float(), keep, layout)  # after the smoothing, as FLAME's edit_motion.py
     if windowed:
