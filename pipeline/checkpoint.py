@@ -384,11 +384,17 @@ def is_our_checkpoint_folder(folder: str | Path) -> bool:
     folder = Path(folder)
     if folder.is_symlink() or not folder.is_dir():
         return False
+    return holds_marker(folder, COMPLETE_MARKER, MARKER_FORMAT)
+
+
+def holds_marker(folder: str | Path, name: str, marker_format: str) -> bool:
+    """Whether ``folder/name`` is a JSON object of format ``marker_format``: the marker by which one of our jobs
+    owns a folder (a checkpoint's COMPLETE, a run's mfm-run.json, an evaluation folder's mfm-eval.json)."""
     try:
-        marker = json.loads((folder / COMPLETE_MARKER).read_text(encoding="utf-8"))
+        marker = json.loads((Path(folder) / name).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         return False
-    return isinstance(marker, dict) and marker.get("format") == MARKER_FORMAT
+    return isinstance(marker, dict) and marker.get("format") == marker_format
 
 
 def our_step_folders(ckpt_root: str | Path) -> list[Path]:

@@ -6,8 +6,6 @@ steps in-process (checkpoints at steps 1 and 2), and a tiny evaluator trained by
 
 from __future__ import annotations
 
-import hashlib
-import io
 import json
 import multiprocessing
 import os
@@ -17,7 +15,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tarfile
 import time
 from pathlib import Path
 
@@ -355,24 +352,9 @@ def test_one_table_never_holds_two_test_sets(tmp_path):
 def _scale_first_record(manifest: Path, shard: str, *, resign_id: bool) -> None:
     """Scale the features of the first record of ``shard`` in place (same byte count) and re-sign the shard's
     sha256 in the manifest; ``resign_id``: the dataset id too (a fully consistent manifest)."""
-    from preprocess.shards import derive_dataset_id
+    from test_trainer_bad_data import rewrite_record_features
 
-    file = manifest.parent / shard
-    with tarfile.open(file) as tar:
-        member = next(m for m in tar.getmembers() if m.name.endswith(".features.npy"))
-        features = np.load(io.BytesIO(tar.extractfile(member).read()))
-    payload = io.BytesIO()
-    np.save(payload, features * 3.0, allow_pickle=False)
-    assert len(payload.getvalue()) == member.size
-    with open(file, "r+b") as handle:
-        handle.seek(member.offset_data)
-        handle.write(payload.getvalue())
-    data = json.loads(manifest.read_text())
-    entry = next(e for e in data["splits"]["test"]["shards"] if e["path"] == shard)
-    entry["sha256"] = hashlib.sha256(file.read_bytes()).hexdigest()
-    if resign_id:
-        data["dataset_id"] = derive_dataset_id(data)
-    manifest.write_text(json.dumps(data))
+    rewrite_record_features(manifest, shard, lambda features: features * 3.0, resign_id=resign_id)
 
 
 def test_a_run_scored_on_one_test_set_refuses_another_unless_told(text_run, manifest, tmp_path, capsys):

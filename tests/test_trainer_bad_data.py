@@ -25,6 +25,7 @@ import re
 import shutil
 import signal
 import tarfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -48,12 +49,7 @@ from test_trainer import (
 import pipeline.training.trainer as trainer_module
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, load_config
-from pipeline.data.stages import RecordError
-from pipeline.data.stream import (
-    LoaderOptions,
-    MotionLoader,
-    backend_for_format,
-)
+from pipeline.data.stream import LoaderOptions, MotionLoader, backend_for_format
 from pipeline.training.trainer import Trainer
 from preprocess.shards import derive_dataset_id
 
@@ -96,26 +92,39 @@ def ids_in_shard(manifest: Path, path: str) -> set[str]:
         return {name.split(".", 1)[0] for name in tar.getnames()}
 
 
+def rewrite_record_features(manifest: Path, shard: str, change: Callable[[np.ndarray], np.ndarray], *,
+                            member: str | None = None, resign_id: bool = True) -> None:
+    """Replace one record's features in ``shard`` by ``change(features)``, in place (same byte count), and record the
+    shard's new sha256 in the manifest; ``resign_id``: the dataset id too, as its builder would have written it.
+    ``member``: the record's ``.features.npy`` entry (default: the shard's first)."""
+    file = manifest.parent / shard
+    with tarfile.open(file) as tar:
+        info = (tar.getmember(member) if member is not None
+                else next(m for m in tar.getmembers() if m.name.endswith(".features.npy")))
+        features = np.load(io.BytesIO(tar.extractfile(info).read()))
+    payload = io.BytesIO()
+    np.save(payload, change(features), allow_pickle=False)
+    assert len(payload.getvalue()) == info.size
+    with open(file, "r+b") as handle:
+        handle.seek(info.offset_data)
+        handle.write(payload.getvalue())
+    data = json.loads(manifest.read_text())
+    entry = next(e for split in data["splits"].values() for e in split.get("shards", ()) if e["path"] == shard)
+    entry["sha256"] = hashlib.sha256(file.read_bytes()).hexdigest()
+    if resign_id:
+        data["dataset_id"] = derive_dataset_id(data)
+    manifest.write_text(json.dumps(data, indent=1))
+
+
 def write_nan_into(manifest: Path, sample_id: str) -> None:
     """Put a NaN in one record's features, in place (same bytes count), and record the shard's new sha256 in the
     manifest: a dataset built with a bad record, whose shards all verify."""
-    path = shard_of(manifest, sample_id)
-    file = manifest.parent / path
-    with tarfile.open(file) as tar:
-        member = tar.getmember(f"{sample_id}.features.npy")
-        features = np.load(io.BytesIO(tar.extractfile(member).read()))
-    features[len(features) // 2, 0] = np.nan
-    payload = io.BytesIO()
-    np.save(payload, features, allow_pickle=False)
-    assert len(payload.getvalue()) == member.size
-    with open(file, "r+b") as handle:
-        handle.seek(member.offset_data)
-        handle.write(payload.getvalue())
-    data = json.loads(manifest.read_text())
-    entry = next(e for e in data["splits"]["train"]["shards"] if e["path"] == path)
-    entry["sha256"] = hashlib.sha256(file.read_bytes()).hexdigest()
-    data["dataset_id"] = derive_dataset_id(data)  # as its builder would have written it
-    manifest.write_text(json.dumps(data, indent=1))
+
+    def with_nan(features: np.ndarray) -> np.ndarray:
+        features[len(features) // 2, 0] = np.nan
+        return features
+
+    rewrite_record_features(manifest, shard_of(manifest, sample_id), with_nan, member=f"{sample_id}.features.npy")
 
 
 def final_data_state(run: Path) -> dict:

@@ -52,6 +52,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from pipeline import checkpoint as ckpt
 from pipeline.claims import (  # noqa: F401  (this_pid_namespace: part of this module's API)
     ClaimHolder,
     exclusive_lock,
@@ -110,11 +111,7 @@ def check_eval_folder(root: str | Path) -> None:
 
 
 def has_eval_marker(root: str | Path) -> bool:
-    try:
-        data = json.loads((Path(root) / EVAL_MARKER).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return False
-    return isinstance(data, dict) and data.get("format") == EVAL_MARKER_FORMAT
+    return ckpt.holds_marker(root, EVAL_MARKER, EVAL_MARKER_FORMAT)
 
 
 def _is_earlier_eval_folder(entries: Sequence[str]) -> bool:

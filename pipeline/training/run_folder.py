@@ -104,11 +104,7 @@ def is_run_folder(path: str | Path) -> bool:
 
 def has_run_marker(path: str | Path) -> bool:
     """``path`` holds ``mfm-run.json`` as the trainer writes it (a JSON object of format ``mfm-run``)."""
-    try:
-        data = json.loads((Path(path) / RUN_MARKER).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return False
-    return isinstance(data, dict) and data.get("format") == RUN_MARKER_FORMAT
+    return ckpt.holds_marker(path, RUN_MARKER, RUN_MARKER_FORMAT)
 
 
 def is_earlier_run(path: str | Path) -> bool:
