@@ -44,7 +44,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--seconds", action="append", type=float, default=[], help="motion length: once for all or once per prompt")
     add("--steps", type=int, help="solver steps (as launch/sample.py)")
     add("--solver", help="ODE solver or diffusion sampler (as launch/sample.py)")
-    add("--guidance", type=float, default=2.5, help="classifier-free guidance scale (default 2.5)")
+    add("--guidance", type=float, help="classifier-free guidance scale (default: the model's, as launch/sample.py)")
     add("--seed", type=int, default=0)
     add("--smoothing", type=float, help="Gaussian smoothing of the output over time, σ in frames (as launch/sample.py)")
     add("--decode", choices=sorted(JOINT_DECODES), default="ric", help="joints as recovered from the ric block "

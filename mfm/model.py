@@ -230,6 +230,14 @@ class ModelConfig:
     otherwise (``launch/sample.py --smoothing``, the evaluator, the contact sheet, MotionPipeline); 0 = none (MFM).
     FLAME smooths its samples this way with σ = 1 (its diffusion preset's own setting,
     mfm.diffusion_sampling.BASELINE_SAMPLING, still wins for such checkpoints). Not used in training."""
+    sampling_guidance: float = 2.5
+    """The classifier-free guidance scale samplers use for this model unless told otherwise (``launch/sample.py
+    --guidance``, the contact sheet, MotionPipeline; the evaluator keeps its protocol's ``sampling.guidance``).
+    2.5 is MFM's (and MDM's) scale. A scale above 1 extrapolates away from the unconditional field, which also
+    pushes what the caption fixes exactly past the data: on the synthetic set a jump "up in place" drifts backwards
+    at 0.3 m/s in flight and "forward" overshoots 1.5 m/s (docs/generator-study.md, "Guidance overshoots what the
+    caption fixes"). A diffusion baseline's authors' scale (FLAME: 8.0) still wins for such checkpoints. Not used
+    in training."""
     progress_positions: bool = False
     """Ours, in no reference model: also add to every frame the sinusoid of how far into its motion it lies,
     ``1000 · i / (L − 1)`` for frame i of a motion of L valid frames (the time embedding's scaling), so a frame knows
@@ -331,6 +339,9 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.null_tokens must be an int >= 0, got {self.null_tokens!r}")
         if not (isinstance(self.output_smoothing, (int, float)) and self.output_smoothing >= 0):
             raise ValueError(f"ModelConfig.output_smoothing must be a σ >= 0 (frames), got {self.output_smoothing!r}")
+        if not (isinstance(self.sampling_guidance, (int, float)) and math.isfinite(self.sampling_guidance)
+                and self.sampling_guidance >= 0):
+            raise ValueError(f"ModelConfig.sampling_guidance must be a finite scale >= 0, got {self.sampling_guidance!r}")
         if self.progress_positions and self.positional != "absolute":
             raise ValueError("ModelConfig.progress_positions needs positional='absolute'")
         if self.length_embedding not in LENGTH_EMBEDDINGS:

@@ -73,6 +73,9 @@ def test_pre_norm_adds_only_a_final_layer_norm():
         (dict(prediction="epsilon"), "prediction"),
         (dict(prediction="data", output_dim=14), "output_dim"),
         (dict(cond_scaling="layernorm"), "cond_scaling"),
+        (dict(output_smoothing=-0.5), "output_smoothing"),
+        (dict(sampling_guidance=-1.0), "sampling_guidance"),
+        (dict(sampling_guidance=float("nan")), "sampling_guidance"),
     ],
 )
 def test_config_rejects_bad_values(overrides, field):

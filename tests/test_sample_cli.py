@@ -354,12 +354,17 @@ def test_export_then_from_pretrained_generates_what_sampling_the_checkpoint_does
     np.testing.assert_allclose(exported_features, out.features[0], atol=1e-5)
 
 
+def _preset_sampling_run(tmp_path_factory) -> Path:
+    """A run whose preset sets the model's own sampling defaults: σ = 1 smoothing, guidance 1.5."""
+    return _train_once(tmp_path_factory, "sampling-smoothed-run", build_dataset_once(tmp_path_factory),
+                       "model.output_smoothing=1.0", "model.sampling_guidance=1.5")
+
+
 def test_a_model_whose_preset_smooths_its_outputs_is_sampled_smoothed_unless_told_otherwise(tmp_path_factory,
                                                                                           tmp_path):
     from mfm.diffusion_sampling import smooth_over_time
 
-    run = _train_once(tmp_path_factory, "sampling-smoothed-run", build_dataset_once(tmp_path_factory),
-                      "model.output_smoothing=1.0")
+    run = _preset_sampling_run(tmp_path_factory)
     assert load_trained_model(run).default_smoothing == 1.0
     args = ["--text", "a person walks", "--seconds", "3", "--no-video", "--no-bvh", "--seed", "3"]
     default = sample(run, tmp_path / "default", *args)
@@ -368,3 +373,20 @@ def test_a_model_whose_preset_smooths_its_outputs_is_sampled_smoothed_unless_tol
     expected = smooth_over_time(torch.as_tensor(unsmoothed)[None].double(), [len(unsmoothed)], 1.0)[0].numpy()
     np.testing.assert_allclose(smoothed, expected, atol=1e-4)
     assert np.abs(np.diff(smoothed, 3, axis=0)).mean() < np.abs(np.diff(unsmoothed, 3, axis=0)).mean()
+
+
+def test_a_model_whose_preset_sets_its_guidance_is_sampled_with_it_unless_told_otherwise(tmp_path_factory, tmp_path):
+    """model.sampling_guidance is the scale launch/sample.py uses when --guidance is not given (and results.json
+    says so); --guidance still wins; a model that sets none samples at MFM's 2.5."""
+    run = _preset_sampling_run(tmp_path_factory)
+    assert load_trained_model(run).default_guidance == 1.5
+    args = ["--text", "a person walks", "--seconds", "3", "--no-video", "--no-bvh", "--seed", "3"]
+    default = sample(run, tmp_path / "default", *args)
+    explicit = sample(run, tmp_path / "explicit", *args, "--guidance", "1.5")
+    mfm = sample(run, tmp_path / "mfm", *args, "--guidance", "2.5")
+    assert default["guidance"] == explicit["guidance"] == 1.5 and mfm["guidance"] == 2.5
+    np.testing.assert_array_equal(features_of(tmp_path / "default", default)[0],
+                                  features_of(tmp_path / "explicit", explicit)[0])
+    assert not np.allclose(features_of(tmp_path / "default", default)[0], features_of(tmp_path / "mfm", mfm)[0])
+    assert load_trained_model(_train_once(tmp_path_factory, "sampling-text-run",
+                                          build_dataset_once(tmp_path_factory))).default_guidance == 2.5

@@ -52,7 +52,7 @@ class ContactSheetRequest:
     seconds: Sequence[float] = ()  # one for every prompt or one per prompt; default: see the module docstring
     steps: int | None = None
     solver: str | None = None
-    guidance: float = 2.5
+    guidance: float | None = None  # None: the sampler's default (the model's sampling_guidance)
     seed: int = 0
     smoothing: float | None = None  # σ in frames of the output's Gaussian smoothing; None: the sampler's default
     decode: str = "ric"  # a key of pipeline.generation.sampling.JOINT_DECODES

@@ -114,6 +114,13 @@ class TrainedModel:
         baseline = self.baseline_sampling
         return baseline.smoothing_sigma if baseline is not None else float(self.model_config.output_smoothing)
 
+    @property
+    def default_guidance(self) -> float:
+        """The classifier-free guidance scale samplers use unless told otherwise: a diffusion baseline's own
+        (FLAME: 8.0), else the model's ``sampling_guidance`` (MFM's 2.5 unless its preset says otherwise)."""
+        baseline = self.baseline_sampling
+        return baseline.guidance if baseline is not None else float(self.model_config.sampling_guidance)
+
     def normalize(self, features: torch.Tensor) -> torch.Tensor:
         return (features - self.mean) / self.std
 

@@ -61,7 +61,6 @@ DEFAULT_FLOW_SOLVER = "euler"
 
 DEFAULT_FLOW_STEPS = 10
 
-DEFAULT_GUIDANCE = 2.5  # MFM's sampling scale (its generate.py and evaluation)
 
 DEFAULT_DIFFUSION_SAMPLER = "ddpm"  # FLAME's and FlowMDM's sampler; its default steps are the training steps
 
@@ -102,7 +101,8 @@ class SampleRequest:
     """Flow: euler (default), midpoint, heun, rk4 or a torchdiffeq method such as dopri5; diffusion: ddpm
     (default) or ddim."""
     guidance: float | None = None
-    """Classifier-free guidance scale; null: 2.5, a flow edit's settings' 1.0, a FLAME-preset model's 8.0."""
+    """Classifier-free guidance scale; null: a flow edit's settings' 1.0, a FLAME-preset model's 8.0, else the
+    model's ``sampling_guidance`` (2.5 unless its preset says otherwise)."""
     smoothing: float | None = None
     """Gaussian smoothing of the output over time, σ in frames; null: the diffusion baseline's own (FLAME: 1), else
     none."""
@@ -266,13 +266,13 @@ class SampleRequest:
 
     def guidance_for(self, trained: TrainedModel) -> float:
         """The guidance scale: as given, else the edit settings' for a flow edit, else the diffusion baseline's own
-        (FLAME: 8.0, mfm.diffusion_sampling.BASELINE_SAMPLING), else DEFAULT_GUIDANCE."""
+        (FLAME: 8.0, mfm.diffusion_sampling.BASELINE_SAMPLING), else the model's ``sampling_guidance``
+        (MFM's 2.5 unless its preset says otherwise)."""
         if self.guidance is not None:
             return float(self.guidance)
         if self.edit is not None and trained.objective == "flow":
             return self.settings.guidance
-        baseline = trained.baseline_sampling
-        return baseline.guidance if baseline is not None else DEFAULT_GUIDANCE
+        return trained.default_guidance
 
     def smoothing_for(self, trained: TrainedModel) -> float:
         """σ (frames) of the output's Gaussian smoothing over time: as given, else the checkpoint's default
