@@ -46,6 +46,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--solver", help="ODE solver or diffusion sampler (as launch/sample.py)")
     add("--guidance", type=float, help="classifier-free guidance scale (default: the model's, as launch/sample.py)")
     add("--seed", type=int, default=0)
+    add("--guided-features", choices=("all", "pose"), help="channels guidance mixes (as launch/sample.py)")
     add("--smoothing", type=float, help="Gaussian smoothing of the output over time, σ in frames (as launch/sample.py)")
     add("--decode", choices=sorted(JOINT_DECODES), default="ric", help="joints as recovered from the ric block "
                                                                       "(default) or fitted onto fixed bone lengths")
@@ -65,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             max_rows=args.max_rows, manifest=args.manifest, ground_truth=args.ground_truth, frames=args.frames,
             seconds=args.seconds,
             steps=args.steps, solver=args.solver, guidance=args.guidance, seed=args.seed, smoothing=args.smoothing,
+            guided_features=args.guided_features,
             decode=args.decode,
             device=args.device, weights=args.model_weights, text_weights=args.text_weights))
     except (SamplingError, FileNotFoundError) as err:

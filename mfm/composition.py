@@ -282,6 +282,7 @@ def compose(
     seed: int = 0,
     generator: torch.Generator | None = None,
     null_cond: Tensor | None = None,
+    conditional_channels: Tensor | None = None,
     text_tokens: Tensor | None = None,
     text_token_len: int | None = None,
     attention_chunk: int | None = None,
@@ -294,7 +295,8 @@ def compose(
         (an action id for a prefix action model); distinct conditions need ``conditioning='pccat'``.
     solver / steps: a fixed-step solver of mfm.solvers (the positional mode switches at a fixed time, which an
         adaptive solver's error control would fight); ``steps × stages <= max_nfe``.
-    guidance: classifier-free guidance scale (one batched pass per evaluation).
+    guidance: classifier-free guidance scale (one batched pass per evaluation); ``conditional_channels``: feature
+        channels left unguided (:func:`mfm.solvers.guided_velocity`).
     switch: flow time from which evaluations use relative mode, or a number of leading absolute steps
         (:func:`resolve_switch`); bpe models only.
     seed / generator: initial noise (1, Σ frames, D) as :func:`mfm.solvers.initial_noise`, so one segment with
@@ -337,7 +339,8 @@ def compose(
     )
     total = sum(lengths)
     x0 = initial_noise((1, total, config.feature_dim), seed=seed, generator=generator, device=device)
-    velocity = guided_velocity(bound, conds[:1], scale=guidance, null_cond=null_cond)
+    velocity = guided_velocity(bound, conds[:1], scale=guidance, null_cond=null_cond,
+                               conditional_channels=conditional_channels)
     result = solve(velocity, x0, solver=solver, steps=steps, return_trajectory=return_trajectory)
     return Composition(
         motion=result.x1[0],

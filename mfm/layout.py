@@ -59,6 +59,16 @@ class FeatureLayout:
         return np.arange(0, 4)
 
     @property
+    def root_motion_mask(self) -> np.ndarray:
+        """Boolean (dim,) mask of the dims that carry the root's motion: its rotation and linear velocity and its
+        height (dims 0:4), and every joint's velocity (``local_vel``, which holds the same travel over the ground
+        seen from each joint); the rest (ric positions, 6D rotations, foot contacts) is the pose."""
+        mask = np.zeros(self.dim, dtype=bool)
+        mask[self.root_dims] = True
+        mask[self.slices["local_vel"]] = True
+        return mask
+
+    @property
     def contact_joints(self) -> tuple[int, int, int, int]:
         s = self.skeleton
         return (s.foot_left[0], s.foot_left[1], s.foot_right[0], s.foot_right[1])

@@ -84,6 +84,7 @@ NULL_CONDITIONS = ("zero", "empty_caption")
 POSITIONAL_TABLES = ("computed", "stored")
 CONDITION_SCALINGS = ("none", "rms")
 ABSOLUTE_POSITIONS = ("sinusoidal", "scaled_sinusoidal")
+GUIDED_FEATURES = ("all", "pose")
 
 # MFM feeds the sinusoidal table with t*1000 (its diffusion-step scale); keep the scale so the embedding matches.
 TIME_SCALE = 1000.0
@@ -238,6 +239,16 @@ class ModelConfig:
     at 0.3 m/s in flight and "forward" overshoots 1.5 m/s (docs/generator-study.md, "Guidance overshoots what the
     caption fixes"). A diffusion baseline's authors' scale (FLAME: 8.0) still wins for such checkpoints. Not used
     in training."""
+    guided_features: str = "all"
+    """Which output channels classifier-free guidance mixes when samplers guide this model (one of
+    GUIDED_FEATURES; ``launch/sample.py``, edits, the evaluator, the contact sheet, MotionPipeline). 'all' (MFM,
+    MDM, FLAME): every channel. 'pose' (ours, in no reference model): the pose channels (ric positions, 6D
+    rotations, foot contacts) are guided and the channels that carry the root's motion (its rotation and linear
+    velocity, its height, and every joint's velocity: mfm.layout.FeatureLayout.root_motion_mask) take the
+    conditional output unguided. Guidance extrapolates away from the unconditional field, and what a caption fixes
+    exactly, such as a speed, overshoots: on the synthetic set a jump "up in place" drifts backwards at 0.3 m/s in
+    flight and "forward" runs at 1.75 m/s instead of 1.5 (docs/generator-study.md, "Guidance overshoots what the
+    caption fixes"). Not used in training."""
     progress_positions: bool = False
     """Ours, in no reference model: also add to every frame the sinusoid of how far into its motion it lies,
     ``1000 · i / (L − 1)`` for frame i of a motion of L valid frames (the time embedding's scaling), so a frame knows
@@ -339,6 +350,8 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.null_tokens must be an int >= 0, got {self.null_tokens!r}")
         if not (isinstance(self.output_smoothing, (int, float)) and self.output_smoothing >= 0):
             raise ValueError(f"ModelConfig.output_smoothing must be a σ >= 0 (frames), got {self.output_smoothing!r}")
+        if self.guided_features not in GUIDED_FEATURES:
+            raise ValueError(f"ModelConfig.guided_features must be one of {GUIDED_FEATURES}, got {self.guided_features!r}")
         if not (isinstance(self.sampling_guidance, (int, float)) and math.isfinite(self.sampling_guidance)
                 and self.sampling_guidance >= 0):
             raise ValueError(f"ModelConfig.sampling_guidance must be a finite scale >= 0, got {self.sampling_guidance!r}")

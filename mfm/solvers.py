@@ -285,6 +285,7 @@ def guided_velocity(
     scale: float = 2.5,
     lengths: Tensor | None = None,
     null_cond: Tensor | None = None,
+    conditional_channels: Tensor | None = None,
 ) -> VelocityFn:
     """Classifier-free guided velocity ``v = v(∅) + scale·(v(c) - v(∅))`` of ``model``.
 
@@ -294,10 +295,13 @@ def guided_velocity(
         way to sample or edit without a condition: ``cond`` is then only a placeholder of the right shape, e.g.
         zeros); otherwise one batched pass of size 2B, conditional half with ``cond_mask`` False, unconditional
         half with ``cond_mask`` True.
+    conditional_channels: (D,) bool mask of feature channels whose velocity is the conditional one, unguided
+        (``model.guided_features='pose'``: :attr:`mfm.layout.FeatureLayout.root_motion_mask`).
     null_cond: what the unconditional half receives as ``cond`` (default: ``cond`` itself, which the model drops
         because of ``cond_mask``); for models whose null condition is an explicit input. Broadcast to cond's shape.
     """
-    return classifier_free_guidance(model, cond, scale=scale, lengths=lengths, null_cond=null_cond)
+    return classifier_free_guidance(model, cond, scale=scale, lengths=lengths, null_cond=null_cond,
+                                    conditional_channels=conditional_channels)
 
 
 def initial_noise(
@@ -412,6 +416,7 @@ def sample(
     grid: Sequence[float] | Tensor | None = None,
     guidance: float = 2.5,
     null_cond: Tensor | None = None,
+    conditional_channels: Tensor | None = None,
     seed: int = 0,
     generator: torch.Generator | None = None,
     return_trajectory: bool = False,
@@ -420,6 +425,7 @@ def sample(
     options: dict | None = None,
 ) -> SolveResult:
     """Generate B = len(lengths) motions (B, num_frames, D) of normalised features by integrating the guided field.
+    ``conditional_channels``: feature channels left unguided (:func:`guided_velocity`).
 
     The initial noise comes from ``generator`` or, by default, a CPU generator seeded with ``seed``: the same seed,
     batch (cond, lengths) and device give identical results. Frames ``>= lengths[b]`` are zero in the output.
@@ -431,7 +437,8 @@ def sample(
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)
     x0 = initial_noise(shape, seed=seed, generator=generator, device=device) * valid
     velocity = zero_padded_frames(
-        guided_velocity(model, cond, scale=guidance, lengths=lengths, null_cond=null_cond), lengths
+        guided_velocity(model, cond, scale=guidance, lengths=lengths, null_cond=null_cond,
+                        conditional_channels=conditional_channels), lengths
     )
     return solve(
         velocity, x0, solver=solver, steps=steps, grid=grid, rtol=rtol, atol=atol, options=options,

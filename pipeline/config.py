@@ -290,6 +290,11 @@ class TrainConfig:
             f"model.prediction={self.model.prediction!r} is a flow-matching parametrisation; the diffusion objective "
             "sets its own target (train.diffusion): use model.prediction=velocity",
         )
+        _require(
+            self.train.objective == "flow" or self.model.guided_features == "all",
+            f"model.guided_features={self.model.guided_features!r} guides a flow model's velocity channels; a "
+            "diffusion model's guidance mixes every channel of its prediction (FLAME): use model.guided_features=all",
+        )
         prefix = self.model.num_prefix_tokens
         _require(
             self.data.window + prefix <= self.model.max_len,

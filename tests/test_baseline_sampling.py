@@ -30,10 +30,12 @@ LAYOUT = FeatureLayout(HUMANML3D)
 ROT = LAYOUT.slices["rot6d"]
 
 
-def tiny_model(objective: str = "diffusion", preset: str | None = "flame", weights: str = "ema") -> TrainedModel:
+def tiny_model(objective: str = "diffusion", preset: str | None = "flame", weights: str = "ema",
+               guided_features: str = "all") -> TrainedModel:
     """An untrained tiny HumanML3D-layout model; unit normalisation, so raw = normalised features."""
     config = ModelConfig(feature_dim=LAYOUT.dim, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2, cond_dim=4,
-                         max_len=64, output_dim=2 * LAYOUT.dim if preset == "flame" else None)
+                         max_len=64, output_dim=2 * LAYOUT.dim if preset == "flame" else None,
+                         guided_features=guided_features)
     torch.manual_seed(0)
     model = MotionFlowTransformer(config).eval()
     data = {"normalization": {"mean": [0.0] * LAYOUT.dim, "std": [1.0] * LAYOUT.dim},
@@ -153,3 +155,31 @@ def test_an_explicit_output_smoothing_is_what_every_checkpoint_samples_with_and_
             Path("s"), ids, point).key
 
     assert key() == key("sampling.output_smoothing=null") != key("sampling.output_smoothing=0.7")
+
+
+def test_pose_guidance_is_each_flow_checkpoints_own_unless_the_sweep_sets_it_and_results_record_it():
+    """model.guided_features='pose' reaches the evaluator's sampler: the root-motion channels integrate the
+    conditional field (guidance 2.5 then differs from 'all' there, and the run is exactly 'all' at guidance 1);
+    sampling.guided_features overrides it for every flow checkpoint, results record what ran, and an explicit
+    setting goes into the unit key (unset: keys as before)."""
+    pose, point = tiny_model(objective="flow", preset=None, guided_features="pose"), SamplingPoint("euler", 3, 2.5)
+    own = sample(pose, SamplingConfig(output_smoothing=0.0), point)
+    every = sample(pose, SamplingConfig(output_smoothing=0.0, guided_features="all"), point)
+    assert float((own - every).abs().max()) > 1e-3
+    plain = SamplingPoint("euler", 3, 1.0)
+    torch.testing.assert_close(sample(pose, SamplingConfig(output_smoothing=0.0), plain),
+                               sample(pose, SamplingConfig(output_smoothing=0.0, guided_features="all"), plain))
+    flow = tiny_model(objective="flow", preset=None)
+    torch.testing.assert_close(sample(flow, SamplingConfig(output_smoothing=0.0, guided_features="pose"), point), own)
+    assert baseline_record(pose, SamplingConfig())["guided_features"] == "pose"
+    assert baseline_record(pose, SamplingConfig(guided_features="all"))["guided_features"] == "all"
+    assert baseline_record(tiny_model(), SamplingConfig(guided_features="pose"))["guided_features"] == "all"  # FLAME
+    ids = {"checkpoint": "c", "evaluator": "e", "gt": "g"}
+
+    def key(*overrides):
+        return CheckpointScorer(load_eval_config("fast", overrides=list(overrides)), None).unit_for(
+            Path("s"), ids, point).key
+
+    assert key() == key("sampling.guided_features=null") != key("sampling.guided_features=pose")
+    with pytest.raises(ValueError, match="guided_features"):
+        SamplingConfig(guided_features="root")

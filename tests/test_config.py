@@ -206,6 +206,9 @@ def test_cross_section_checks():
         TrainConfig(data=DataConfig(window=250), model=ModelConfig(length_token=True, max_frames=196))
     ok = TrainConfig(data=DataConfig(window=196), model=ModelConfig(length_token=True, max_frames=196))
     assert ok.data.window == 196
+    with pytest.raises(ConfigError, match="guided_features"):
+        TrainConfig(model=ModelConfig(guided_features="pose"), train=TrainLoopConfig(objective="diffusion"))
+    assert TrainConfig(model=ModelConfig(guided_features="pose")).model.guided_features == "pose"
 
 
 def test_from_dict_rejects_unknown_nested_and_keeps_defaults():

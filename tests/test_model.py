@@ -75,6 +75,7 @@ def test_pre_norm_adds_only_a_final_layer_norm():
         (dict(cond_scaling="layernorm"), "cond_scaling"),
         (dict(output_smoothing=-0.5), "output_smoothing"),
         (dict(sampling_guidance=-1.0), "sampling_guidance"),
+        (dict(guided_features="root"), "guided_features"),
         (dict(sampling_guidance=float("nan")), "sampling_guidance"),
     ],
 )

@@ -355,9 +355,9 @@ def test_export_then_from_pretrained_generates_what_sampling_the_checkpoint_does
 
 
 def _preset_sampling_run(tmp_path_factory) -> Path:
-    """A run whose preset sets the model's own sampling defaults: σ = 1 smoothing, guidance 1.5."""
+    """A run whose preset sets the model's own sampling defaults: σ = 1 smoothing, guidance 1.5 of the pose."""
     return _train_once(tmp_path_factory, "sampling-smoothed-run", build_dataset_once(tmp_path_factory),
-                       "model.output_smoothing=1.0", "model.sampling_guidance=1.5")
+                       "model.output_smoothing=1.0", "model.sampling_guidance=1.5", "model.guided_features=pose")
 
 
 def test_a_model_whose_preset_smooths_its_outputs_is_sampled_smoothed_unless_told_otherwise(tmp_path_factory,
@@ -385,6 +385,7 @@ def test_a_model_whose_preset_sets_its_guidance_is_sampled_with_it_unless_told_o
     explicit = sample(run, tmp_path / "explicit", *args, "--guidance", "1.5")
     mfm = sample(run, tmp_path / "mfm", *args, "--guidance", "2.5")
     assert default["guidance"] == explicit["guidance"] == 1.5 and mfm["guidance"] == 2.5
+    assert default["guided_features"] == "pose"
     np.testing.assert_array_equal(features_of(tmp_path / "default", default)[0],
                                   features_of(tmp_path / "explicit", explicit)[0])
     assert not np.allclose(features_of(tmp_path / "default", default)[0], features_of(tmp_path / "mfm", mfm)[0])

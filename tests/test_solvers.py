@@ -204,6 +204,46 @@ def test_batched_guidance_equals_two_separate_passes():
     assert not torch.allclose(v, v_cond)
 
 
+def test_conditional_channels_take_the_conditional_field_and_the_rest_is_guided():
+    """model.guided_features='pose': the masked channels follow the conditional field unguided, the others are
+    the usual mix, still from one batched pass; an all-False mask is no exception; a mask of the wrong size is
+    refused."""
+    model = ToyModel()
+    x, t, cond = toy_inputs()
+    mask = torch.tensor([True, False, False, True])
+    v = guided_velocity(model, cond, scale=2.5, conditional_channels=mask)(x, t)
+    assert model.batches == [6]
+    v_cond = model(x, t, cond, cond_mask=torch.zeros(3, dtype=torch.bool))
+    v_uncond = model(x, t, cond, cond_mask=torch.ones(3, dtype=torch.bool))
+    mixed = v_uncond + 2.5 * (v_cond - v_uncond)
+    torch.testing.assert_close(v[..., mask], v_cond[..., mask])
+    torch.testing.assert_close(v[..., ~mask], mixed[..., ~mask])
+    assert not torch.allclose(v[..., mask], mixed[..., mask])
+    none = guided_velocity(model, cond, scale=2.5, conditional_channels=torch.zeros(4, dtype=torch.bool))(x, t)
+    torch.testing.assert_close(none, mixed)
+    with pytest.raises(ValueError, match="conditional_channels"):
+        guided_velocity(model, cond, scale=2.5, conditional_channels=torch.ones(3, dtype=torch.bool))(x, t)
+
+
+def test_pose_guidance_leaves_the_root_motion_channels_to_the_conditional_field():
+    """guided_feature_mask('pose'): the root's rotation/linear velocity, its height and every joint's velocity;
+    'all': no mask."""
+    from mfm.guidance import guided_feature_mask
+    from mfm.layout import FeatureLayout
+    from mfm.skeleton import get_skeleton
+
+    for name, dim in (("humanml3d", 263), ("kit", 251)):
+        skeleton = get_skeleton(name)
+        mask = guided_feature_mask("pose", skeleton)
+        slices = FeatureLayout(skeleton).slices
+        assert mask.shape == (dim,) and mask[:4].all() and mask[slices["local_vel"]].all()
+        assert int(mask.sum()) == 4 + 3 * skeleton.num_joints
+        assert not mask[slices["ric"]].any() and not mask[slices["rot6d"]].any() and not mask[slices["contacts"]].any()
+        assert guided_feature_mask("all", skeleton) is None
+    with pytest.raises(ValueError, match="guided_features"):
+        guided_feature_mask("trajectory", get_skeleton("humanml3d"))
+
+
 def test_guidance_scale_zero_is_the_unconditional_field_and_null_cond_is_used():
     model = ToyModel()
     x, t, cond = toy_inputs()

@@ -83,6 +83,7 @@ from mfm.composition import (
     resolve_switch,
 )
 from mfm.features import features_to_joints
+from mfm.guidance import guided_feature_mask
 from pipeline.config import to_dict
 from pipeline.data.stages import stable_id_hash
 from pipeline.distributed import Dist
@@ -97,6 +98,7 @@ from pipeline.evaluation.replications import (
     PhaseTimer,
     derive_seed,
     gather_rows,
+    guided_features,
     gather_stats,
     plausibility_record,
     rng_of,
@@ -451,6 +453,8 @@ def composition_unit(checkpoint_name: str, ids: Mapping[str, str], point: Sampli
                              and (k, v) != ("sampling_point", "sweep")},
                 "split": cfg.data.split,
                 "sampling": {"use_ema": cfg.sampling.use_ema}}
+    if cfg.sampling.guided_features is not None:  # unset: the checkpoint's own, as keys were before it existed
+        settings["sampling"]["guided_features"] = cfg.sampling.guided_features
     name = f"compose-{point.name}-switch{switch:.4g}-{cfg.composition.scenario}"
     return Unit(checkpoint_name, name, digest(settings))
 
@@ -541,7 +545,9 @@ class CompositionRun:
             try:
                 composition = compose(trained.model, list(zip(conds, lengths)), solver=self.point.solver,
                                       steps=self.point.steps, guidance=self.point.guidance, switch=self.switch,
-                                      seed=seed, attention_chunk=chunk)
+                                      seed=seed, attention_chunk=chunk,
+                                      conditional_channels=guided_feature_mask(
+                                          guided_features(trained, self.cfg.sampling), trained.skeleton))
             except ValueError as exc:
                 raise EvaluationError(f"tasks.composition: cannot compose with {trained.checkpoint}: {exc}") from exc
         seconds = self.timer.seconds["generation"] - before
@@ -623,7 +629,8 @@ class CompositionRun:
                          # the set and its GT are fixed (FlowMDM): protocol.redraw_items does not apply here
                          "redraw_items": False, "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(self.point), "use_ema": self.cfg.sampling.use_ema,
-                         "switch": self.switch, "sampling_point": self.cfg.protocol.sampling_point},
+                         "switch": self.switch, "sampling_point": self.cfg.protocol.sampling_point,
+                         "guided_features": guided_features(self.ctx.trained, self.cfg.sampling)},
             "composition": {
                 "switch": self.switch,
                 "switch_label": {0.0: "relative-only", 1.0: "absolute-only"}.get(self.switch, "blended"),

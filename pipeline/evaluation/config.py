@@ -183,6 +183,11 @@ class SamplingConfig:
     network's raw output. None (default): each checkpoint's own (its ``model.output_smoothing``; a baseline's
     authors' σ with ``baseline_defaults``, FLAME's 1; else none). Results record the σ that ran
     (``smoothing_sigma``)."""
+    guided_features: str | None = None
+    """Which channels classifier-free guidance mixes, for every flow checkpoint: 'all' or 'pose' (the root's motion
+    left to the conditional output; mfm.model.ModelConfig.guided_features). None (default): each checkpoint's own
+    ``model.guided_features``. Diffusion checkpoints always guide every channel. Results record what ran
+    (``guided_features``)."""
     batch_size: int = 64
     """Motions generated per forward batch (per rank)."""
     rtol: float = 1e-5
@@ -199,6 +204,8 @@ class SamplingConfig:
             _require(bool(steps) and all(s >= 1 for s in steps),
                      f"sampling.steps_per_solver.{solver} must list step counts >= 1, got {steps}")
         _require(self.batch_size >= 1, f"sampling.batch_size must be >= 1, got {self.batch_size}")
+        _require(self.guided_features in (None, "all", "pose"),
+                 f"sampling.guided_features must be all, pose or null (each checkpoint's own), got {self.guided_features!r}")
         _require(self.output_smoothing is None or self.output_smoothing >= 0,
                  f"sampling.output_smoothing must be >= 0 (or null: each checkpoint's own), got {self.output_smoothing}")
 

@@ -87,6 +87,7 @@ from pipeline.evaluation.replications import (
     action_labels,
     baseline_sampling,
     check_weights,
+    guided_features,
     output_smoothing,
     plan_protocol,
     points_for,
@@ -153,11 +154,13 @@ def baseline_record(trained: TrainedModel, sampling: Any) -> dict[str, Any]:
     guidance, smoothing, every training step, x0 clamp, EMA weights, and where the numbers come from; or ours)."""
     baseline = baseline_sampling(trained, sampling)
     if baseline is None:
-        return {"smoothing_sigma": output_smoothing(trained, sampling), "baseline_defaults": None}
+        return {"smoothing_sigma": output_smoothing(trained, sampling), "baseline_defaults": None,
+                "guided_features": guided_features(trained, sampling)}
     record = {"preset": trained.diffusion_preset, **baseline.record()}
     if baseline.clip_denoised:
         record["clip_denoised_range"] = "6D rotation channels in [-1, 1] (raw units); others unclamped"
-    return {"smoothing_sigma": output_smoothing(trained, sampling), "baseline_defaults": record}
+    return {"smoothing_sigma": output_smoothing(trained, sampling), "baseline_defaults": record,
+            "guided_features": guided_features(trained, sampling)}
 
 
 ADE_FDE_UNIT = "m"
@@ -309,6 +312,8 @@ class CheckpointScorer:
                      if setup["steps_per_preset"][p] != setup["steps"]}
         if cfg.sampling.output_smoothing is not None:  # unset: the checkpoint's own, as keys were before it existed
             settings["sampling"]["output_smoothing"] = cfg.sampling.output_smoothing
+        if cfg.sampling.guided_features is not None:  # unset: the checkpoint's own, as keys were before it existed
+            settings["sampling"]["guided_features"] = cfg.sampling.guided_features
         if own_steps:  # a preset with its own step count (reference-debug's interpolation: 1 since issue 25)
             settings["edit_steps_per_preset"] = own_steps
         if kind_settings:  # settings of its kind of checkpoint change its numbers (only its units' keys carry them)

@@ -52,7 +52,7 @@ from mfm.diffusion_sampling import (
 )
 from mfm.editing import edit, edit_mask
 from mfm.features import features_to_joints
-from mfm.guidance import classifier_free_guidance
+from mfm.guidance import classifier_free_guidance, guided_feature_mask
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
 from mfm.skeleton import Skeleton
@@ -660,6 +660,14 @@ def check_weights(trained: TrainedModel, sampling: SamplingConfig) -> None:
                               "weights")
 
 
+def guided_features(trained: TrainedModel, sampling: SamplingConfig) -> str:
+    """Which channels guidance mixes: ``sampling.guided_features`` when set, else the checkpoint's own
+    ``model.guided_features``; 'all' for diffusion checkpoints (their guidance mixes every channel)."""
+    if trained.objective == "diffusion":
+        return "all"
+    return sampling.guided_features or trained.model_config.guided_features
+
+
 def output_smoothing(trained: TrainedModel, sampling: SamplingConfig) -> float:
     """σ (frames) of the output smoothing: ``sampling.output_smoothing`` when set; else the checkpoint's own
     sampling defaults' (a diffusion baseline's, or the model's ``model.output_smoothing``) with
@@ -716,7 +724,9 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
             result = replacement_edit(denoise, schedule, known, keep, sampler=point.solver, lengths=lengths,
                                       generator=generator, restore_known=restore_known, clip_denoised=clamp)
     else:
-        velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths)
+        velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths,
+                                   conditional_channels=guided_feature_mask(guided_features(trained, sampling),
+                                                                            trained.skeleton))
         x0 = draw_noise((len(seeds), num_frames, dim), seeded_generators(seeds),
                         lengths=None if windowed else lengths, device=trained.device)
         if keep is None:

@@ -188,6 +188,7 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
         "conditioning": "text" if request.texts or request.compose_file else "action" if request.actions else "none",
         **integrator.record(trained),
         "guidance": request.guidance_for(trained) if conditioned else 0.0,
+        "guided_features": request.guided_features_for(trained),
         "smoothing_sigma": request.smoothing_for(trained),
         "seed": request.seed,
         "device": str(trained.device),

@@ -16,6 +16,8 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from mfm.composition import BABEL_SWITCH, HUMANML3D_SWITCH
 from mfm.diffusion_sampling import SAMPLERS
 from mfm.editing import (
@@ -23,6 +25,7 @@ from mfm.editing import (
     EDIT_SETTINGS,
     EditSettings,
 )
+from mfm.guidance import guided_feature_mask
 from mfm.solvers import (
     FIXED_STEP_SOLVERS,
 )
@@ -103,9 +106,12 @@ class SampleRequest:
     guidance: float | None = None
     """Classifier-free guidance scale; null: a flow edit's settings' 1.0, a FLAME-preset model's 8.0, else the
     model's ``sampling_guidance`` (2.5 unless its preset says otherwise)."""
+    guided_features: str | None = None
+    """Flow models: which channels guidance mixes, all or pose (the root's motion follows the conditional field);
+    null: the model's ``guided_features`` (all unless its preset says otherwise). Diffusion models: all."""
     smoothing: float | None = None
     """Gaussian smoothing of the output over time, σ in frames; null: the diffusion baseline's own (FLAME: 1), else
-    none."""
+    the model's ``output_smoothing`` (none unless its preset says otherwise)."""
     seed: int = 0
     """Noise seed (sample i uses SeedSequence([seed, i]))."""
     batch_size: int = 64
@@ -274,6 +280,16 @@ class SampleRequest:
             return self.settings.guidance
         return trained.default_guidance
 
+    def guided_features_for(self, trained: TrainedModel) -> str:
+        """Which channels guidance mixes: as given, else the model's ``guided_features``; 'all' for diffusion."""
+        if trained.objective == "diffusion":
+            return "all"
+        return self.guided_features or trained.model_config.guided_features
+
+    def conditional_channels_for(self, trained: TrainedModel) -> torch.Tensor | None:
+        """:func:`mfm.guidance.guided_feature_mask` of :meth:`guided_features_for`."""
+        return guided_feature_mask(self.guided_features_for(trained), trained.skeleton)
+
     def smoothing_for(self, trained: TrainedModel) -> float:
         """σ (frames) of the output's Gaussian smoothing over time: as given, else the checkpoint's default
         (a diffusion baseline's own, FLAME: 1.0; else the model's ``output_smoothing``, 0 = none)."""
@@ -350,6 +366,7 @@ FLAGS: tuple[Flag, ...] = (
     Flag("--steps", "steps", type=int),
     Flag("--solver", "solver"),
     Flag("--guidance", "guidance", type=float),
+    Flag("--guided-features", "guided_features", choices=("all", "pose")),
     Flag("--smoothing", "smoothing", type=float),
     Flag("--seed", "seed", type=int),
     Flag("--batch-size", "batch_size", type=int),

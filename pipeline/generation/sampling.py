@@ -317,7 +317,8 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
             result = replacement_edit(denoise, integrator.diffusion, known, keep, sampler=integrator.name,
                                       lengths=lengths, generator=generator, return_trajectory=request.plot_trajectory)
     else:
-        velocity = guided_velocity(model, cond, scale=scale, lengths=lengths)
+        velocity = guided_velocity(model, cond, scale=scale, lengths=lengths,
+                                   conditional_channels=request.conditional_channels_for(trained))
         x0 = draw_noise((len(specs), num_frames, dim), seeded_generators([s.seed for s in specs]), lengths=lengths,
                         device=device)
         if source is None:
