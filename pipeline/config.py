@@ -65,6 +65,19 @@ class DataConfig:
     """Samples held in the in-stream shuffle buffer (0 or 1: no sample shuffling)."""
     seed: int = 0
     """Seed of the shard order, shuffle buffer, crops and caption choice (independent of train.seed)."""
+    batching: Literal["fixed", "length_aware"] = "fixed"
+    """fixed: every batch is padded to data.window frames. length_aware: clips of similar length share a batch
+    (sort_window_batches batches' worth of shuffled clips sorted by the manifest's lengths, cut into batches whose
+    order is shuffled) and each batch is padded only to its longest clip rounded up to data.pad_multiple (at most
+    data.window): no compute on most of the padding. Same samples per epoch, batch counts per rank, exact resume and
+    per-clip loss as fixed; needs a manifest that lists every record's length (the builder's do). The validation
+    batches stay fixed windows."""
+    pad_multiple: int = 16
+    """length_aware: batch widths are rounded up to a multiple of this many frames (few distinct shapes for compiled
+    models and kernel autotuners); 1: exactly the longest clip."""
+    sort_window_batches: int = 8
+    """length_aware: how many batches' worth of consecutive shuffled clips are sorted by length together (more:
+    tighter batches, and a reader holds that many more raw records)."""
     verify: Literal["strict", "tolerant", "off"] = "strict"
     """strict: before training, check the manifest's split totals against its shard counts and lengths, and every
     shard's size, sha256, real record count and record ids (unique) against the manifest; fail naming the file and
@@ -99,6 +112,8 @@ class DataConfig:
         _require(self.num_workers >= 0, f"data.num_workers must be >= 0, got {self.num_workers}")
         _require(self.shuffle_buffer >= 0, f"data.shuffle_buffer must be >= 0, got {self.shuffle_buffer}")
         _require(self.seed >= 0, f"data.seed must be >= 0, got {self.seed}")
+        _require(self.pad_multiple >= 1, f"data.pad_multiple must be >= 1, got {self.pad_multiple}")
+        _require(self.sort_window_batches >= 1, f"data.sort_window_batches must be >= 1, got {self.sort_window_batches}")
         _require(self.retries >= 0, f"data.retries must be >= 0, got {self.retries}")
         _require(0.0 <= self.retry_backoff_s < float("inf"),
                  f"data.retry_backoff_s must be a finite number >= 0, got {self.retry_backoff_s}")
@@ -299,6 +314,12 @@ class TrainConfig:
         _require(
             self.data.window + prefix <= self.model.max_len,
             f"data.window ({self.data.window}) + {prefix} prefix token(s) exceeds model.max_len ({self.model.max_len})",
+        )
+        _require(
+            self.data.batching == "fixed" or not self.model.attend_padding,
+            "data.batching=length_aware needs model.attend_padding=false: a model that attends to the padding "
+            "(MFM/MDM's behaviour) gives a clip another output for every batch width, so the loss per clip would "
+            "change with its batch mates",
         )
         if self.model.length_token:
             _require(

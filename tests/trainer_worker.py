@@ -12,7 +12,8 @@ torch processes is most of the cost). Each scenario is a dict:
                   (Trainer.validate of the initial weights, the record saved to OUT/validate-rank{r}.json)
     out           folder for this scenario's per-rank records (created)
     overrides     config overrides on top of the ``tiny`` preset (train.out_dir, data.manifest, ...)
-    record_ids    fit: append {"step", "ids"} per train_step to OUT/ids-rank{r}.jsonl (sample ids per step)
+    record_ids    fit: append {"step", "ids", "widths"} per train_step to OUT/ids-rank{r}.jsonl (sample ids and
+                  padded batch widths per step)
     kill_at       fit: [rank, step]: SIGKILL this process in the middle of that step (inside the loss)
     signal_at     fit: [rank, step, "SIGTERM"|"SIGINT"]: send the signal to this process in the middle of that step
     pause_at      fit: [rank, step]: in the middle of that step write OUT/paused-rank{r} and wait (at most 300 s) until
@@ -136,7 +137,8 @@ class InstrumentedTrainer(Trainer):
         self.faults.step_in_progress = step
         if self.record_ids:
             with open(self.out / f"ids-rank{self.dist.rank}.jsonl", "a") as f:
-                f.write(json.dumps({"step": step, "ids": [list(b["ids"]) for b in micro_batches]}) + "\n")
+                f.write(json.dumps({"step": step, "ids": [list(b["ids"]) for b in micro_batches],
+                                    "widths": [b["features"].shape[1] for b in micro_batches]}) + "\n")
         if step in self.snapshot_at:
             self._snapshot(step - 1)
         result = super().train_step(micro_batches, draws)

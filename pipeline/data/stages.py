@@ -6,6 +6,11 @@ Order in the stream (see ``pipeline.data.stream`` for the shard-level stages tha
                   (MotionRecord: all captions)          (one caption,   (MFM crop)     (manifest    (padded batch
                                                          its span)                      Mean/Std)     + masks)
 
+Which samples go into which batch is decided before any record is read, from the manifest alone: the slot's shuffle
+order (:func:`shuffle_buffer_order`) and, for length-aware batches, its regrouping by the manifest's clip lengths
+(:func:`length_grouped_order`). How wide a batch is padded is decided by ``Collate`` from the cropped clips
+themselves (:func:`padded_width`).
+
 Tolerant mode wraps each per-sample stage in :class:`SkipBadRecords`: a record that fails to decode or validate
 becomes a :class:`SkippedRecord` that flows on in its place until ``Collate`` drops it, so a batch is cut from
 the same stream positions whether or not some of its records were bad. A batch whose every record was skipped
@@ -345,8 +350,22 @@ class Normalize:
 # ----------------------------------------------------------------------------------------------------------
 
 
+def padded_width(lengths: Sequence[int], window: int, pad_multiple: int | None) -> int:
+    """How many frames a batch of clips of ``lengths`` (already cropped to at most ``window``) is padded to.
+
+    ``pad_multiple`` None (``data.batching=fixed``): always ``window``. An int (``length_aware``): the longest clip
+    rounded up to a multiple of it, never above ``window`` (196 with 16: the widths are 16, 32, ..., 192, 196), so a
+    compiled model or a kernel autotuner sees few distinct shapes. An empty batch keeps ``window``."""
+    if pad_multiple is None or len(lengths) == 0:
+        return window
+    longest = max(int(n) for n in lengths)
+    return min(window, -(-longest // pad_multiple) * pad_multiple)
+
+
 class Collate:
-    """Samples → the batch dict the trainer consumes; motions zero-padded to ``window`` frames.
+    """Samples → the batch dict the trainer consumes; motions zero-padded to ``W`` frames: ``window`` with
+    ``pad_multiple`` None (fixed windows), else the batch's longest clip rounded up to a multiple of ``pad_multiple``
+    and at most ``window`` (:func:`padded_width`; length-aware batches).
 
     Keys: ``features`` (B, W, D) float32, ``lengths`` (B,) int64, ``mask`` (B, W) bool (True on real frames),
     ``text_emb`` (B, E) float32, ``action`` (B,) int64 (index in the manifest's ``action_classes``, -1 when the
@@ -359,8 +378,11 @@ class Collate:
     steps through it in lockstep with the other ranks (see ``pipeline.training.trainer.Trainer.train_step``).
     """
 
-    def __init__(self, window: int, action_classes: Sequence[str], record_spec: RecordSpec | None = None):
-        self.window = window
+    def __init__(self, window: int, action_classes: Sequence[str], record_spec: RecordSpec | None = None,
+                 pad_multiple: int | None = None):
+        if pad_multiple is not None and pad_multiple < 1:
+            raise ValueError(f"pad_multiple must be >= 1 (or None: pad to the window), got {pad_multiple}")
+        self.window, self.pad_multiple = window, pad_multiple
         self.action_ids = {name: i for i, name in enumerate(action_classes)}
         self.record_spec = record_spec
 
@@ -404,7 +426,8 @@ class Collate:
 
     def _collate(self, samples: Sequence[TrainingSample]) -> dict[str, Any]:
         b, dim = len(samples), samples[0].features.shape[1]
-        features = np.zeros((b, self.window, dim), np.float32)
+        width = padded_width([s.features.shape[0] for s in samples], self.window, self.pad_multiple)
+        features = np.zeros((b, width, dim), np.float32)
         lengths = np.zeros(b, np.int64)
         for i, s in enumerate(samples):
             n = s.features.shape[0]
@@ -414,7 +437,7 @@ class Collate:
         batch: dict[str, Any] = {
             "features": torch.from_numpy(features),
             "lengths": lengths_t,
-            "mask": torch.arange(self.window)[None, :] < lengths_t[:, None],
+            "mask": torch.arange(width)[None, :] < lengths_t[:, None],
             "text_emb": torch.from_numpy(np.stack([s.text_emb for s in samples]).astype(np.float32, copy=False)),
             "action": torch.tensor([self.action_id(s) for s in samples], dtype=torch.int64),
             "caption_index": torch.tensor([s.caption_index for s in samples], dtype=torch.int64),
@@ -451,4 +474,37 @@ def shuffle_buffer_order(num_items: int, buffer_size: int, rng: np.random.Genera
         out[step] = buffer[j]
         buffer[j] = new_item
     out[num_items - fill:] = rng.permutation(buffer)
+    return out
+
+
+def length_grouped_order(order: np.ndarray, lengths: np.ndarray, batch_size: int, window_batches: int,
+                         rng: np.random.Generator | None) -> np.ndarray:
+    """``order`` (a slot's shuffled emission, a whole number of batches) regrouped into length-aware batches.
+
+    The order is cut into sort windows of ``window_batches × batch_size`` consecutive items (the last window may hold
+    fewer batches); each window is sorted by ``lengths[item]`` (stably: equal lengths keep their shuffled order),
+    cut into batches of ``batch_size``, and its batches are put in a random order drawn from ``rng`` (None: shortest
+    first). Each batch is then a run of ``batch_size`` consecutive items of the result. Every item of ``order``
+    appears once, in the same window it was in, so the batch count and the set of items are those of ``order``:
+    only which items share a batch, and the batch order inside a window, change. Like :func:`shuffle_buffer_order`
+    it needs only counts and lengths, so a resumed stream and every other rank compute the same batches without
+    reading a record.
+
+    Why windows and not the whole epoch: the reader holds a record from the time it is read until its turn, so
+    regrouping within a window keeps that at most a shuffle buffer plus one window of records; sorting the whole
+    epoch would hold most of it, and would put the shortest clips of the epoch in the same batches every epoch."""
+    order = np.asarray(order, dtype=np.int64)
+    if batch_size < 1 or window_batches < 1:
+        raise ValueError(f"batch_size and window_batches must be >= 1, got {batch_size} and {window_batches}")
+    if len(order) % batch_size:
+        raise ValueError(f"{len(order)} items are not a whole number of batches of {batch_size}")
+    span = window_batches * batch_size
+    out = np.empty_like(order)
+    for start in range(0, len(order), span):
+        window = order[start:start + span]
+        ranked = window[np.argsort(np.asarray(lengths)[window], kind="stable")]
+        batches = ranked.reshape(-1, batch_size)
+        if rng is not None:
+            batches = batches[rng.permutation(len(batches))]
+        out[start:start + len(window)] = batches.reshape(-1)
     return out

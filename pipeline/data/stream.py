@@ -7,13 +7,16 @@ Stages, in order (each a named function or class; the per-sample ones live in ``
                                                shard assigned to one reader slot (rank × DataLoader worker)
     shuffle_buffer_order(...)                  the slot's sample order: a shuffle buffer seeded by
                                                (seed, epoch, slot), computed from counts before reading
+    length_grouped_order(...)                  data.batching=length_aware only: that order regrouped so that
+                                               clips of similar length (the manifest's lengths) share a batch
     ordered_records(...)                       read the slot's shards (webdataset tar or Parquet) and emit raw
                                                records in that order, skipping already-consumed ones undecoded
     DecodeTarRecord | DecodeParquetRow         → MotionRecord (features, all captions, spans, text embeddings)
     PickCaption                                one caption, motion cut to its span
     CropToWindow                               MDM/MFM random crop (multiple of unit_length, ≤ window frames)
     Normalize                                  manifest Mean/Std
-    Collate                                    padded batch + masks (keys: see ``pipeline.data.stages.Collate``)
+    Collate                                    padded batch + masks (keys: see ``pipeline.data.stages.Collate``),
+                                               padded to the window, or (length_aware) to the batch's longest clip
 
 The per-reader part runs as a ``webdataset.DataPipeline`` inside each DataLoader worker (or in the main
 process with ``num_workers=0``). Unlike open_clip, the shuffle buffer acts before decoding: its order is
@@ -28,6 +31,18 @@ communication. Every reader yields the same number of full batches, ``min over s
 (``EpochPlan.samples_dropped``). Which samples are dropped changes from epoch to epoch because the shard
 assignment and the buffer order do. A sample is never seen twice in an epoch because each shard belongs to
 exactly one slot. Fewer shards than reader slots is refused: a reader without a shard would hang its rank.
+
+Length-aware batches (``LoaderOptions.batching="length_aware"``, training's ``data.batching``). The slot's
+emission order, cut to the epoch's batch count as above, is regrouped before anything is read
+(:func:`~pipeline.data.stages.length_grouped_order`): windows of ``sort_window_batches`` batches' worth of consecutive
+samples are sorted by the manifest's clip lengths (capped at the window), cut into batches, and the batches of each
+window put in an order drawn from (seed, epoch, slot). Each batch is then padded to its longest cropped clip rounded up
+to ``pad_multiple`` frames, at most the window. The samples of an epoch, the batch count of every reader and rank,
+and what is dropped are exactly those of fixed windows; only which samples share a batch changes. The grouping uses
+the manifest's lengths (the whole record, capped at the window), the width the clips as cropped, so a manifest whose
+lengths are wrong costs padding, never a sample or exactness. A manifest without per-record lengths (or with a list
+that does not match its counts) is refused naming it. Memory: a reader holds at most a shuffle buffer plus one sort
+window of raw records.
 
 Resume. ``state_dict()`` is ``{epoch, batches_in_epoch, seed, world_size, num_workers, ...}``; it is the same
 on every rank. Every random draw is a function of (seed, epoch, slot) or (seed, epoch, sample id), never of
@@ -153,6 +168,7 @@ from pipeline.data.stages import (
     RecordSpec,
     SkipBadRecords,
     SkippedRecord,
+    length_grouped_order,
     shuffle_buffer_order,
 )
 from preprocess.shards import (
@@ -168,6 +184,7 @@ from preprocess.shards import (
 logger = logging.getLogger(__name__)
 
 BACKENDS = ("webdataset", "parquet")
+BATCHINGS = ("fixed", "length_aware")
 
 
 def backend_for_format(fmt: str) -> str:
@@ -178,6 +195,7 @@ def backend_for_format(fmt: str) -> str:
 _MANIFEST_LIST_KEY = {"webdataset": "shards", "parquet": "parquet"}
 _TAG_SHARD_SHUFFLE = 11
 _TAG_SAMPLE_SHUFFLE = 12
+_TAG_LENGTH_BATCHES = 13
 STATE_VERSION = 1
 
 
@@ -374,6 +392,24 @@ class ShardInfo:
     num_motions: int
     bytes: int
     sha256: str
+    lengths: tuple[int, ...] | None = field(default=None, repr=False, compare=False)
+    """Frames of each record in file order, from the split's ``lengths`` list; None when the manifest has no list
+    that matches its counts (:func:`split_lengths_problem` says why). Only length-aware batching reads it."""
+
+
+def split_lengths_problem(entry: Mapping[str, Any], shards: Sequence[ShardInfo]) -> str | None:
+    """Why the split's ``lengths`` cannot give each shard's record lengths (None: they can). The builder lists one
+    length per record, in shard order (each backend's list holds the same records in the same order)."""
+    lengths = entry.get("lengths")
+    total = sum(s.num_motions for s in shards)
+    if lengths is None:
+        return "it lists no 'lengths'"
+    if not isinstance(lengths, list) or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0
+                                                for n in lengths):
+        return "its 'lengths' are not a list of frame counts"
+    if len(lengths) != total:
+        return f"it lists {len(lengths)} lengths for {total} records"
+    return None
 
 
 def split_shards(manifest: Manifest, split: str, backend: str = "webdataset") -> list[ShardInfo]:
@@ -394,6 +430,11 @@ def split_shards(manifest: Manifest, split: str, backend: str = "webdataset") ->
         if shard.num_motions < 0 or shard.bytes < 0:
             raise ManifestError(f"{manifest.location}: {shard.path}: negative num_motions or bytes in the manifest")
         shards.append(replace(shard, url=manifest.shard_location(shard.path)))
+    if split_lengths_problem(manifest.split(split), shards) is None:
+        lengths, start = manifest.split(split)["lengths"], 0
+        for index, shard in enumerate(shards):
+            shards[index] = replace(shard, lengths=tuple(lengths[start:start + shard.num_motions]))
+            start += shard.num_motions
     return shards
 
 
@@ -1209,6 +1250,14 @@ class LoaderOptions:
     """Shuffle buffer size per reader (samples)."""
     caption_policy: str = "random"
     """Which caption a visit uses: 'random' (training) or 'first' (debugging); see stages.PickCaption."""
+    batching: str = "fixed"
+    """One of BATCHINGS. 'fixed': every batch padded to ``window``. 'length_aware': clips of similar length batched
+    together (by the manifest's lengths, within sort windows) and each batch padded to its longest clip rounded up to
+    ``pad_multiple`` (see the module docstring); same samples, batch counts and resume as 'fixed'."""
+    pad_multiple: int = 16
+    """length_aware: batch widths are multiples of this (at most ``window``); 1: exactly the longest clip."""
+    sort_window_batches: int = 8
+    """length_aware: how many batches' worth of consecutive (shuffled) samples are sorted by length together."""
     backend: str = "webdataset"
     """'webdataset' (tar shards, local or any URL) or 'parquet' (the same records, Parquet parts)."""
     tolerate_bad_data: bool = False
@@ -1242,6 +1291,11 @@ class LoaderOptions:
                              f"shorten_prob={self.shorten_prob}")
         if self.shuffle_buffer < 0:
             raise ValueError(f"shuffle_buffer must be >= 0, got {self.shuffle_buffer}")
+        if self.batching not in BATCHINGS:
+            raise ValueError(f"batching must be one of {BATCHINGS}, got {self.batching!r}")
+        if self.pad_multiple < 1 or self.sort_window_batches < 1:
+            raise ValueError(f"pad_multiple and sort_window_batches must be >= 1, got {self.pad_multiple} and "
+                             f"{self.sort_window_batches}")
         RetryPolicy(retries=self.retries, backoff_s=float(self.retry_backoff_s))  # validates both
 
     @property
@@ -1251,6 +1305,11 @@ class LoaderOptions:
     @property
     def readers_per_rank(self) -> int:
         return max(1, self.num_workers)
+
+    @property
+    def batch_pad_multiple(self) -> int | None:
+        """What :class:`~pipeline.data.stages.Collate` pads a batch to: None = the window (fixed batching)."""
+        return self.pad_multiple if self.batching == "length_aware" else None
 
 
 @dataclass(frozen=True)
@@ -1355,7 +1414,10 @@ class _RankStream(IterableDataset):
         order = slot_sample_order(plan.slot_samples[slot], seed=opts.seed, epoch=epoch, slot=slot,
                                   shuffle=opts.shuffle, buffer_size=opts.shuffle_buffer)
         batch_size = opts.batch_size
-        emission = order[skip_batches * batch_size: plan.batches_per_reader * batch_size]
+        emission = order[:plan.batches_per_reader * batch_size]
+        if opts.batching == "length_aware":
+            emission = self.length_batches(emission, shards, epoch, slot)
+        emission = emission[skip_batches * batch_size:]
         sample_stages: list[Callable[[Any], Any]] = [
             _DECODERS[opts.backend](spec.record_spec),
             PickCaption(opts.seed, epoch, opts.caption_policy),
@@ -1371,12 +1433,23 @@ class _RankStream(IterableDataset):
                                                 tolerate_bad_data=opts.tolerate_bad_data),
                               spec.left_out(epoch)),
             *[wds.map(stage) for stage in sample_stages],
-            wds.batched(batch_size, collation_fn=Collate(opts.window, spec.action_classes, spec.record_spec),
+            wds.batched(batch_size, collation_fn=Collate(opts.window, spec.action_classes, spec.record_spec,
+                                                         opts.batch_pad_multiple),
                         partial=False),
         )
         for local, batch in enumerate(pipeline, start=skip_batches):
             batch["_position"] = (epoch, local * plan.readers_per_rank + reader)
             yield batch
+
+    def length_batches(self, emission: np.ndarray, shards: Sequence[ShardInfo], epoch: int, slot: int) -> np.ndarray:
+        """The slot's epoch emission regrouped into length-aware batches (:func:`length_grouped_order`), from the
+        manifest's lengths capped at the window (what a clip is cropped to at most); the batch order inside each
+        sort window is drawn from (seed, epoch, slot) when shuffling."""
+        opts = self.spec.options
+        lengths = np.minimum(np.concatenate([np.asarray(s.lengths, np.int64) for s in shards]), opts.window)
+        rng = (np.random.default_rng(np.random.SeedSequence([opts.seed, epoch, slot, _TAG_LENGTH_BATCHES]))
+               if opts.shuffle else None)
+        return length_grouped_order(emission, lengths, opts.batch_size, opts.sort_window_batches, rng)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1384,7 +1457,11 @@ class _RankStream(IterableDataset):
 # ----------------------------------------------------------------------------------------------------------
 
 _PLAN_STATE_KEYS = ("split", "dataset_id", "world_size", "num_workers", "batch_size", "seed", "shuffle",
-                    "shuffle_buffer", "window", "unit_length", "shorten_prob", "caption_policy")
+                    "shuffle_buffer", "window", "unit_length", "shorten_prob", "caption_policy", "batching")
+_LENGTH_AWARE_STATE_KEYS = ("pad_multiple", "sort_window_batches")
+"""Plan keys that only length-aware batching reads (a fixed-window resume ignores them)."""
+_STATE_DEFAULTS = {"batching": "fixed"}
+"""What a state saved before a key existed meant by its absence."""
 
 
 class MotionLoader:
@@ -1416,6 +1493,14 @@ class MotionLoader:
         for url in dict.fromkeys(s.url for s in self._split_shards):
             require_support(url)  # a missing cloud package fails here, naming the extra, not in a worker
         self.excluded_shards = tuple(sorted(set(exclude_shards)))
+        if options.batching == "length_aware":
+            problem = split_lengths_problem(self.manifest.split(split), self._split_shards)
+            if problem is not None:
+                raise ManifestError(
+                    f"{self.manifest.location}: data.batching=length_aware needs every record's length in split "
+                    f"{split!r} of the manifest (its 'lengths' list, one per record in shard order), but {problem}; "
+                    "rebuild the dataset with preprocess/build_shards.py, whose manifests list them, or train with "
+                    "data.batching=fixed")
         self._spec = _StreamSpec(shards=self._usable_shards(self.excluded_shards, "exclude_shards"),
                                  record_spec=self.manifest.record_spec, mean=self.manifest.mean,
                                  std=self.manifest.std, action_classes=self.manifest.action_classes,
@@ -1488,7 +1573,9 @@ class MotionLoader:
                 "num_workers": opts.num_workers, "batch_size": opts.batch_size, "seed": opts.seed,
                 "shuffle": opts.shuffle, "shuffle_buffer": opts.shuffle_buffer, "window": opts.window,
                 "unit_length": opts.unit_length, "shorten_prob": opts.shorten_prob,
-                "caption_policy": opts.caption_policy, "excluded_shards": list(self.excluded_shards),
+                "caption_policy": opts.caption_policy, "batching": opts.batching,
+                "pad_multiple": opts.pad_multiple, "sort_window_batches": opts.sort_window_batches,
+                "excluded_shards": list(self.excluded_shards),
                 # The exclusions the current epoch was planned with, while it differs from excluded_shards.
                 "carried_epoch": ({"epoch": carried.epoch, "excluded_shards": list(carried.excluded_shards)}
                                   if carried is not None and carried.epoch == self.epoch else None),
@@ -1506,8 +1593,9 @@ class MotionLoader:
         if state.get("version") != STATE_VERSION:
             raise ValueError(f"data loader state version {state.get('version')!r}, this loader reads {STATE_VERSION}")
         current = self.state_dict()
-        for key in _PLAN_STATE_KEYS:
-            saved, now = state.get(key), current[key]
+        keys = _PLAN_STATE_KEYS + (_LENGTH_AWARE_STATE_KEYS if self.options.batching == "length_aware" else ())
+        for key in keys:
+            saved, now = state.get(key, _STATE_DEFAULTS.get(key)), current[key]
             if saved != now:
                 raise DataResumeError(f"cannot resume the data stream: {key} was {saved!r} when the state was "
                                       f"saved and is {now!r} now; the epoch plan would differ. Resume with the "

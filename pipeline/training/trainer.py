@@ -132,7 +132,8 @@ class CheckpointSaveError(RuntimeError):
 DATA_STATE_SETTINGS = {
     "batch_size": "data.batch_size", "num_workers": "data.num_workers", "seed": "data.seed",
     "shuffle_buffer": "data.shuffle_buffer", "window": "data.window", "unit_length": "data.unit_length",
-    "caption_policy": "data.caption_policy", "dataset_id": "data.manifest",
+    "caption_policy": "data.caption_policy", "dataset_id": "data.manifest", "batching": "data.batching",
+    "pad_multiple": "data.pad_multiple", "sort_window_batches": "data.sort_window_batches",
 }
 
 
@@ -412,6 +413,9 @@ class Trainer:
                 unit_length=cfg.data.unit_length,
                 shuffle_buffer=cfg.data.shuffle_buffer,
                 caption_policy=cfg.data.caption_policy,
+                batching=cfg.data.batching,
+                pad_multiple=cfg.data.pad_multiple,
+                sort_window_batches=cfg.data.sort_window_batches,
                 backend=backend_for_format(cfg.data.format),
                 # tolerant: skip (count, log) records that fail to decode, and on a resume whose excluded shards
                 # changed finish the checkpoint's epoch with its plan (pipeline.data.stream, "Tolerant mode at run time")
