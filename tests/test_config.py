@@ -215,3 +215,18 @@ def test_from_dict_rejects_unknown_nested_and_keeps_defaults():
     assert from_dict(TrainConfig, {"train": {"seed": 7}}).train == TrainLoopConfig(seed=7)
     with pytest.raises(ConfigError, match="model.widht"):
         from_dict(TrainConfig, {"model": {"widht": 3}})
+
+
+def test_compile_auto_compiles_on_cuda_only_and_booleans_still_read():
+    """train.compile: auto (every preset) compiles on a CUDA device and not on CPU; true/false as before."""
+    import torch
+
+    from pipeline.training.trainer import compiles
+
+    assert [load_config(TrainConfig, "tiny", [f"train.compile={v}"]).train.compile for v in ("auto", "true", "false")] \
+        == ["auto", True, False]
+    assert all(load_config(TrainConfig, p, []).train.compile == "auto" for p in available_presets() if p != "tiny" and not p.startswith("eval_"))
+    assert compiles("auto", torch.device("cuda")) and not compiles("auto", torch.device("cpu"))
+    assert compiles(True, torch.device("cpu")) and not compiles(False, torch.device("cuda"))
+    with pytest.raises(ConfigError, match="train.compile"):
+        load_config(TrainConfig, "tiny", ["train.compile=maybe"])

@@ -129,6 +129,11 @@ class CheckpointSaveError(RuntimeError):
 # ---------------------------------------------------------------------------------------------------------------
 
 # The loader state entries a resume must keep (pipeline.data.stream._PLAN_STATE_KEYS), as the settings that set them.
+def compiles(setting: bool | str, device: torch.device) -> bool:
+    """Whether ``train.compile`` compiles the model on ``device`` (auto: on CUDA only)."""
+    return device.type == "cuda" if setting == "auto" else bool(setting)
+
+
 DATA_STATE_SETTINGS = {
     "batch_size": "data.batch_size", "num_workers": "data.num_workers", "seed": "data.seed",
     "shuffle_buffer": "data.shuffle_buffer", "window": "data.window", "unit_length": "data.unit_length",
@@ -393,7 +398,7 @@ class Trainer:
             optimizer,
             lr_lambda(cfg.optim.warmup_steps, cfg.optim.schedule, cfg.train.max_steps, cfg.optim.min_lr_ratio),
         )
-        if cfg.train.compile:
+        if compiles(cfg.train.compile, dist.device):
             model = torch.compile(model)
         self.model, self.optimizer, self.scheduler = dist.prepare(model, optimizer, scheduler)
         self.ema.shadow = {k: v.to(dist.device) for k, v in self.ema.shadow.items()}
