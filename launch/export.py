@@ -1,13 +1,14 @@
-"""Export a training checkpoint as an inference folder (weights, normalisation, config.json, model card).
+"""Export a training checkpoint as an inference folder (weights, normalisation, config.json, a Hub model card).
 
     python launch/export.py runs/default --out exported/default            # the run's newest checkpoint, EMA
     python launch/export.py runs/default/checkpoints/step-00012000 --out exported/s12k --weights model
 
 Then, in Python::
 
+    import torch
     from pipeline.generation.pretrained import MotionPipeline
-    pipe = MotionPipeline.from_pretrained("exported/default")
-    out = pipe(["a person walks in a circle"], seconds=4.0, seed=0)
+    pipe = MotionPipeline.from_pretrained("exported/default", torch_dtype=torch.float32).to("cuda")
+    out = pipe(prompt="a person walks in a circle", seconds=4.0, generator=torch.Generator().manual_seed(0))
     out.save("samples/circle")
 
 or ``python launch/sample.py --checkpoint exported/default --text ...``. Exit code 0 done, 2 refused (one line).

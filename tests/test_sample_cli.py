@@ -329,7 +329,7 @@ def test_export_then_from_pretrained_generates_what_sampling_the_checkpoint_does
     names = {p.name for p in exported.iterdir()}
     assert names == {"config.json", "model.safetensors", "normalization.safetensors", "README.md"}
     card = (exported / "README.md").read_text()
-    assert "## Data" in card and "dataset id" in card and "No evaluator results" in card
+    assert "## Training data" in card and "dataset id" in card and "No evaluator results" in card
     assert export([str(text_run), "--out", str(exported)]) == 2  # never over an earlier export
     assert "not an empty folder" in capsys.readouterr().err
 

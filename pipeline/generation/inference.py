@@ -29,6 +29,10 @@ from mfm.model import ModelConfig, MotionFlowTransformer
 from mfm.skeleton import Skeleton, get_skeleton
 from pipeline import checkpoint as ckpt
 
+SAMPLING_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
+"""The weight dtypes a model can be sampled in (:meth:`TrainedModel.to`): float32, what training saves, or a half
+type under autocast. Not float64: the model computes its time and position tables in float32 by design."""
+
 logger = logging.getLogger(__name__)
 
 
@@ -121,6 +125,26 @@ class TrainedModel:
         baseline = self.baseline_sampling
         return baseline.guidance if baseline is not None else float(self.model_config.sampling_guidance)
 
+    @property
+    def dtype(self) -> torch.dtype:
+        """The dtype of the model's weights (float32 unless :meth:`to` changed it)."""
+        return next(self.model.parameters()).dtype
+
+    @property
+    def sampling_model(self) -> torch.nn.Module:
+        """What samplers call: the model itself in float32, else wrapped by :class:`RunInWeightDtype` (autocast)."""
+        return self.model if self.dtype == torch.float32 else RunInWeightDtype(self.model)
+
+    def to(self, device: str | torch.device | None = None, dtype: torch.dtype | None = None) -> TrainedModel:
+        """This model on ``device`` and/or in weight ``dtype`` (one of :data:`SAMPLING_DTYPES`). The module is moved
+        in place (as ``nn.Module.to`` does); the returned TrainedModel records the new device, and its Mean/Std
+        follow it (they stay float32: features are un-normalised in float32 whatever the weights are)."""
+        if dtype is not None and dtype not in SAMPLING_DTYPES:
+            raise ValueError(f"dtype {dtype}: a model samples in one of {', '.join(map(str, SAMPLING_DTYPES))}")
+        target = self.device if device is None else torch.device(device)
+        self.model.to(device=target, dtype=dtype)
+        return dataclasses.replace(self, device=target)  # a new instance: the cached Mean/Std are made on ``target``
+
     def normalize(self, features: torch.Tensor) -> torch.Tensor:
         return (features - self.mean) / self.std
 
@@ -166,6 +190,28 @@ class TrainedModel:
         extras = {"text_tokens": torch.as_tensor(encoding.tokens, device=self.device),
                   "text_token_len": torch.as_tensor(encoding.token_lengths, dtype=torch.long, device=self.device)}
         return torch.as_tensor(encoding.pooled, device=self.device), extras
+
+
+class RunInWeightDtype(torch.nn.Module):
+    """A model with bfloat16 or float16 weights, callable as the samplers call the model (``model(x, t, cond,
+    lengths, **inputs)``) with their float32 state: it runs under autocast (its matmuls in the weights' dtype, its
+    float32 parts, layer norms and time/position tables, in float32) and returns the state's dtype, so the solver or
+    sampler integrates as in float32."""
+
+    def __init__(self, model: MotionFlowTransformer) -> None:
+        super().__init__()
+        self.model = model
+        self.train(model.training)
+
+    @property
+    def config(self) -> ModelConfig:
+        return self.model.config
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor, cond: torch.Tensor, lengths: torch.Tensor | None = None,
+                **inputs: Any) -> torch.Tensor:
+        with torch.autocast(device_type=x.device.type, dtype=next(self.model.parameters()).dtype):
+            out = self.model(x, t, cond, lengths, **inputs)
+        return out.to(x.dtype)
 
 
 def load_trained_model(path: str | Path, *, use_ema: bool = True, device: str | torch.device = "cpu") -> TrainedModel:

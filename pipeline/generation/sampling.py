@@ -274,7 +274,8 @@ def placeholder_conditions(trained: TrainedModel, batch: int) -> PromptCondition
 
 def conditioned_model(trained: TrainedModel, conditions: PromptConditions) -> torch.nn.Module | BoundInputs:
     """The model with the conditions' extra per-sample inputs bound (the solvers' and samplers' call signature)."""
-    return BoundInputs(trained.model, conditions.extras) if conditions.extras else trained.model
+    model = trained.sampling_model  # the model in its weights' dtype (TrainedModel.to)
+    return BoundInputs(model, conditions.extras) if conditions.extras else model
 
 def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Tensor, num_frames: int) -> torch.Tensor:
     """(B, T, D) the source motion cropped/zero-padded to every sample's length."""
@@ -286,8 +287,10 @@ def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Te
 @torch.no_grad()
 def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: Integrator, specs: list[SampleSpec],
                    conditions: PromptConditions | None, source: SourceMotion | None,
-                   options: Mapping[str, Any]) -> BatchResult:
-    """Sample (or edit) one batch of motions."""
+                   options: Mapping[str, Any],
+                   noise_generators: Mapping[int, torch.Generator] | None = None) -> BatchResult:
+    """Sample (or edit) one batch of motions. ``noise_generators``: sample index -> the generator its noise is drawn
+    from (the Python API's ``generator=``); by default each sample's own, seeded with its ``seed``."""
     device = trained.device
     lengths = torch.tensor([s.length for s in specs], dtype=torch.long, device=device)
     num_frames = int(lengths.max())
@@ -306,7 +309,7 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
                          source.features.shape[0]).to(device)
     if integrator.objective == "diffusion":
         # Each sample's initial and per-step noise from its own seed: the same sample at any --batch-size.
-        generator = seeded_generators([s.seed for s in specs])
+        generator = _noise_generators(specs, noise_generators)
         if source is None:
             result: SolveResult = sample_diffusion(
                 model, integrator.diffusion, cond, lengths, num_frames=num_frames, feature_dim=dim,
@@ -319,7 +322,7 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
     else:
         velocity = guided_velocity(model, cond, scale=scale, lengths=lengths,
                                    conditional_channels=request.conditional_channels_for(trained))
-        x0 = draw_noise((len(specs), num_frames, dim), seeded_generators([s.seed for s in specs]), lengths=lengths,
+        x0 = draw_noise((len(specs), num_frames, dim), _noise_generators(specs, noise_generators), lengths=lengths,
                         device=device)
         if source is None:
             result = solve(zero_padded_frames(velocity, lengths), x0, solver=integrator.name, steps=integrator.steps,
@@ -332,6 +335,13 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
         specs, x1.cpu(), result.nfe, None if keep is None else keep.cpu(),
         None if result.x1_hat is None else result.x1_hat.float().cpu(), result.x1_hat_times,
     )
+
+def _noise_generators(specs: Sequence[SampleSpec],
+                      given: Mapping[int, torch.Generator] | None) -> list[torch.Generator]:
+    """One generator per sample of the batch: the given one, or a new one seeded with the sample's seed."""
+    if given is not None:
+        return [given[s.index] for s in specs]
+    return seeded_generators([s.seed for s in specs])
 
 def caption(request: SampleRequest, spec: SampleSpec) -> str:
     if spec.prompt is None:
@@ -377,14 +387,15 @@ def sample_record(request: SampleRequest, trained: TrainedModel, integrator: Int
 
 def generated_batches(request: SampleRequest, trained: TrainedModel, integrator: Integrator,
                       specs: Sequence[SampleSpec], conditions: PromptConditions | None, source: SourceMotion | None,
-                      options: Mapping[str, Any]) -> Iterator[tuple[list[SampleSpec], BatchResult, np.ndarray, float]]:
+                      options: Mapping[str, Any], noise_generators: Mapping[int, torch.Generator] | None = None,
+                      ) -> Iterator[tuple[list[SampleSpec], BatchResult, np.ndarray, float]]:
     """Generate ``specs`` batch by batch: ``(specs of the batch, its BatchResult, its un-normalised features
     (B, T, D) as numpy, generation seconds)``. Shared by the command line (which writes each batch as it comes) and
     the Python API (:class:`pipeline.generation.pretrained.MotionPipeline`)."""
     for chunk in batches(specs, request.batch_size):
         synchronize(trained.device)
         tick = time.perf_counter()
-        batch = generate_batch(request, trained, integrator, chunk, conditions, source, options)
+        batch = generate_batch(request, trained, integrator, chunk, conditions, source, options, noise_generators)
         synchronize(trained.device)
         seconds = time.perf_counter() - tick
         features = trained.denormalize(batch.features.to(trained.device)).cpu().numpy()
