@@ -248,9 +248,12 @@ class GeneratedMotions:
 class MotionPipeline:
     """Generate motions from an exported folder (or any checkpoint) in a few lines; see the module docstring."""
 
-    def __init__(self, trained: TrainedModel, *, text_weights: str | None = None) -> None:
+    def __init__(self, trained: TrainedModel, *, text_weights: str | None = None, weights: str | None = None) -> None:
+        """``weights``: the weights asked for, 'ema' or 'model' (a FLAME checkpoint asked for its EMA that kept none
+        is refused when sampling, as launch/sample.py); None: those ``trained`` holds."""
         self.trained = trained
         self.text_weights = text_weights
+        self.weights = weights or trained.weights
 
     @classmethod
     def from_pretrained(cls, folder: str | Path, *, device: str = "auto", weights: str = "ema",
@@ -260,7 +263,7 @@ class MotionPipeline:
         from pipeline.generation.integration import resolve_device
 
         trained = load_trained_model(folder, use_ema=weights == "ema", device=resolve_device(device))
-        return cls(trained, text_weights=text_weights)
+        return cls(trained, text_weights=text_weights, weights=weights)
 
     @property
     def fps(self) -> float:
@@ -269,10 +272,13 @@ class MotionPipeline:
     def __call__(self, texts: str | Sequence[str] = (), *, actions: Sequence[str] = (),
                  seconds: float | Sequence[float] | None = None, lengths: int | Sequence[int] | None = None,
                  num_samples: int = 1, seed: int = 0, steps: int | None = None, solver: str | None = None,
-                 guidance: float | None = None, batch_size: int = 64) -> GeneratedMotions:
+                 guidance: float | None = None, batch_size: int = 64, baseline_defaults: bool = True,
+                 clip_denoised: bool = True) -> GeneratedMotions:
         """Motions for ``texts`` (or ``actions``), ``num_samples`` each, ``seconds`` or ``lengths`` long (one value
-        or one per prompt; default: drawn from the training lengths). The same arguments give the same motions as
-        ``launch/sample.py``."""
+        or one per prompt; default: drawn from the training lengths). A FLAME-preset diffusion checkpoint samples as
+        FLAME's authors did unless ``baseline_defaults=False`` (or ``clip_denoised=False``: no x0 clamp; ``steps``:
+        fewer than every training step), as SampleRequest's keys of those names. The same arguments give the same
+        motions as ``launch/sample.py``."""
         from pipeline.generation import integration, sampling
         from pipeline.generation.request import SampleRequest
 
@@ -280,7 +286,8 @@ class MotionPipeline:
         request = SampleRequest(
             checkpoint=str(self.trained.checkpoint), out_dir="", texts=texts, actions=list(actions),
             seconds=_as_list(seconds), lengths=_as_list(lengths), num_samples=num_samples, seed=seed, steps=steps,
-            solver=solver, guidance=guidance, batch_size=batch_size, text_weights=self.text_weights)
+            solver=solver, guidance=guidance, batch_size=batch_size, text_weights=self.text_weights,
+            weights=self.weights, baseline_defaults=baseline_defaults, baseline_clip_denoised=clip_denoised)
         trained = self.trained
         integrator = integration.resolve_integrator(request, trained)
         conditions = sampling.encode_prompts(request, trained)
