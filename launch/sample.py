@@ -23,6 +23,10 @@ Edits: --keep prefix=F / suffix=F (prediction, inbetween), every=K (interpolate)
 
 Flow checkpoints take ODE solvers (default euler, 10 steps); diffusion checkpoints (train.objective=diffusion) take
 --solver ddpm (default) or ddim, --steps respaced from the training steps (default all 1000); nfe = steps.
+FLAME-preset checkpoints sample as FLAME's authors did (guidance 8.0, σ = 1 smoothing, every training step, the x0
+clamp, EMA weights; their edits copy the source's root) unless --guidance, --smoothing, --steps, --no-clip-denoised,
+--model-weights model, --no-reference-translation or --no-baseline-defaults (all of them) say otherwise;
+results.json's baseline_defaults records what ran and what was overridden.
 
 --compose FILE.json (FlowMDM's {"text": [...], "lengths": [...]}) makes ONE sequence of all segments per sample
 (distinct texts need a model trained with model.positional=bpe model.conditioning=pccat); --extrapolate repeats one

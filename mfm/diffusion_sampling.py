@@ -272,6 +272,15 @@ class BaselineSampling:
         """What a results file says about these settings."""
         return dataclasses.asdict(self)
 
+    def as_run(self, *, every_training_step: bool = True, clip_denoised: bool = True,
+               ema_weights: bool = True) -> BaselineSampling:
+        """These settings as a run applies them: each switch given False (the run turned that setting off) reads
+        False, the others stay the authors'. Shared by the evaluator (``sampling.baseline_*``) and the sampler
+        (pipeline/generation/request.py)."""
+        return dataclasses.replace(self, every_training_step=self.every_training_step and every_training_step,
+                                   clip_denoised=self.clip_denoised and clip_denoised,
+                                   ema_weights=self.ema_weights and ema_weights)
+
 
 BASELINE_SAMPLING: dict[str, BaselineSampling] = {
     "flame": BaselineSampling(
@@ -291,6 +300,9 @@ edits' translation copy belongs to its editing procedure, which every diffusion 
 
 FLAME_X0_BOUND = 1.0
 """FLAME's ``clip_denoised=True``: improved DDPM's ``x.clamp(-1, 1)`` of the x_0 estimate, in FLAME's raw features."""
+
+ROTATION_6D_RANGE_RECORD = "6D rotation channels in [-1, 1] (raw units); others unclamped"
+"""What results files say about the bounds :func:`rotation_6d_range` sets."""
 
 
 def rotation_6d_range(layout: FeatureLayout, mean: Tensor, std: Tensor) -> DenoisedRange:

@@ -141,7 +141,15 @@ class OptimConfig:
     ema_decay: float = 0.9999
     """EMA weight of the previous average at each EMA update."""
     ema_every: int = 1
-    """Optimizer steps between EMA updates."""
+    """Optimizer steps between EMA updates: the EMA is updated after optimizer steps k = ema_every, 2·ema_every, ...
+    (k counts from 1, as FLAME's ``global_step % ema_update == 0``; a skipped step updates nothing)."""
+    ema_start: int = 0
+    """EMA updates after optimizer steps k <= ema_start copy the weights instead of averaging them (FLAME's
+    ``ema_start``, diffusion_module.py: 72–76 ``global_step <= ema_start``); 0: every update averages."""
+    ema_warmup: bool = True
+    """Average with the warm-up decay ``min(ema_decay, (1 + n) / (10 + n))`` (n: EMA updates so far, copies
+    included), so a short run's average is not dominated by its random initialisation; false: ``ema_decay`` from
+    the first average on (FLAME, whose copy phase ``ema_start`` stands in for a warm-up)."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)
@@ -154,6 +162,7 @@ class OptimConfig:
         _require(self.grad_accum >= 1, f"optim.grad_accum must be >= 1, got {self.grad_accum}")
         _require(0.0 <= self.ema_decay < 1.0, f"optim.ema_decay must lie in [0, 1), got {self.ema_decay}")
         _require(self.ema_every >= 1, f"optim.ema_every must be >= 1, got {self.ema_every}")
+        _require(self.ema_start >= 0, f"optim.ema_start must be >= 0 (0: no copy phase), got {self.ema_start}")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

@@ -23,6 +23,9 @@ from pipeline.evaluation.job import CheckpointScorer, baseline_record, checkpoin
 from pipeline.evaluation.replications import check_weights, generate, points_for
 from pipeline.evaluation.spaces import EvaluationError
 from pipeline.generation.inference import TrainedModel
+from pipeline.generation.integration import resolve_integrator
+from pipeline.generation.request import SampleRequest, SamplingError, load_sample_request
+from pipeline.generation.sampling import PromptConditions, SampleSpec, SourceMotion, _edit_record, generate_batch
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -183,3 +186,125 @@ def test_pose_guidance_is_each_flow_checkpoints_own_unless_the_sweep_sets_it_and
     assert key() == key("sampling.guided_features=null") != key("sampling.guided_features=pose")
     with pytest.raises(ValueError, match="guided_features"):
         SamplingConfig(guided_features="root")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# launch/sample.py (and MotionPipeline, contact sheets: pipeline/generation) runs FLAME's checkpoints FLAME's way too
+
+
+def sample_request(**keys) -> SampleRequest:
+    return SampleRequest(checkpoint="unused", out_dir="", **{"texts": ("a", "b"), **keys})
+
+
+def sampled(trained: TrainedModel, request: SampleRequest, source: SourceMotion | None = None) -> torch.Tensor:
+    """The sampler's batch for the two motions :func:`sample` draws (same lengths, conditions and seeds)."""
+    specs = [SampleSpec(0, 0, 10, 1), SampleSpec(1, 1, 7, 2)]
+    conditions = PromptConditions(torch.randn(2, 4, generator=torch.Generator().manual_seed(1)), {})
+    return generate_batch(request, trained, resolve_integrator(request, trained), specs, conditions, source,
+                          {}).features
+
+
+def test_sample_py_samples_a_flame_checkpoint_as_the_evaluator_does_x0_clamp_included():
+    flame = tiny_model()
+    # FLAME's settings: guidance 8.0, σ = 1, the clamp on the 6D rotations; three steps to keep the test short
+    ours = sampled(flame, sample_request(steps=3))
+    scored = sample(flame, SamplingConfig(baseline_steps=False), SamplingPoint("ddpm", 3, 8.0))
+    torch.testing.assert_close(ours, scored, rtol=0, atol=1e-6)
+    assert float(ours[..., ROT].abs().max()) <= 1.0 + 1e-5
+    free = sampled(flame, sample_request(steps=3, baseline_clip_denoised=False))
+    torch.testing.assert_close(free, sample(flame, SamplingConfig(baseline_steps=False, baseline_clip_denoised=False),
+                                            SamplingPoint("ddpm", 3, 8.0)), rtol=0, atol=1e-6)
+    assert float(free[..., ROT].abs().max()) > 1.5
+    # baseline_defaults=false: our defaults (the model's guidance 2.5, no smoothing, no clamp), as the evaluator's
+    plain = sampled(flame, sample_request(steps=3, baseline_defaults=False))
+    torch.testing.assert_close(plain, sample(flame, SamplingConfig(baseline_defaults=False),
+                                             SamplingPoint("ddpm", 3, 2.5)), rtol=0, atol=1e-6)
+
+
+def test_sample_py_records_flames_settings_as_run_and_each_override():
+    flame = tiny_model()
+    default = sample_request()
+    integrator = resolve_integrator(default, flame)
+    assert integrator.steps == 1000 and integrator.clip_denoised is not None  # every training step, clamped
+    record = default.baseline_record(flame)
+    assert (record["preset"], record["guidance"], record["smoothing_sigma"], record["every_training_step"],
+            record["clip_denoised"], record["ema_weights"], record["overridden"]) == ("flame", 8.0, 1.0, True, True,
+                                                                                    True, [])
+    assert "6D rotation" in record["clip_denoised_range"] and "sample_util.py: 90" in record["source"]
+    assert sample_request(steps=1000).baseline_record(flame)["overridden"] == []  # all its steps: FLAME's count
+
+    every = sample_request(steps=5, guidance=2.5, smoothing=0.0, baseline_clip_denoised=False, weights="model")
+    record = every.baseline_record(flame)
+    assert (record["every_training_step"], record["clip_denoised"], record["ema_weights"]) == (False, False, False)
+    assert "clip_denoised_range" not in record
+    assert record["overridden"] == ["guidance", "smoothing_sigma", "every_training_step", "clip_denoised",
+                                    "ema_weights"]
+    integrator = resolve_integrator(every, flame)
+    assert (integrator.steps, integrator.clip_denoised) == (5, None)
+    assert (every.guidance_for(flame), every.smoothing_for(flame)) == (2.5, 0.0)
+
+    ours = sample_request(baseline_defaults=False)
+    assert ours.baseline_record(flame) is None and resolve_integrator(ours, flame).clip_denoised is None
+    assert (ours.guidance_for(flame), ours.smoothing_for(flame)) == (2.5, 0.0)  # the model's own
+    assert resolve_integrator(ours, flame).steps == 1000  # our diffusion default: every step as well
+    flowmdm = tiny_model(preset="flowmdm")  # no authors' settings of its own
+    assert default.baseline_record(flowmdm) is None and resolve_integrator(default, flowmdm).clip_denoised is None
+    assert load_sample_request(None, ["checkpoint=c", "out_dir=o"], {}).baseline_defaults  # on by default
+
+
+def test_sample_py_refuses_to_sample_a_flame_checkpoint_without_ema_as_if_it_were_its_ema():
+    without_ema = tiny_model(weights="model")  # a run that kept no EMA: loading fell back to the raw weights
+    with pytest.raises(SamplingError, match="no EMA weights.*--model-weights model"):
+        resolve_integrator(sample_request(), without_ema)
+    asked = sample_request(weights="model")
+    resolve_integrator(asked, without_ema)
+    assert asked.baseline_record(without_ema)["overridden"] == ["ema_weights"]
+    resolve_integrator(sample_request(baseline_defaults=False), without_ema)
+    resolve_integrator(sample_request(), tiny_model(preset="flowmdm", weights="model"))  # ours: the fallback stays
+
+
+def test_sample_py_diffusion_edits_copy_the_source_root_after_the_smoothing_unless_turned_off():
+    flame = tiny_model()
+    source = SourceMotion(Path("source.npy"), "features",
+                          torch.randn(10, LAYOUT.dim, generator=torch.Generator().manual_seed(2)))
+    edit = {"edit": "upper-body", "source_motion": "source.npy", "steps": 3}
+    copied = sampled(flame, sample_request(**edit), source)
+    not_copied = sampled(flame, sample_request(**edit, edit_reference_translation=False), source)
+    lengths = torch.tensor([10, 7])
+    valid = valid_frame_mask(lengths, 10).unsqueeze(-1)
+    # FLAME's edit_motion.py: 79-82 smooths (σ = 1), then 93-94 sets the reference translation: the source's root
+    torch.testing.assert_close(copied[..., :4], source.features[:, :4].expand(2, -1, -1) * valid, rtol=0, atol=0)
+    assert float((not_copied[..., :4] - copied[..., :4]).abs().max()) > 1e-2  # smoothed without the copy
+    torch.testing.assert_close(copied[..., 4:], not_copied[..., 4:], rtol=0, atol=0)  # only the root dims
+    # ... exactly what the evaluator makes of the same edit (its tasks.edit_reference_translation)
+    known = source.features.expand(2, -1, -1) * valid
+    keep = edit_mask("upper_body", lengths, 10, LAYOUT)
+    scored = sample(flame, SamplingConfig(baseline_steps=False), SamplingPoint("ddpm", 3, 8.0), known=known, keep=keep,
+                    reference_translation=True, restore_known=True)
+    torch.testing.assert_close(copied, scored, rtol=0, atol=1e-6)
+
+    keep_np = keep[0].numpy()
+    record = _edit_record(sample_request(**edit), resolve_integrator(sample_request(**edit), flame), source, {},
+                          keep_np)
+    assert record["reference_translation"] is True
+    off = sample_request(**edit, edit_reference_translation=False)
+    assert _edit_record(off, resolve_integrator(off, flame), source, {}, keep_np)["reference_translation"] is False
+    flow = tiny_model(objective="flow", preset=None)  # MFM's procedure never copies: nothing to record
+    flow_edit = sample_request(edit="upper-body", source_motion="source.npy")
+    assert _edit_record(flow_edit, resolve_integrator(flow_edit, flow), source, {}, keep_np)[
+        "reference_translation"] is None
+
+
+def test_motion_pipeline_samples_a_flame_checkpoint_flames_way_unless_told_otherwise():
+    from pipeline.generation.pretrained import MotionPipeline
+
+    flame = tiny_model()
+    pipe = MotionPipeline(flame)
+    clamped = pipe(lengths=10, steps=3).features[0]  # unit normalisation: raw = normalised features
+    free = pipe(lengths=10, steps=3, clip_denoised=False).features[0]
+    assert abs(clamped[:, ROT]).max() <= 1.0 + 1e-5 and abs(free[:, ROT]).max() > 1.5
+    plain = pipe(lengths=10, steps=3, baseline_defaults=False).features[0]
+    assert abs(plain[:, ROT]).max() > 1.5
+    with pytest.raises(SamplingError, match="no EMA weights"):  # asked for the EMA the run did not keep
+        MotionPipeline(tiny_model(weights="model"), weights="ema")(lengths=10, steps=3)
+    MotionPipeline(tiny_model(weights="model"))(lengths=10, steps=3)  # the weights it holds, as given

@@ -228,10 +228,17 @@ def test_diffusion_checkpoints_sample_with_ddpm_and_ddim(run_fixture, preset, re
 
     ddpm = sample(run, tmp_path / "ddpm", "--text", "a person walks", "--text", "a person jumps", "--length", "20",
                   "--solver", "ddpm", "--steps", "5", "--no-video", "--no-bvh")
-    # FLAME's checkpoints sample as its authors ran them: guidance 8.0, output smoothed over time with σ = 1
+    # FLAME's checkpoints sample as its authors ran them: guidance 8.0, output smoothed over time with σ = 1, the x0
+    # clamp on the 6D rotations (every training step unless --steps asks for fewer: recorded as overridden)
     guidance, sigma = (8.0, 1.0) if preset == "flame" else (2.5, 0.0)
     assert (ddpm["objective"], ddpm["sampler"], ddpm["steps"], ddpm["guidance"]) == ("diffusion", "ddpm", 5, guidance)
     assert ddpm["smoothing_sigma"] == sigma
+    if preset == "flame":
+        own = ddpm["baseline_defaults"]
+        assert (own["preset"], own["every_training_step"], own["clip_denoised"], own["ema_weights"],
+                own["overridden"]) == ("flame", False, True, True, ["every_training_step"])
+    else:
+        assert ddpm["baseline_defaults"] is None
     assert ddpm["nfe_per_batch"] == [5]  # one guided (batched) denoiser pass per step
     assert ddpm["diffusion"]["preset"] == preset and len(ddpm["diffusion"]["model_steps"]) == 5
     one_by_one = sample(run, tmp_path / "ddpm-b1", "--text", "a person walks", "--text", "a person jumps",
@@ -254,7 +261,8 @@ def test_diffusion_checkpoints_sample_with_ddpm_and_ddim(run_fixture, preset, re
     cond = trained.conditions(texts=["a person walks"])
     generator = torch.Generator().manual_seed(ddim["samples"][0]["noise_seed"])
     expected = sample_diffusion(trained.model, trained.diffusion, cond, [20], num_frames=20, sampler="ddim", steps=5,
-                                guidance=guidance, generator=generator)
+                                guidance=guidance, generator=generator,
+                                clip_denoised=trained.x0_clamp(trained.baseline_sampling))
     smoothed = smooth_over_time(expected.x1, [20], sigma)
     scale = max(1.0, float(np.abs(features).max()))
     np.testing.assert_allclose(features, trained.denormalize(smoothed[0]).numpy(), rtol=0, atol=1e-4 * scale)
@@ -292,6 +300,34 @@ def test_diffusion_replacement_edit_keeps_the_kept_part(flame_run, tmp_path, cap
     assert "rewrite_until" in err and "replacement" in err
 
 
+def test_flame_settings_are_switched_off_one_by_one_from_the_command_line_and_recorded(flame_run, tmp_path, capsys):
+    """launch/sample.py applies FLAME's sampling settings to a FLAME checkpoint unless a flag turns one off
+    (--no-clip-denoised, --no-baseline-defaults, --model-weights model, --steps, --guidance, --smoothing), and
+    its diffusion edits copy the source's root unless --no-reference-translation; results.json records each."""
+    # (FLAME's every training step without --steps: test_baseline_sampling.py, 1,000 steps being slow here)
+    args = ["--text", "a person walks", "--length", "20", "--solver", "ddim", "--no-video", "--no-bvh", "--steps", "5"]
+    free = sample(flame_run, tmp_path / "free", *args, "--no-clip-denoised", "--model-weights", "model",
+                  "--guidance", "3", "--smoothing", "0")
+    own = free["baseline_defaults"]
+    assert (free["weights"], own["clip_denoised"], own["ema_weights"]) == ("model", False, False)
+    assert own["overridden"] == ["guidance", "smoothing_sigma", "every_training_step", "clip_denoised",
+                                 "ema_weights"]
+    ours = sample(flame_run, tmp_path / "ours", *args, "--no-baseline-defaults")
+    assert ours["baseline_defaults"] is None and (ours["guidance"], ours["smoothing_sigma"]) == (2.5, 0.0)
+    # (what each setting does to the motions: test_baseline_sampling.py)
+
+    source = tmp_path / "ours" / "sample_000" / "features.npy"
+    edit = [*args, "--edit", "upper-body", "--source-motion", str(source)]
+    copied = sample(flame_run, tmp_path / "copied", *edit)
+    kept = sample(flame_run, tmp_path / "kept", *edit, "--no-reference-translation")
+    assert copied["samples"][0]["edit"]["reference_translation"] is True
+    assert kept["samples"][0]["edit"]["reference_translation"] is False
+    root = np.load(source)[:, :4]
+    # FLAME's edit_motion.py: the reference translation after the smoothing, so the source's root exactly
+    np.testing.assert_allclose(features_file(tmp_path / "copied", copied)[:, :4], root, rtol=1e-6, atol=1e-5)
+    assert np.abs(features_file(tmp_path / "kept", kept)[:, :4] - root).max() > 1e-3  # smoothed
+
+
 def test_objectives_reject_each_others_samplers(text_run, diffusion_run, tmp_path, capsys):
     err = fails(text_run, tmp_path / "bad", capsys, "--text", "x", "--solver", "ddpm")
     assert "train.objective=flow" in err and "diffusion sampler" in err and "euler" in err
@@ -314,7 +350,8 @@ def test_flame_layout_samples_with_its_token_features(flame_layout_run, tmp_path
     assert extras["text_tokens"].shape[1] == trained.data["text_encoder"]["max_tokens"]
     generator = torch.Generator().manual_seed(results["samples"][0]["noise_seed"])
     expected = sample_diffusion(BoundInputs(trained.model, extras), trained.diffusion, cond, [20], num_frames=20,
-                                sampler="ddim", steps=5, guidance=2.5, generator=generator)
+                                sampler="ddim", steps=5, guidance=2.5, generator=generator,
+                                clip_denoised=trained.x0_clamp(trained.baseline_sampling))  # FLAME's clamp
     np.testing.assert_allclose(walk, trained.denormalize(expected.x1[0]).numpy(), rtol=0, atol=1e-4)
     unconditional = sample(flame_layout_run, tmp_path / "none", "--length", "20", "--solver", "ddim", "--steps", "5",
                            "--no-video", "--no-bvh")

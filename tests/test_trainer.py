@@ -43,7 +43,7 @@ from pipeline.training.run_folder import (
     check_run_folder,
     write_run_marker,
 )
-from pipeline.training.trainer import NonFiniteLossError, Trainer
+from pipeline.training.trainer import EMA, NonFiniteLossError, Trainer
 
 train_entry = load_launch_script("train")  # launch/train.py, whose main() the in-process tests call
 
@@ -387,6 +387,93 @@ def test_skipped_step_leaves_weights_and_optimizer_untouched(dataset, tmp_path, 
         assert_identical(optimizer_before, trainer.optimizer.state_dict(), "optimizer")
         assert_identical(ema_before, trainer.ema.state_dict(), "ema")
         assert all(p.grad is None for p in trainer.model.parameters())
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The EMA of the weights: our warm-up by default, FLAME's copy-until-step-N schedule as options
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def ema_run(steps: int, decay: float, **schedule: Any) -> tuple[EMA, dict[str, torch.Tensor],
+                                                               dict[int, dict[str, torch.Tensor]]]:
+    """An EMA(decay, **schedule) of a model whose weights become new random values at every step 1..``steps``,
+    updated after each as the trainer does: the EMA, the initial weights and the weights after every step."""
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 2)
+    initial = {k: v.clone() for k, v in model.state_dict().items()}
+    ema = EMA(model, decay, **schedule)
+    weights = {}
+    for step in range(1, steps + 1):
+        with torch.no_grad():
+            for p in model.parameters():
+                p.copy_(torch.randn_like(p))
+        weights[step] = {k: v.clone() for k, v in model.state_dict().items()}
+        ema.after_step(model, step)
+    return ema, initial, weights
+
+
+def test_ema_default_is_every_step_with_the_warmup_as_before():
+    ema, initial, weights = ema_run(30, 0.9)  # optim.ema_every=1 ema_start=0 ema_warmup=true: the defaults
+    expected = {k: v.clone().float() for k, v in initial.items()}
+    for n in range(1, 31):  # the formula the trainer always had: every step, min(decay, (1 + n)/(10 + n))
+        decay = min(0.9, (1 + n) / (10 + n))
+        expected = {k: v.lerp(weights[n][k], 1.0 - decay) for k, v in expected.items()}
+    assert_identical(expected, ema.shadow, "ema")
+    assert ema.num_updates == 30
+
+
+def test_ema_reproduces_flames_schedule_copy_until_ema_start_then_average_every_ema_every_steps():
+    """FLAME's diffusion_module.py: on_train_batch_end calls step_ema when global_step % ema_update == 0 (global_step:
+    optimizer steps done); step_ema copies the weights while global_step <= ema_start, else ema = decay * ema +
+    (1 - decay) * weights (src/models/ema.py), with diffusion_hml3d.yaml's ema_start 100, ema_update 10, decay 0.99."""
+    flame_schedule = {"every": 10, "start": 100, "warmup": False}
+    ema, initial, weights = ema_run(135, 0.99, **flame_schedule)
+    flame = dict(initial)
+    for step in range(1, 136):
+        if step % 10 == 0:
+            flame = dict(weights[step]) if step <= 100 else {k: 0.99 * v + 0.01 * weights[step][k]
+                                                             for k, v in flame.items()}
+        if step in (9, 10, 100, 109):  # the initial weights before step 10, then a copy of them until step 100
+            replay, _, _ = ema_run(step, 0.99, **flame_schedule)
+            assert_identical(flame, replay.shadow, f"ema after step {step}")
+    for k in flame:  # then FLAME's average, which differs from ours by float rounding only (lerp vs a·x + b·y)
+        torch.testing.assert_close(ema.shadow[k], flame[k], rtol=1e-6, atol=1e-7)
+    assert ema.num_updates == 13
+    # our warm-up would have averaged with min(0.99, (1 + n)/(10 + n)) = 0.57 at the first average: far from FLAME
+    warm, _, _ = ema_run(135, 0.99, every=10, start=100)
+    assert max((warm.shadow[k] - flame[k]).abs().max().item() for k in flame) > 1e-2
+
+
+@pytest.mark.slow
+def test_flame_ema_schedule_in_training_and_exact_resume_across_ema_start(dataset, tmp_path):
+    """optim.ema_every=2 ema_start=4 ema_warmup=false: checkpoints 2 and 4 hold EMA = the weights, 6 the average of
+    4's and 6's (decay 0.5); a run SIGKILLed in step 3 and resumed from checkpoint 2 crosses ema_start and ends bit
+    for bit as the uninterrupted one."""
+    python = [sys.executable]
+    extra = ("optim.ema_every=2", "optim.ema_start=4", "optim.ema_warmup=false", "optim.ema_decay=0.5",
+             "train.max_steps=8", "train.save_every=2", "train.keep_last=0")
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    proc = run_worker(python, [fit_scenario(a_out, base_overrides(dataset, a_out / "run", *extra))], a_out)
+    assert proc.returncode == 0, output_of(proc)
+    saved = {step: ckpt.load_checkpoint(ckpt.checkpoints_dir(a_out / "run") / ckpt.step_dir_name(step))
+             for step in (2, 4, 6, 8)}
+    for step in (2, 4):
+        model, ema, _ = saved[step]
+        assert_identical({k: v.float() for k, v in model.items()}, ema, f"ema at step {step}")
+    (model4, _, _), (model6, ema6, state6) = saved[4], saved[6]
+    for k in ema6:
+        torch.testing.assert_close(ema6[k], 0.5 * model4[k].float() + 0.5 * model6[k].float(), rtol=1e-6, atol=1e-7)
+    assert any(not torch.equal(ema6[k], model6[k].float()) for k in ema6)  # an average now, no longer a copy
+    assert state6["extra"]["ema_updates"] == 3 and saved[8][2]["extra"]["ema_updates"] == 4
+
+    b_scenario = fit_scenario(b_out, base_overrides(dataset, b_out / "run", *extra))
+    proc = run_worker(python, [{**b_scenario, "kill_at": [0, 3]}], b_out)
+    assert proc.returncode == -signal.SIGKILL, output_of(proc)
+    assert complete_steps(b_out / "run") == [2]
+    proc = run_worker(python, [b_scenario], b_out)
+    assert proc.returncode == 0, output_of(proc)
+    assert "resumed from" in proc.stderr and "step-00000002" in proc.stderr
+    assert_runs_identical(a_out / "run", b_out / "run", 8)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -152,14 +152,8 @@ def checkpoint_id(folder: Path) -> str:
 def baseline_record(trained: TrainedModel, sampling: Any) -> dict[str, Any]:
     """What a result says about the output smoothing and whose sampling settings ran (a baseline's own, as run:
     guidance, smoothing, every training step, x0 clamp, EMA weights, and where the numbers come from; or ours)."""
-    baseline = baseline_sampling(trained, sampling)
-    if baseline is None:
-        return {"smoothing_sigma": output_smoothing(trained, sampling), "baseline_defaults": None,
-                "guided_features": guided_features(trained, sampling)}
-    record = {"preset": trained.diffusion_preset, **baseline.record()}
-    if baseline.clip_denoised:
-        record["clip_denoised_range"] = "6D rotation channels in [-1, 1] (raw units); others unclamped"
-    return {"smoothing_sigma": output_smoothing(trained, sampling), "baseline_defaults": record,
+    return {"smoothing_sigma": output_smoothing(trained, sampling),
+            "baseline_defaults": trained.baseline_record(baseline_sampling(trained, sampling)),
             "guided_features": guided_features(trained, sampling)}
 
 

@@ -44,11 +44,8 @@ from mfm.composition import BoundInputs
 from mfm.diffusion_sampling import (
     SAMPLERS,
     BaselineSampling,
-    copy_reference_root,
     replacement_edit,
-    rotation_6d_range,
     sample_diffusion,
-    smooth_over_time,
 )
 from mfm.editing import edit, edit_mask
 from mfm.features import features_to_joints
@@ -645,19 +642,18 @@ def baseline_sampling(trained: TrainedModel, sampling: SamplingConfig | None) ->
     baseline = trained.baseline_sampling if sampling is not None and sampling.baseline_defaults else None
     if baseline is None:
         return None
-    return dataclasses.replace(
-        baseline, every_training_step=baseline.every_training_step and sampling.baseline_steps,
-        clip_denoised=baseline.clip_denoised and sampling.baseline_clip_denoised)
+    return baseline.as_run(every_training_step=sampling.baseline_steps, clip_denoised=sampling.baseline_clip_denoised)
 
 
 def check_weights(trained: TrainedModel, sampling: SamplingConfig) -> None:
     """A baseline whose authors sample the EMA of the weights (FLAME) is not silently scored with its raw weights:
     with ``sampling.use_ema`` its checkpoint must hold EMA weights."""
     baseline = baseline_sampling(trained, sampling)
-    if baseline is not None and baseline.ema_weights and sampling.use_ema and trained.weights != "ema":
-        raise EvaluationError(f"{trained.checkpoint} holds no EMA weights, which its authors' sampling "
-                              f"({trained.diffusion_preset}) uses: set sampling.use_ema=false to score its raw "
-                              "weights")
+    try:
+        trained.check_baseline_weights(None if baseline is None else baseline.as_run(ema_weights=sampling.use_ema),
+                                       "set sampling.use_ema=false to score its raw weights")
+    except ValueError as err:
+        raise EvaluationError(str(err)) from None
 
 
 def guided_features(trained: TrainedModel, sampling: SamplingConfig) -> str:
@@ -697,9 +693,9 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
     FLAME's ``replacement_edit`` on the schedule respaced to ``point.steps``, each motion's initial and per-step
     noise from its own seed's stream. So a motion's sample does not depend on the batch size or world size. A
     diffusion baseline run with its authors' settings (:func:`baseline_sampling`, FLAME) gets their x0 clamp
-    (``mfm.diffusion_sampling.rotation_6d_range``). ``reference_translation`` (``tasks.edit_reference_translation``):
-    a diffusion edit gets the source's root copied into the output after the smoothing, as FLAME's procedure
-    (``copy_reference_root``); flow edits ignore it.
+    (``TrainedModel.x0_clamp``, as launch/sample.py). ``reference_translation``
+    (``tasks.edit_reference_translation``): a diffusion edit gets the source's root copied into the output after the
+    smoothing, as FLAME's procedure (``TrainedModel.finish_output``, as launch/sample.py); flow edits ignore it.
     ``extras``: per-motion model inputs (cross-attention token features), bound with ``BoundInputs``.
     """
     model = BoundInputs(trained.model, dict(extras)) if extras else trained.model
@@ -707,14 +703,10 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
     windowed = window is not None and keep is None
     if windowed:
         num_frames = max(int(window), num_frames)
-    layout = FeatureLayout(trained.skeleton)
     if trained.objective == "diffusion":
         schedule = trained.diffusion.respaced(point.steps)
         generator = seeded_generators(seeds)
-        baseline, clamp = baseline_sampling(trained, sampling), None
-        if baseline is not None and baseline.clip_denoised:  # FLAME's clip_denoised, carried to our features
-            clamp = rotation_6d_range(layout, trained.mean, trained.std)
-            clamp = type(clamp)(*(bound.to(trained.device) for bound in clamp))
+        clamp = trained.x0_clamp(baseline_sampling(trained, sampling))  # FLAME's clip_denoised on our features
         if keep is None:
             result = sample_diffusion(model, schedule, cond, lengths, num_frames=num_frames, feature_dim=dim,
                                       sampler=point.solver, guidance=point.guidance, generator=generator,
@@ -735,9 +727,8 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
         else:
             result = edit(velocity, known, keep, steps=point.steps, rewrite_until=rewrite_until,
                           solver=point.solver, x0=x0, lengths=lengths)
-    x1 = smooth_over_time(result.x1.float(), lengths, output_smoothing(trained, sampling))
-    if keep is not None and reference_translation and trained.objective == "diffusion":
-        x1 = copy_reference_root(x1, known.float(), keep, layout)  # after the smoothing, as FLAME's edit_motion.py
+    x1 = trained.finish_output(result.x1.float(), lengths, output_smoothing(trained, sampling), known=known,
+                               keep=keep, reference_translation=reference_translation)
     if windowed:
         return trained.denormalize(x1), result.nfe
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)

@@ -23,8 +23,16 @@ from typing import Any
 import numpy as np
 import torch
 
-from mfm.diffusion import GaussianDiffusion, diffusion_from_preset
-from mfm.diffusion_sampling import BASELINE_SAMPLING, BaselineSampling
+from mfm.diffusion import DenoisedRange, GaussianDiffusion, diffusion_from_preset
+from mfm.diffusion_sampling import (
+    BASELINE_SAMPLING,
+    ROTATION_6D_RANGE_RECORD,
+    BaselineSampling,
+    copy_reference_root,
+    rotation_6d_range,
+    smooth_over_time,
+)
+from mfm.layout import FeatureLayout
 from mfm.model import ModelConfig, MotionFlowTransformer
 from mfm.skeleton import Skeleton, get_skeleton
 from pipeline import checkpoint as ckpt
@@ -115,14 +123,22 @@ class TrainedModel:
     def default_smoothing(self) -> float:
         """σ (frames) of the output smoothing samplers apply unless told otherwise: a diffusion baseline's own
         (FLAME: 1), else the model's ``output_smoothing`` (0 unless its preset says otherwise)."""
-        baseline = self.baseline_sampling
-        return baseline.smoothing_sigma if baseline is not None else float(self.model_config.output_smoothing)
+        return self.smoothing_with(self.baseline_sampling)
 
     @property
     def default_guidance(self) -> float:
         """The classifier-free guidance scale samplers use unless told otherwise: a diffusion baseline's own
         (FLAME: 8.0), else the model's ``sampling_guidance`` (MFM's 2.5 unless its preset says otherwise)."""
-        baseline = self.baseline_sampling
+        return self.guidance_with(self.baseline_sampling)
+
+    def smoothing_with(self, baseline: BaselineSampling | None) -> float:
+        """σ (frames) of the output smoothing with ``baseline`` (the authors' settings as a run applies them, None:
+        ours): the baseline's, else the model's ``output_smoothing``."""
+        return baseline.smoothing_sigma if baseline is not None else float(self.model_config.output_smoothing)
+
+    def guidance_with(self, baseline: BaselineSampling | None) -> float:
+        """The guidance scale with ``baseline`` (None: ours): the baseline's, else the model's
+        ``sampling_guidance``."""
         return baseline.guidance if baseline is not None else float(self.model_config.sampling_guidance)
 
     @property
@@ -144,6 +160,47 @@ class TrainedModel:
         target = self.device if device is None else torch.device(device)
         self.model.to(device=target, dtype=dtype)
         return dataclasses.replace(self, device=target)  # a new instance: the cached Mean/Std are made on ``target``
+
+    def x0_clamp(self, baseline: BaselineSampling | None) -> DenoisedRange | None:
+        """The bounds of every step's x0 estimate with ``baseline`` (None: ours, no clamp): when its authors'
+        sampler clamps (FLAME's ``clip_denoised``), that clamp carried to this checkpoint's features
+        (:func:`mfm.diffusion_sampling.rotation_6d_range`), on its device; the evaluator and the sampler both
+        take it from here."""
+        if baseline is None or not baseline.clip_denoised:
+            return None
+        bounds = rotation_6d_range(FeatureLayout(self.skeleton), self.mean, self.std)
+        return DenoisedRange(*(bound.to(self.device) for bound in bounds))
+
+    def baseline_record(self, baseline: BaselineSampling | None) -> dict[str, Any] | None:
+        """What results say about the authors' sampling settings as run: None (ours), else the preset, every
+        setting (:meth:`BaselineSampling.record`, with where it comes from) and the clamp's channels."""
+        if baseline is None:
+            return None
+        record = {"preset": self.diffusion_preset, **baseline.record()}
+        if baseline.clip_denoised:
+            record["clip_denoised_range"] = ROTATION_6D_RANGE_RECORD
+        return record
+
+    def check_baseline_weights(self, baseline: BaselineSampling | None, remedy: str) -> None:
+        """A baseline whose authors sample the EMA of the weights (FLAME; ``baseline`` as the run applies it) is not
+        silently sampled with its raw weights: a ValueError ending in ``remedy`` when this checkpoint kept no
+        EMA (loading falls back to the raw weights then)."""
+        if baseline is not None and baseline.ema_weights and self.weights != "ema":
+            raise ValueError(f"{self.checkpoint} holds no EMA weights, which its authors' sampling "
+                             f"({self.diffusion_preset}) uses: {remedy}")
+
+    def finish_output(self, x: torch.Tensor, lengths: torch.Tensor, smoothing_sigma: float, *,
+                      known: torch.Tensor | None = None, keep: torch.Tensor | None = None,
+                      reference_translation: bool = False) -> torch.Tensor:
+        """The sampler's output ``x`` (B, T, D, normalised) as it is written or scored: smoothed over time with
+        σ = ``smoothing_sigma`` (0: as is), then, for a diffusion edit (``keep`` of ``known``) with
+        ``reference_translation``, the source's root copied where the edit keeps it, after the smoothing as
+        FLAME's edit_motion.py: 79–82 then 93–94 (:func:`mfm.diffusion_sampling.copy_reference_root`). Flow edits
+        (MFM's procedure) never copy. Shared by the evaluator and the sampler."""
+        x = smooth_over_time(x, lengths, smoothing_sigma)
+        if keep is not None and reference_translation and self.objective == "diffusion":
+            x = copy_reference_root(x, known.to(x.dtype), keep, FeatureLayout(self.skeleton))
+        return x
 
     def normalize(self, features: torch.Tensor) -> torch.Tensor:
         return (features - self.mean) / self.std

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mfm.diffusion import GaussianDiffusion
+from mfm.diffusion import DenoisedRange, GaussianDiffusion
 from mfm.diffusion_sampling import SAMPLERS
 from pipeline import checkpoint as ckpt
 from pipeline.generation.inference import TrainedModel, load_trained_model
@@ -32,6 +32,7 @@ class Integrator:
     name: str  # the solver (flow) or sampler (diffusion: "ddpm" / "ddim")
     steps: int
     diffusion: GaussianDiffusion | None = None  # diffusion: the training process respaced to ``steps``
+    clip_denoised: DenoisedRange | None = None  # diffusion: the bounds of every step's x0 estimate (FLAME's clamp)
 
     def record(self, trained: TrainedModel) -> dict[str, Any]:
         """results.json's description of the objective and sampler."""
@@ -74,13 +75,19 @@ def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integra
     if request.edit is not None and request.rewrite_until is not None:
         raise SamplingError("rewrite_until is a flow-matching edit option: FLAME's replacement editing of a diffusion "
                             "model re-noises the kept part before every step")
-    steps = request.steps or trained.diffusion.num_train_steps
+    baseline = request.baseline_for(trained)  # the authors' settings as run (FLAME's), as the evaluator's
+    try:
+        trained.check_baseline_weights(baseline, "give --model-weights model (weights=model) to sample its raw "
+                                                 "weights")
+    except ValueError as err:
+        raise SamplingError(str(err)) from None
+    steps = request.steps or trained.diffusion.num_train_steps  # every training step unless asked for fewer
     try:
         schedule = trained.diffusion.respaced(steps)
     except ValueError as err:
         raise SamplingError(f"cannot sample {trained.checkpoint} with {steps} steps of its "
                             f"{trained.diffusion.num_train_steps}: {err}") from err
-    return Integrator("diffusion", sampler, steps, schedule)
+    return Integrator("diffusion", sampler, steps, schedule, trained.x0_clamp(baseline))
 
 DEVICE_TYPES = ("cpu", "cuda", "mps")
 

@@ -480,9 +480,12 @@ class MotionPipeline:
     :meth:`from_pretrained` (``torch_dtype=``), :meth:`to`, a call taking ``prompt=``, ``num_inference_steps=``,
     ``guidance_scale=``, ``generator=`` and ``output_type=``, and :meth:`save_pretrained`; see the module docstring."""
 
-    def __init__(self, trained: TrainedModel, *, text_weights: str | None = None) -> None:
+    def __init__(self, trained: TrainedModel, *, text_weights: str | None = None, weights: str | None = None) -> None:
+        """``weights``: the weights asked for, 'ema' or 'model' (a FLAME checkpoint asked for its EMA that kept none
+        is refused when sampling, as launch/sample.py); None: those ``trained`` holds."""
         self.trained = trained
         self.text_weights = text_weights
+        self.weights = weights or trained.weights
 
     @classmethod
     def from_pretrained(cls, folder: str | Path, *, device: str | torch.device = "auto",
@@ -495,7 +498,7 @@ class MotionPipeline:
         from pipeline.generation.integration import resolve_device
 
         trained = load_trained_model(folder, use_ema=weights == "ema", device=resolve_device(str(device)))
-        pipe = cls(trained, text_weights=text_weights)
+        pipe = cls(trained, text_weights=text_weights, weights=weights)
         return pipe if torch_dtype is None else pipe.to(dtype=torch_dtype)
 
     def to(self, *args: str | torch.device | torch.dtype, device: str | torch.device | None = None,
@@ -547,10 +550,13 @@ class MotionPipeline:
                  generator: torch.Generator | Sequence[torch.Generator] | None = None, steps: int | None = None,
                  num_inference_steps: int | None = None, solver: str | None = None, guidance: float | None = None,
                  guidance_scale: float | None = None, batch_size: int = 64,
-                 output_type: str = "np") -> GeneratedMotions:
+                 output_type: str = "np", baseline_defaults: bool = True,
+                 clip_denoised: bool = True) -> GeneratedMotions:
         """Motions for ``texts`` (or ``actions``), ``num_samples`` each, ``seconds`` or ``lengths`` long (one value
         or one per prompt; default: drawn from the training lengths). The same arguments give the same motions as
-        ``launch/sample.py``.
+        ``launch/sample.py``. A FLAME-preset diffusion checkpoint samples as FLAME's authors did unless
+        ``baseline_defaults=False`` (or ``clip_denoised=False``: no x0 clamp; ``steps``: fewer than every training
+        step), as SampleRequest's keys of those names.
 
         Each diffusers name is an alias of ours (:data:`ARGUMENT_ALIASES`; giving both is a TypeError): ``prompt``
         = ``texts``, ``num_motions_per_prompt`` = ``num_samples`` (default 1), ``num_inference_steps`` = ``steps``
@@ -593,7 +599,8 @@ class MotionPipeline:
             checkpoint=str(self.trained.checkpoint), out_dir="", texts=texts, actions=list(actions),
             seconds=_as_list(seconds), lengths=_as_list(lengths), num_samples=1 if num_samples is None else num_samples,
             seed=0 if seed is None else seed, steps=steps, solver=solver, guidance=guidance, batch_size=batch_size,
-            text_weights=self.text_weights)
+            text_weights=self.text_weights, weights=self.weights, baseline_defaults=baseline_defaults,
+            baseline_clip_denoised=clip_denoised)
         trained = self.trained
         integrator = integration.resolve_integrator(request, trained)
         conditions = sampling.encode_prompts(request, trained)

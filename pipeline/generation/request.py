@@ -19,7 +19,7 @@ from typing import Any
 import torch
 
 from mfm.composition import BABEL_SWITCH, HUMANML3D_SWITCH
-from mfm.diffusion_sampling import SAMPLERS
+from mfm.diffusion_sampling import SAMPLERS, BaselineSampling
 from mfm.editing import (
     DEFAULT_EDIT_SETTINGS,
     EDIT_SETTINGS,
@@ -111,13 +111,30 @@ class SampleRequest:
     null: the model's ``guided_features`` (all unless its preset says otherwise). Diffusion models: all."""
     smoothing: float | None = None
     """Gaussian smoothing of the output over time, σ in frames; null: the diffusion baseline's own (FLAME: 1), else
-    the model's ``output_smoothing`` (none unless its preset says otherwise)."""
+    the model's ``output_smoothing`` (none unless its preset says otherwise; not the baseline's with
+    ``baseline_defaults=false``)."""
+    baseline_defaults: bool = True
+    """Diffusion checkpoints of a preset whose authors sampled it their own way run that way unless a key below
+    overrides one setting (mfm.diffusion_sampling.BASELINE_SAMPLING; FLAME: guidance 8.0, σ = 1 smoothing, every
+    training step, the x0 clamp, EMA weights: a FLAME checkpoint that kept none is refused unless weights=model),
+    as the evaluator's ``sampling.baseline_defaults``; false: every checkpoint samples with our defaults (the model's
+    sampling_guidance and output_smoothing, no clamp). results.json records what ran (``baseline_defaults``)."""
+    baseline_clip_denoised: bool = True
+    """With baseline_defaults: a baseline whose sampler clamps its x0 estimate (FLAME) gets that clamp on our features
+    (the 6D rotation channels bounded to [-1, 1] in raw units, mfm.diffusion_sampling.rotation_6d_range; the
+    evaluator's ``sampling.baseline_clip_denoised``); false: no clamp."""
+    edit_reference_translation: bool = True
+    """Diffusion edits (FLAME's replacement procedure): copy the source's root (rotation and linear velocity, height)
+    into the output where the edit keeps it, after the smoothing, as FLAME's edit_motion.py
+    (use_reference_translation: true; the evaluator's ``tasks.edit_reference_translation``); false: the chain's
+    output, smoothed. Flow edits (MFM's procedure) never copy."""
     seed: int = 0
     """Noise seed (sample i uses SeedSequence([seed, i]))."""
     batch_size: int = 64
     """Motions per batch (does not change flow samples)."""
     weights: str = "ema"
-    """ema (falls back to the raw weights when the run kept none) or model."""
+    """ema (falls back to the raw weights when the run kept none, except for a baseline whose authors sample the
+    EMA, FLAME: refused) or model."""
     device: str = "auto"
     """auto (cuda when available), cpu, cuda, cuda:1, ..., mps; a device this machine does not have is refused
     before the checkpoint is loaded (pipeline.generation.integration.resolve_device)."""
@@ -272,13 +289,13 @@ class SampleRequest:
 
     def guidance_for(self, trained: TrainedModel) -> float:
         """The guidance scale: as given, else the edit settings' for a flow edit, else the diffusion baseline's own
-        (FLAME: 8.0, mfm.diffusion_sampling.BASELINE_SAMPLING), else the model's ``sampling_guidance``
-        (MFM's 2.5 unless its preset says otherwise)."""
+        (FLAME: 8.0, mfm.diffusion_sampling.BASELINE_SAMPLING; not with ``baseline_defaults=false``), else the
+        model's ``sampling_guidance`` (MFM's 2.5 unless its preset says otherwise)."""
         if self.guidance is not None:
             return float(self.guidance)
         if self.edit is not None and trained.objective == "flow":
             return self.settings.guidance
-        return trained.default_guidance
+        return trained.guidance_with(self.baseline_for(trained))
 
     def guided_features_for(self, trained: TrainedModel) -> str:
         """Which channels guidance mixes: as given, else the model's ``guided_features``; 'all' for diffusion."""
@@ -295,7 +312,36 @@ class SampleRequest:
         (a diffusion baseline's own, FLAME: 1.0; else the model's ``output_smoothing``, 0 = none)."""
         if self.smoothing is not None:
             return float(self.smoothing)
-        return trained.default_smoothing
+        return trained.smoothing_with(self.baseline_for(trained))
+
+    def baseline_for(self, trained: TrainedModel) -> BaselineSampling | None:
+        """The authors' sampling settings of ``trained``'s diffusion preset as this request runs them (None: ours,
+        for flow models, presets without such settings and ``baseline_defaults=false``): every training step
+        unless ``steps`` asks for fewer, the x0 clamp unless ``baseline_clip_denoised=false``, the EMA weights
+        unless ``weights=model``; guidance and smoothing stay the authors' (an explicit value wins, recorded in
+        :meth:`baseline_record`)."""
+        baseline = trained.baseline_sampling if self.baseline_defaults else None
+        if baseline is None:
+            return None
+        return baseline.as_run(
+            every_training_step=self.steps is None or self.steps == trained.diffusion.num_train_steps,
+            clip_denoised=self.baseline_clip_denoised, ema_weights=self.weights == "ema")
+
+    def baseline_record(self, trained: TrainedModel) -> dict[str, Any] | None:
+        """results.json's ``baseline_defaults``: None when no authors' settings apply, else those settings as run
+        (:meth:`TrainedModel.baseline_record`: preset, guidance, smoothing_sigma, every_training_step,
+        clip_denoised, ema_weights, source) and ``overridden``: the ones this request ran with another value
+        (``guidance``, ``smoothing``, ``steps``, ``baseline_clip_denoised``, ``weights``)."""
+        baseline = self.baseline_for(trained)
+        if baseline is None:
+            return None
+        own = trained.baseline_sampling
+        ran = {"guidance": self.guidance_for(trained), "smoothing_sigma": self.smoothing_for(trained),
+               "every_training_step": baseline.every_training_step, "clip_denoised": baseline.clip_denoised,
+               "ema_weights": baseline.ema_weights}
+        return {**trained.baseline_record(baseline),
+                "overridden": [name for name, value in ran.items() if value != getattr(own, name)]}
+
 
 SWITCH_PRESETS = {"humanml3d": HUMANML3D_SWITCH, "babel": BABEL_SWITCH}
 """FlowMDM's ``bpe_denoising_step`` per dataset (60 HumanML3D, 125 Babel) as flow times."""
@@ -368,6 +414,9 @@ FLAGS: tuple[Flag, ...] = (
     Flag("--guidance", "guidance", type=float),
     Flag("--guided-features", "guided_features", choices=("all", "pose")),
     Flag("--smoothing", "smoothing", type=float),
+    Flag("--no-baseline-defaults", "baseline_defaults", "false"),
+    Flag("--no-clip-denoised", "baseline_clip_denoised", "false"),
+    Flag("--no-reference-translation", "edit_reference_translation", "false"),
     Flag("--seed", "seed", type=int),
     Flag("--batch-size", "batch_size", type=int),
     Flag("--edit", "edit", choices=tuple(sorted(EDIT_PRESETS))),

@@ -40,7 +40,13 @@ sampler) or ``'ddim'`` (eta 0, deterministic), ``steps`` respaced from the train
 1000); an evaluation is one denoiser pass (a guided one batches both halves), so nfe = steps. Diffusion samplers draw
 a batch's initial and per-step noise from one generator seeded with the batch's first sample's ``noise_seed``, so
 unlike flow samples they depend on ``batch_size``. Editing a diffusion model is FLAME's replacement editing (the kept
-part is re-noised onto the chain before every step; ``rewrite_until`` does not apply) with the same mask presets.
+part is re-noised onto the chain before every step; ``rewrite_until`` does not apply) with the same mask presets;
+as FLAME's edit_motion.py, the source's root is copied into the output where the edit keeps it, after the smoothing
+(``edit_reference_translation``). A checkpoint of a preset whose authors sampled it their own way (FLAME) samples
+that way unless the request overrides a setting (``baseline_defaults``: guidance 8.0, σ = 1 smoothing, every training
+step, the x0 clamp on the 6D rotations, EMA weights), as the evaluator does (pipeline.generation.inference
+TrainedModel's x0_clamp, finish_output, check_baseline_weights serve both); results.json's ``baseline_defaults`` says
+what ran and what was overridden.
 
 Composition (FlowMDM, one long sequence from several (text, length) segments) lives in pipeline/generation/composing.py; it
 shares this module's request, outputs and checkpoint loading.
@@ -60,7 +66,7 @@ import torch
 from tqdm.auto import tqdm
 
 from mfm.composition import BoundInputs
-from mfm.diffusion_sampling import replacement_edit, sample_diffusion, smooth_over_time
+from mfm.diffusion_sampling import replacement_edit, sample_diffusion
 from mfm.editing import (
     edit,
     edit_mask,
@@ -302,7 +308,7 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
         scale = request.guidance_for(trained)
     model = conditioned_model(trained, batch_conditions)
     cond = batch_conditions.cond
-    keep = None
+    known = keep = None
     if source is not None:
         known = _known_motion(trained, source, lengths, num_frames)
         keep = keep_mask(request, options, lengths, num_frames, FeatureLayout(trained.skeleton),
@@ -314,11 +320,12 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
             result: SolveResult = sample_diffusion(
                 model, integrator.diffusion, cond, lengths, num_frames=num_frames, feature_dim=dim,
                 sampler=integrator.name, guidance=scale, generator=generator,
-                return_trajectory=request.plot_trajectory)
+                return_trajectory=request.plot_trajectory, clip_denoised=integrator.clip_denoised)
         else:
             denoise = classifier_free_guidance(model, cond, scale=scale, lengths=lengths, guided_channels=dim)
             result = replacement_edit(denoise, integrator.diffusion, known, keep, sampler=integrator.name,
-                                      lengths=lengths, generator=generator, return_trajectory=request.plot_trajectory)
+                                      lengths=lengths, generator=generator, return_trajectory=request.plot_trajectory,
+                                      clip_denoised=integrator.clip_denoised)
     else:
         velocity = guided_velocity(model, cond, scale=scale, lengths=lengths,
                                    conditional_channels=request.conditional_channels_for(trained))
@@ -330,7 +337,9 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
         else:
             result = edit(velocity, known, keep, steps=integrator.steps, rewrite_until=request.rewrite_time,
                           solver=integrator.name, x0=x0, lengths=lengths, return_trajectory=request.plot_trajectory)
-    x1 = smooth_over_time(result.x1.float(), lengths, request.smoothing_for(trained))
+    # As the evaluator: smoothed, then a diffusion edit's source root copied (FLAME's use_reference_translation)
+    x1 = trained.finish_output(result.x1.float(), lengths, request.smoothing_for(trained), known=known, keep=keep,
+                               reference_translation=request.edit_reference_translation)
     return BatchResult(
         specs, x1.cpu(), result.nfe, None if keep is None else keep.cpu(),
         None if result.x1_hat is None else result.x1_hat.float().cpu(), result.x1_hat_times,
@@ -361,6 +370,8 @@ def _edit_record(request: SampleRequest, integrator: Integrator, source: SourceM
         "source_frames": int(source.features.shape[0]),
         "options": dict(options),
         "rewrite_until": None if diffusion else request.rewrite_time,
+        # Diffusion edits: FLAME's copy of the source's root after the smoothing (edit_reference_translation).
+        "reference_translation": request.edit_reference_translation if diffusion else None,
         # Flow edits: the named settings and what this edit overrode (steps, guidance and ς given explicitly).
         "settings": None if diffusion else {
             **request.settings.record(),

@@ -195,20 +195,36 @@ def fill_null_condition(model: MotionFlowTransformer, manifest: Manifest) -> Non
 
 
 class EMA:
-    """Exponential moving average of the weights, with the usual warm-up ``min(decay, (1 + n) / (10 + n))`` so a
-    short run's average is not dominated by its random initialisation."""
+    """Exponential moving average of the weights (``optim.ema_*``), updated after every ``every``-th optimizer step:
+    after steps k <= ``start`` a copy of the weights, later ``shadow ← decay·shadow + (1 − decay)·weights`` with the
+    usual warm-up ``decay = min(decay, (1 + n) / (10 + n))`` (n: updates so far) unless ``warmup`` is off.
 
-    def __init__(self, model: torch.nn.Module, decay: float) -> None:
+    FLAME (``diffusion_hml3d.yaml``: 8–10, ``diffusion_module.py``: 72–76 and 306–307): every 10 steps, a copy up to
+    step 100, then decay 0.99 without a warm-up, i.e. ``EMA(model, 0.99, every=10, start=100, warmup=False)``.
+    The schedule depends on the step and these settings only, so a resumed run (shadow and ``num_updates`` restored)
+    goes on exactly as an uninterrupted one."""
+
+    def __init__(self, model: torch.nn.Module, decay: float, *, every: int = 1, start: int = 0,
+                 warmup: bool = True) -> None:
         self.decay = decay
+        self.every = every
+        self.start = start
+        self.warmup = warmup
         self.num_updates = 0
         self.shadow = {name: p.detach().clone().float() for name, p in model.state_dict().items()}
 
+    def after_step(self, model: torch.nn.Module, step: int) -> None:
+        """Called after optimizer step ``step`` (1-based) updated ``model``'s weights: updates the EMA when due."""
+        if step % self.every == 0:
+            self.update(model, copy=step <= self.start)
+
     @torch.no_grad()
-    def update(self, model: torch.nn.Module) -> None:
+    def update(self, model: torch.nn.Module, *, copy: bool = False) -> None:
+        """One EMA update: the average (``copy=False``) or a copy of the weights."""
         self.num_updates += 1
-        decay = min(self.decay, (1 + self.num_updates) / (10 + self.num_updates))
+        decay = min(self.decay, (1 + self.num_updates) / (10 + self.num_updates)) if self.warmup else self.decay
         for name, value in model.state_dict().items():
-            if value.dtype.is_floating_point:
+            if value.dtype.is_floating_point and not copy:
                 self.shadow[name].lerp_(value.detach().float(), 1.0 - decay)
             else:
                 self.shadow[name].copy_(value)
@@ -388,7 +404,8 @@ class Trainer:
         if self.model_config.null_condition == "empty_caption":
             fill_null_condition(model, self.manifest)
         self.num_parameters = count_parameters(model)
-        self.ema = EMA(model, cfg.optim.ema_decay)
+        self.ema = EMA(model, cfg.optim.ema_decay, every=cfg.optim.ema_every, start=cfg.optim.ema_start,
+                       warmup=cfg.optim.ema_warmup)
         fused = dist.device.type == "cuda"
         optimizer = torch.optim.AdamW(
             model.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas, weight_decay=cfg.optim.weight_decay,
@@ -631,8 +648,7 @@ class Trainer:
             self.loss_scaler.update(overflow=False)
             self.scheduler.step()
             self.optimizer.zero_grad(set_to_none=True)
-            if self.step % self.cfg.optim.ema_every == 0:
-                self.ema.update(self.dist.unwrap(model))
+            self.ema.after_step(self.dist.unwrap(model), self.step + 1)  # self.step: the steps before this one
         loss = loss_sum / self.dist.world_size
         return StepResult(loss, grad_norm, skip, StopSignal.from_flags(signal_counts), empty=empty and not skip,
                           overflow=overflowed)
