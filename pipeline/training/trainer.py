@@ -9,7 +9,8 @@ versioned resume state saved atomically by :mod:`pipeline.checkpoint`. ``fit`` r
 
 What rank 0 shows (metrics.jsonl, W&B, TensorBoard, loss.png at the end) is :mod:`pipeline.training.reporting`; the
 validation loss every ``train.val_every`` steps (fixed val batches and draws, separate RNG streams, all-reduced
-over ranks) is :mod:`pipeline.training.validation`.
+over ranks) is :mod:`pipeline.training.validation`; rank 0's samples every ``train.preview_every`` steps (EMA weights,
+private RNG, no collective) are :mod:`pipeline.training.previews`.
 
 Nothing is written into the run folder before the resume decision: rank 0 first checks train.out_dir
 (:mod:`pipeline.training.run_folder`), takes its lock (one trainer per folder; a second start is refused, on every
