@@ -24,7 +24,9 @@ Heavy libraries (transformers, open_clip) are imported inside the builders so `i
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import sys
 import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -437,7 +439,10 @@ def build_text_encoder(name: str, *, weights: str | Path | None = None, device: 
     """Build a registered encoder; `options` go to its builder (e.g. allow_random, context_length for CLIP)."""
     if name not in TEXT_ENCODERS:
         raise ValueError(f"unknown text encoder {name!r}; known: {', '.join(sorted(TEXT_ENCODERS))}")
-    return TEXT_ENCODERS[name](weights=weights, device=device, **options)
+    # Third-party libraries print to stdout while they load (transformers: "[INFO] Running in WANDB offline mode"
+    # under WANDB_MODE=offline); our commands' stdout is for their own results (README: "What goes to stdout").
+    with contextlib.redirect_stdout(sys.stderr):
+        return TEXT_ENCODERS[name](weights=weights, device=device, **options)
 
 
 def build_matching_text_encoder(entry: Mapping[str, Any], *, weights: str | Path | None = None,

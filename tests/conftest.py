@@ -8,7 +8,12 @@ import torch
 # No model hub or dataset site at run time: fail fast instead of retrying downloads.
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
-os.environ.setdefault("WANDB_MODE", "disabled")
+# W&B: off whatever the caller's environment says (a W&B user's WANDB_MODE=offline would otherwise write W&B
+# folders and let third-party chatter in: tests/test_build_shards.py tests that case explicitly). The other
+# WANDB_* variables (project, entity, directory) are the caller's and are dropped for the same reason.
+for _name in [n for n in os.environ if n.startswith("WANDB_")]:
+    del os.environ[_name]
+os.environ["WANDB_MODE"] = "disabled"
 # Tiny models on 2 cores: one intra-op thread per process is faster than two fighting over the cores, and the
 # multi-rank tests start several processes (they inherit this).
 os.environ.setdefault("OMP_NUM_THREADS", "1")

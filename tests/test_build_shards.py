@@ -27,9 +27,10 @@ SCRIPT = REPO_ROOT / "preprocess" / "build_shards.py"
 pytestmark = pytest.mark.slow
 
 
-def run_cli(args: list[str], cwd: Path, *, module: bool = False) -> subprocess.CompletedProcess:
+def run_cli(args: list[str], cwd: Path, *, module: bool = False,
+            env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     entry = ["-m", "preprocess.build_shards"] if module else [str(SCRIPT)]
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1"}
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1", **(env or {})}
     return subprocess.run([sys.executable, *entry, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
 
 
@@ -51,6 +52,17 @@ def synthetic_build(tmp_path_factory):
     result = run_cli([*SYNTHETIC, "--out", "syn", "--workers", "2"], cwd)
     assert result.returncode == 0, result.stderr
     return cwd / "syn", result
+
+
+def test_stdout_starts_with_the_summary_under_wandb_offline(tmp_path):
+    """WANDB_MODE=offline (common among W&B users) makes transformers print "[INFO] Running in WANDB offline mode"
+    to stdout when the text encoder loads: that chatter goes to stderr, stdout's first line is the summary."""
+    result = run_cli(["--source", "synthetic", "--num-clips", "6", "--shard-size", "8", "--quiet", "--out", "syn"],
+                     tmp_path, env={"WANDB_MODE": "offline"})
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("syn: train"), result.stdout[:500]
+    assert "Running in WANDB offline mode" not in result.stdout
+    assert "Running in WANDB offline mode" in result.stderr  # the test is not vacuous: the chatter happened
 
 
 def test_synthetic_cli_artifacts(synthetic_build):

@@ -163,15 +163,17 @@ def assert_identical(a: Any, b: Any, where: str = "state") -> None:
         assert a == b, f"{where}: {a!r} != {b!r}"
 
 
-def assert_runs_identical(run_a: Path, run_b: Path, step: int) -> None:
+def assert_runs_identical(run_a: Path, run_b: Path, step: int, differing: tuple[str, ...] = ()) -> None:
     """Final checkpoints equal bit for bit (model, EMA, optimizer, scheduler, per-rank RNG and data position,
-    counters) and the same per-step metrics; only the run folder differs."""
+    counters) and the same per-step metrics; only the run folder differs, and the ``train.<key>`` settings named
+    in ``differing``."""
     model_a, ema_a, state_a = ckpt.load_checkpoint(ckpt.checkpoints_dir(run_a) / ckpt.step_dir_name(step))
     model_b, ema_b, state_b = ckpt.load_checkpoint(ckpt.checkpoints_dir(run_b) / ckpt.step_dir_name(step))
     assert_identical(model_a, model_b, "model")
     assert_identical(ema_a, ema_b, "ema")
     for state in (state_a, state_b):
-        del state["config"]["train"]["out_dir"]
+        for key in ("out_dir", *differing):
+            del state["config"]["train"][key]
     assert_identical(state_a, state_b, "state.pt")
     metrics_a, metrics_b = metrics_by_step(run_a), metrics_by_step(run_b)
     assert sorted(metrics_a) == sorted(metrics_b) == list(range(1, step + 1))

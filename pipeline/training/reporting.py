@@ -40,6 +40,8 @@ METRICS_FILE = "metrics.jsonl"
 TENSORBOARD_SUBDIR = "tensorboard"
 LOSS_PLOT = "loss.png"
 VAL_PREFIX = "val_"  # metrics.jsonl keys of the validation loss: val_loss, val_samples, val_weights, val_time_s
+PREVIEW_PREFIX = "preview_"  # metrics.jsonl keys of the previews' plausibility medians (pipeline.training.previews)
+PREVIEW_IMAGE_TAG = "preview/samples"  # the previews' contact sheets in TensorBoard and W&B
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -61,14 +63,18 @@ def require_tensorboard(enabled: bool) -> None:
 
 def scalar_tags(record: Mapping[str, Any]) -> dict[str, float]:
     """The numeric, finite entries of a metrics record as W&B / TensorBoard scalars: ``train/<key>``, and
-    ``val/<key>`` for ``val_<key>``. ``step`` (the x axis), null values and strings are left out."""
+    ``val/<key>`` for ``val_<key>``, ``preview/<key>`` for ``preview_<key>``. ``step`` (the x axis), null values and
+    strings are left out."""
     scalars = {}
     for key, value in record.items():
         if key == "step" or isinstance(value, bool) or not isinstance(value, (int, float)):
             continue
         if not math.isfinite(value):
             continue
-        tag = f"val/{key[len(VAL_PREFIX):]}" if key.startswith(VAL_PREFIX) else f"train/{key}"
+        tag = f"train/{key}"
+        for prefix in (VAL_PREFIX, PREVIEW_PREFIX):
+            if key.startswith(prefix):
+                tag = f"{prefix[:-1]}/{key[len(prefix):]}"
         scalars[tag] = float(value)
     return scalars
 
@@ -88,6 +94,13 @@ class TensorBoardWriter:
     def write(self, step: int, scalars: Mapping[str, float]) -> None:
         for tag, value in scalars.items():
             self._writer.add_scalar(tag, value, global_step=step)
+        self._writer.flush()
+
+    def write_image(self, step: int, tag: str, png: Path) -> None:
+        from matplotlib.image import imread
+
+        pixels = imread(str(png))[..., :3]  # (H, W, RGB[A]) floats in [0, 1]
+        self._writer.add_image(tag, pixels, global_step=step, dataformats="HWC")
         self._writer.flush()
 
     def close(self) -> None:
@@ -162,6 +175,24 @@ class MetricsSink:
         if self.tensorboard is not None:
             try:
                 self.tensorboard.write(record["step"], scalars)
+            except Exception as err:  # noqa: BLE001 - logging must never take the run down
+                logger.warning("TensorBoard disabled for the rest of this run: %s", err)
+                self._close_tensorboard()
+
+    def log_image(self, step: int, tag: str, png: Path) -> None:
+        """An image file (a preview's contact sheet) to W&B and TensorBoard under ``tag``."""
+        if not self.enabled:
+            return
+        if self.wandb_run is not None:
+            try:
+                import wandb
+
+                self.wandb_run.log({tag: wandb.Image(str(png))}, step=step)
+            except Exception as err:  # noqa: BLE001 - logging must never take the run down
+                logger.warning("W&B: could not log %s: %s", png, err)
+        if self.tensorboard is not None:
+            try:
+                self.tensorboard.write_image(step, tag, png)
             except Exception as err:  # noqa: BLE001 - logging must never take the run down
                 logger.warning("TensorBoard disabled for the rest of this run: %s", err)
                 self._close_tensorboard()

@@ -9,7 +9,8 @@ versioned resume state saved atomically by :mod:`pipeline.checkpoint`. ``fit`` r
 
 What rank 0 shows (metrics.jsonl, W&B, TensorBoard, loss.png at the end) is :mod:`pipeline.training.reporting`; the
 validation loss every ``train.val_every`` steps (fixed val batches and draws, separate RNG streams, all-reduced
-over ranks) is :mod:`pipeline.training.validation`.
+over ranks) is :mod:`pipeline.training.validation`; rank 0's samples every ``train.preview_every`` steps (EMA weights,
+private RNG, no collective) are :mod:`pipeline.training.previews`.
 
 Nothing is written into the run folder before the resume decision: rank 0 first checks train.out_dir
 (:mod:`pipeline.training.run_folder`), takes its lock (one trainer per folder; a second start is refused, on every
@@ -96,7 +97,8 @@ from pipeline.data.stream import (
 )
 from pipeline.distributed import Dist
 from pipeline.training.loss_scaling import LossScaler
-from pipeline.training.reporting import MetricsSink, require_tensorboard
+from pipeline.training.previews import Preview, PreviewSampler
+from pipeline.training.reporting import PREVIEW_IMAGE_TAG, MetricsSink, require_tensorboard
 from pipeline.training.run_folder import (
     RunFolderError,
     RunFolderLock,
@@ -174,6 +176,14 @@ def model_config_for(manifest: Manifest, requested: ModelConfig, *, learned_vari
             raise ValueError(f"model.num_actions > 0 asks for an action model, but {manifest.location} has no action classes")
         changes["num_actions"] = len(manifest.action_classes)
     return dataclasses.replace(requested, **changes)
+
+
+def dataset_identity(manifest: Manifest) -> dict[str, Any]:
+    """What a checkpoint records of its dataset (and what sampling needs of it: pipeline.generation.inference)."""
+    return {"dataset_id": manifest.dataset_id, "location": str(manifest.location),
+            "feature_spec": manifest.data["feature_spec"], "text_encoder": manifest.data["text_encoder"],
+            "action_classes": list(manifest.action_classes), "normalization": manifest.data["normalization"],
+            "train_lengths": list(manifest.split("train")["lengths"])}
 
 
 def fill_null_condition(model: MotionFlowTransformer, manifest: Manifest) -> None:
@@ -465,6 +475,7 @@ class Trainer:
         self._last_saved_step = -1
         self._validator: Validator | None = None  # built by the first validate() (train.val_every)
         self._validator_built = False
+        self._previews = self._build_previews()  # rank 0 with train.preview_every > 0; None elsewhere
 
     # -- setup ------------------------------------------------------------------------------------------------
 
@@ -757,12 +768,7 @@ class Trainer:
             rng_states=rank_states,
             data_states=data_states,
             config=to_dict(self.cfg),
-            manifest={"dataset_id": self.manifest.dataset_id, "location": str(self.manifest.location),
-                      "feature_spec": self.manifest.data["feature_spec"],
-                      "text_encoder": self.manifest.data["text_encoder"],
-                      "action_classes": list(self.manifest.action_classes),
-                      "normalization": self.manifest.data["normalization"],
-                      "train_lengths": list(self.manifest.split("train")["lengths"])},
+            manifest=dataset_identity(self.manifest),
             extra={"samples_seen": self.samples_seen, "skipped_steps": self.skipped_steps,
                    "consecutive_skips": self.consecutive_skips, "empty_steps": self.empty_steps,
                    "scaler_skips": self.scaler_skips, "mixed_precision": self.dist.mixed_precision,
@@ -915,8 +921,12 @@ class Trainer:
                 log_step = self.step % cfg.train.log_every == 0 or self.step == cfg.train.max_steps
                 record = self._log_record(window, result) if log_step else None
                 validation = self._validate_if_due(window)
-                if record is not None or validation is not None:
-                    logger_sink.log({**(record or {"step": self.step}), **(validation or {})}, progress)
+                preview = self._preview_if_due(window)
+                if record is not None or validation is not None or preview is not None:
+                    logger_sink.log({**(record or {"step": self.step}), **(validation or {}),
+                                     **(preview.record() if preview else {})}, progress)
+                if preview is not None:
+                    logger_sink.log_image(self.step, PREVIEW_IMAGE_TAG, preview.png)
                 if self.step % cfg.train.save_every == 0 or self.step == cfg.train.max_steps:
                     self.save()
                 if result.stop_signal:
@@ -972,6 +982,27 @@ class Trainer:
             self.cfg, self.manifest, self.dist, exclude_shards=bad,
             loss_fn=lambda batch, generator, model: self._micro_batch_loss(batch, None, generator, model),
             model=self.dist.unwrap(self.model), ema_state=lambda: self.ema.shadow)
+
+    # -- previews (train.preview_every) -----------------------------------------------------------------------
+
+    def _build_previews(self) -> PreviewSampler | None:
+        if not self.dist.is_main or self.cfg.train.preview_every <= 0:
+            return None
+        diffusion = self.objective if self.cfg.train.objective == "diffusion" else None
+        return PreviewSampler(self.cfg, self.manifest, self.model_config, self.dist.unwrap(self.model),
+                              lambda: self.ema.shadow, self.dist.device, self.out_dir, diffusion)
+
+    def _preview_if_due(self, window: "WindowStats") -> Preview | None:
+        """At a multiple of train.preview_every, on rank 0: the preview of the EMA weights
+        (:mod:`pipeline.training.previews`; no collective, nothing of training touched); its time is left out of
+        the throughput. None elsewhere."""
+        every = self.cfg.train.preview_every
+        if self._previews is None or self.step % every:
+            return None
+        start = time.perf_counter()
+        preview = self._previews.run(self.step)
+        window.started += time.perf_counter() - start
+        return preview
 
     def _stop_on_signal(self, signum: int) -> int:
         """Some rank saw SIGTERM/SIGINT before this step ended: every rank learnt it from the same all-reduce, so
