@@ -100,6 +100,7 @@ from pipeline.evaluation.replications import (
     gather_stats,
     plausibility_record,
     rng_of,
+    sampling_precision,
     summarise,
 )
 from pipeline.evaluation.spaces import (
@@ -439,8 +440,9 @@ def prepare_composition(cfg: EvalConfig, dist: Dist, ctx: CheckpointContext, cac
 
 
 def composition_unit(checkpoint_name: str, ids: Mapping[str, str], point: SamplingPoint, switch: float,
-                     cfg: EvalConfig, cset: CompositionSet) -> Unit:
-    """One (checkpoint, sampling point, switch): its key hashes everything that decides the numbers."""
+                     cfg: EvalConfig, cset: CompositionSet, precision: str = "fp32") -> Unit:
+    """One (checkpoint, sampling point, switch): its key hashes everything that decides the numbers (``precision``:
+    the resolved ``sampling.precision``; fp32, the arithmetic of every earlier result, adds nothing)."""
     ccfg = {k: v for k, v in to_dict(cfg.composition).items() if k != "switch"}
     settings = {"format": COMPOSITION_FORMAT, "task": "composition", "ids": dict(ids),
                 "point": dataclasses.asdict(point), "switch": switch, "composition": ccfg, "set": cset.key,
@@ -451,6 +453,8 @@ def composition_unit(checkpoint_name: str, ids: Mapping[str, str], point: Sampli
                              and (k, v) != ("sampling_point", "sweep")},
                 "split": cfg.data.split,
                 "sampling": {"use_ema": cfg.sampling.use_ema}}
+    if precision != "fp32":
+        settings["sampling"]["precision"] = precision
     name = f"compose-{point.name}-switch{switch:.4g}-{cfg.composition.scenario}"
     return Unit(checkpoint_name, name, digest(settings))
 
@@ -503,6 +507,7 @@ class CompositionRun:
         self.ccfg, self.cset, self.plan = cfg.composition, cctx.cset, cctx.plan
         self.switch = switch
         self.switch_time = resolve_switch(switch, point.steps)
+        self.precision = sampling_precision(cfg.sampling, ctx.trained.device)
         self.window = self.ccfg.transition_window
         self.generated: list[dict[str, float]] = []
         self.ground_truth: list[dict[str, float]] = []
@@ -541,7 +546,7 @@ class CompositionRun:
             try:
                 composition = compose(trained.model, list(zip(conds, lengths)), solver=self.point.solver,
                                       steps=self.point.steps, guidance=self.point.guidance, switch=self.switch,
-                                      seed=seed, attention_chunk=chunk)
+                                      seed=seed, attention_chunk=chunk, precision=self.precision)
             except ValueError as exc:
                 raise EvaluationError(f"tasks.composition: cannot compose with {trained.checkpoint}: {exc}") from exc
         seconds = self.timer.seconds["generation"] - before
@@ -623,7 +628,8 @@ class CompositionRun:
                          # the set and its GT are fixed (FlowMDM): protocol.redraw_items does not apply here
                          "redraw_items": False, "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(self.point), "use_ema": self.cfg.sampling.use_ema,
-                         "switch": self.switch, "sampling_point": self.cfg.protocol.sampling_point},
+                         "switch": self.switch, "sampling_point": self.cfg.protocol.sampling_point,
+                         "precision": self.precision, "precision_setting": self.cfg.sampling.precision},
             "composition": {
                 "switch": self.switch,
                 "switch_label": {0.0: "relative-only", 1.0: "absolute-only"}.get(self.switch, "blended"),

@@ -216,7 +216,8 @@ def generate_composition(request: SampleRequest, trained: TrainedModel, integrat
     """One sequence of ``segments`` from the noise of ``seed``: extrapolation when they share one prompt."""
     settings = dict(solver=integrator.name, steps=integrator.steps, guidance=request.guidance_for(trained),
                     switch=HUMANML3D_SWITCH if request.switch is None else request.switch, seed=seed,
-                    attention_chunk=attention_chunk, return_trajectory=request.plot_trajectory, **encoded.tokens)
+                    attention_chunk=attention_chunk, return_trajectory=request.plot_trajectory,
+                    precision=integrator.precision, **encoded.tokens)
     lengths = [length for _, length in segments]
     try:
         if len(encoded.prompts) == 1:

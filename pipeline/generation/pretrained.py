@@ -269,9 +269,10 @@ class MotionPipeline:
     def __call__(self, texts: str | Sequence[str] = (), *, actions: Sequence[str] = (),
                  seconds: float | Sequence[float] | None = None, lengths: int | Sequence[int] | None = None,
                  num_samples: int = 1, seed: int = 0, steps: int | None = None, solver: str | None = None,
-                 guidance: float | None = None, batch_size: int = 64) -> GeneratedMotions:
+                 guidance: float | None = None, batch_size: int = 64, precision: str = "auto") -> GeneratedMotions:
         """Motions for ``texts`` (or ``actions``), ``num_samples`` each, ``seconds`` or ``lengths`` long (one value
-        or one per prompt; default: drawn from the training lengths). The same arguments give the same motions as
+        or one per prompt; default: drawn from the training lengths). ``precision``: fp32, bf16 or auto (bf16 on a
+        CUDA GPU with bf16, else fp32; SampleRequest.precision). The same arguments give the same motions as
         ``launch/sample.py``."""
         from pipeline.generation import integration, sampling
         from pipeline.generation.request import SampleRequest
@@ -280,7 +281,8 @@ class MotionPipeline:
         request = SampleRequest(
             checkpoint=str(self.trained.checkpoint), out_dir="", texts=texts, actions=list(actions),
             seconds=_as_list(seconds), lengths=_as_list(lengths), num_samples=num_samples, seed=seed, steps=steps,
-            solver=solver, guidance=guidance, batch_size=batch_size, text_weights=self.text_weights)
+            solver=solver, guidance=guidance, batch_size=batch_size, text_weights=self.text_weights,
+            precision=precision)
         trained = self.trained
         integrator = integration.resolve_integrator(request, trained)
         conditions = sampling.encode_prompts(request, trained)

@@ -287,7 +287,8 @@ def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Te
 def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: Integrator, specs: list[SampleSpec],
                    conditions: PromptConditions | None, source: SourceMotion | None,
                    options: Mapping[str, Any]) -> BatchResult:
-    """Sample (or edit) one batch of motions."""
+    """Sample (or edit) one batch of motions, in a window of the batch's longest length (not the model's
+    max_frames): :func:`batches` puts similar lengths together, and no pass computes frames no motion has."""
     device = trained.device
     lengths = torch.tensor([s.length for s in specs], dtype=torch.long, device=device)
     num_frames = int(lengths.max())
@@ -311,13 +312,14 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
             result: SolveResult = sample_diffusion(
                 model, integrator.diffusion, cond, lengths, num_frames=num_frames, feature_dim=dim,
                 sampler=integrator.name, guidance=scale, generator=generator,
-                return_trajectory=request.plot_trajectory)
+                return_trajectory=request.plot_trajectory, precision=integrator.precision)
         else:
-            denoise = classifier_free_guidance(model, cond, scale=scale, lengths=lengths, guided_channels=dim)
+            denoise = classifier_free_guidance(model, cond, scale=scale, lengths=lengths, guided_channels=dim,
+                                               precision=integrator.precision)
             result = replacement_edit(denoise, integrator.diffusion, known, keep, sampler=integrator.name,
                                       lengths=lengths, generator=generator, return_trajectory=request.plot_trajectory)
     else:
-        velocity = guided_velocity(model, cond, scale=scale, lengths=lengths)
+        velocity = guided_velocity(model, cond, scale=scale, lengths=lengths, precision=integrator.precision)
         x0 = draw_noise((len(specs), num_frames, dim), seeded_generators([s.seed for s in specs]), lengths=lengths,
                         device=device)
         if source is None:
