@@ -4,6 +4,7 @@
     python benchmarks/bench_sampling.py --device cuda --compile          # torch.compile (CUDA graphs on GPU)
     python benchmarks/bench_sampling.py --batch-sizes 1,32 --repeats 3   # CPU-friendly
     python benchmarks/bench_sampling.py --checkpoint runs/tiny           # a trained model instead of a preset
+    python benchmarks/bench_sampling.py --precision fp32,bf16            # each precision, then their difference
 
 What is timed: ``mfm.solvers.sample`` (initial noise, ``--steps`` fixed steps of ``--solver``, classifier-free
 guidance at ``--guidance`` as one batched pass of 2B per evaluation), full ``--frames`` windows (as MDM/MFM
@@ -14,6 +15,10 @@ speed does not depend on their values. ``ms_per_motion`` = median wall time over
 ``--compile``: ``torch.compile`` of the model; on CUDA with ``mode="reduce-overhead"``, which captures CUDA graphs
 (a fixed-step solver calls the model with the same shapes every step, so the graph is replayed). The first
 (warm-up) call compiles; its time is reported as ``compile_s``.
+
+``--precision``: ``fp32`` and/or ``bf16`` (the model's passes under bf16 autocast, the ODE state and solver fp32:
+``mfm.solvers.sample(precision=...)``); with both, a ``sampling_precision`` line per batch size gives the largest
+and mean |bf16 − fp32| of the motions sampled from the same noise (normalised feature units) and the time ratio.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ import torch
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from mfm.guidance import SAMPLING_PRECISIONS
 from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters
 from mfm.solvers import sample
 
@@ -53,11 +59,14 @@ class SamplingSettings:
     repeats: int = 5
     warmup: int = 1
     compile: bool = False
+    precision: str = "fp32"
+    """The model passes' arithmetic (mfm.guidance.SAMPLING_PRECISIONS)."""
 
     @classmethod
-    def from_args(cls, args: argparse.Namespace) -> SamplingSettings:
+    def from_args(cls, args: argparse.Namespace, precision: str = "fp32") -> SamplingSettings:
         return cls(device=args.device, frames=args.frames, steps=args.steps, solver=args.solver,
-                   guidance=args.guidance, repeats=args.repeats, warmup=args.warmup, compile=args.compile)
+                   guidance=args.guidance, repeats=args.repeats, warmup=args.warmup, compile=args.compile,
+                   precision=precision)
 
 
 def preset_model(config: ModelConfig, device: str) -> MotionFlowTransformer:
@@ -104,14 +113,10 @@ def timed(fn, device: str) -> float:
 def measure_sampling(model, config: ModelConfig, batch: int, settings: SamplingSettings) -> dict:
     """Median wall time of ``settings.repeats`` calls of ``mfm.solvers.sample`` for ``batch`` full-window motions
     with random conditions, after ``settings.warmup`` untimed calls (the first one compiles under ``compile``)."""
-    cond = random_conditions(config, batch, settings.device)
-    lengths = torch.full((batch,), settings.frames, dtype=torch.long)
     nfe = []
 
     def run() -> None:
-        result = sample(model, cond, lengths, num_frames=settings.frames, feature_dim=config.feature_dim,
-                        solver=settings.solver, steps=settings.steps, guidance=settings.guidance, seed=0)
-        nfe.append(result.nfe)
+        nfe.append(sample_batch(model, config, batch, settings).nfe)
 
     warmups = [timed(run, settings.device) for _ in range(settings.warmup)]
     times = [timed(run, settings.device) for _ in range(settings.repeats)]
@@ -122,14 +127,35 @@ def measure_sampling(model, config: ModelConfig, batch: int, settings: SamplingS
         "median_batch_s": round(median, 4), "min_batch_s": round(min(times), 4), "repeats": settings.repeats,
         "warmup": settings.warmup, "nfe": nfe[-1], "model_passes_of_2B": nfe[-1] if guided else 0,
         "steps": settings.steps, "solver": settings.solver, "guidance": settings.guidance, "frames": settings.frames,
+        "precision": settings.precision,
     }
     if settings.compile and warmups:
         record["compile_s"] = round(warmups[0], 3)
     return record
 
 
-def measure(model, config: ModelConfig, batch: int, args: argparse.Namespace) -> dict:
-    return measure_sampling(model, config, batch, SamplingSettings.from_args(args))
+def sample_batch(model, config: ModelConfig, batch: int, settings: SamplingSettings):
+    """One ``mfm.solvers.sample`` call of ``batch`` full-window motions with random conditions and noise seed 0."""
+    cond = random_conditions(config, batch, settings.device)
+    lengths = torch.full((batch,), settings.frames, dtype=torch.long)
+    return sample(model, cond, lengths, num_frames=settings.frames, feature_dim=config.feature_dim,
+                  solver=settings.solver, steps=settings.steps, guidance=settings.guidance, seed=0,
+                  precision=settings.precision)
+
+
+def precision_difference(model, config: ModelConfig, batch: int, settings: SamplingSettings) -> dict:
+    """|bf16 − fp32| of one batch sampled from the same noise and conditions (normalised feature units): its
+    largest and mean value, and the fp32 motions' spread to read them against."""
+    fp32 = sample_batch(model, config, batch, dataclasses.replace(settings, precision="fp32")).x1
+    bf16 = sample_batch(model, config, batch, dataclasses.replace(settings, precision="bf16")).x1
+    difference = (bf16 - fp32).abs()
+    return {"bench": "sampling_precision", "batch_size": batch, "max_abs_difference": float(difference.max()),
+            "mean_abs_difference": float(difference.mean()), "fp32_std": float(fp32.std()),
+            "fp32_max_abs": float(fp32.abs().max()), "state_dtype": str(bf16.dtype).removeprefix("torch.")}
+
+
+def measure(model, config: ModelConfig, batch: int, args: argparse.Namespace, precision: str = "fp32") -> dict:
+    return measure_sampling(model, config, batch, SamplingSettings.from_args(args, precision))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -146,7 +172,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--threads", type=int, help="CPU intra-op threads (default: torch's)")
     parser.add_argument("--compile", action="store_true", help="torch.compile the model (CUDA graphs on GPU)")
+    parser.add_argument("--precision", default="fp32", help="comma list of fp32, bf16 (default fp32); with both, "
+                                                           "also their difference")
     args = parser.parse_args(argv)
+    precisions = [p.strip() for p in args.precision.split(",") if p.strip()]
+    if not precisions or any(p not in SAMPLING_PRECISIONS for p in precisions):
+        parser.error(f"--precision: a comma list of {', '.join(SAMPLING_PRECISIONS)}, got {args.precision!r}")
     if args.compile and args.warmup < 1:
         parser.error("--compile needs --warmup >= 1 (the first call compiles)")
     if args.threads:
@@ -161,7 +192,14 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps(header), flush=True)
     with torch.inference_mode():
         for batch in (int(b) for b in args.batch_sizes.split(",")):
-            print(json.dumps(measure(model, config, batch, args)), flush=True)
+            timed_runs = {precision: measure(model, config, batch, args, precision) for precision in precisions}
+            for record in timed_runs.values():
+                print(json.dumps(record), flush=True)
+            if len(timed_runs) == 2:
+                difference = precision_difference(model, config, batch, SamplingSettings.from_args(args))
+                difference["bf16_speedup"] = round(timed_runs["fp32"]["median_batch_s"]
+                                                   / timed_runs["bf16"]["median_batch_s"], 3)
+                print(json.dumps(difference), flush=True)
     return 0
 
 

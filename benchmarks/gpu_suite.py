@@ -20,14 +20,18 @@ Full size is the HumanML3D preset (configs/humanml3d.yaml: 8 layers, width 512, 
 * ``sampling_one`` / ``sampling_batch``: ``mfm.solvers.sample`` at 10 Euler steps with guidance 2.5 (CFG's two
   halves in one batched pass), ms per motion for one motion and per motion at batch 256 (smoke: 8), timed by
   ``benchmarks/bench_sampling.py`` (CUDA synchronised before each clock read; compiled with CUDA graphs under
-  ``--compile``).
+  ``--compile``); fp32. ``sampling_one_optimised`` / ``sampling_batch_optimised``: the same with the model's passes
+  under bf16 autocast where the optimised training step has it (the ODE state and solver fp32);
+  ``sampling_difference``: the largest |optimised − fp32| of the large batch's motions from the same noise.
 * ``data_loader``: ``pipeline.data.stream.MotionLoader`` streaming a throwaway synthetic dataset with HumanML3D shapes
   (built by the real shard builder, ``benchmarks/bench_data.py``), samples/s and batches/s with ``--workers``.
 * ``data_wait``: the optimised step fed by that loader; value = share of the wall time spent waiting for batches.
 * ``evaluator``: the evaluation job's replication (``benchmarks/bench_eval.py``: generation, evaluator embeddings,
   FID/diversity/R-precision, plus editing, FLAME and MultiModality at full size) on a synthetic test set of
   ``--eval-items`` motions (HumanML3D's 4,384); value = test motions per second of one replication, with the
-  estimated wall time of the whole protocol (ground truth once + every replication).
+  estimated wall time of the whole protocol (ground truth once + every replication) and the generator's passes per
+  replication. fp32, editing in every replication. ``evaluator_optimised``: the same at the sampler's optimised
+  precision with one single editing pass (``tasks.editing_passes=single``), averaged over the protocol.
 * ``suite_wall``: the suite's own wall time.
 
 FLOPs per training sample (fwd + bwd = 3 x forward; :func:`training_flops_per_sample`)::
@@ -77,8 +81,9 @@ from pipeline.distributed import Dist  # noqa: E402
 from pipeline.evaluation.config import load_eval_config  # noqa: E402
 from pipeline.training.trainer import Trainer, draw_for_batch, model_config_for  # noqa: E402
 
-FIGURES = ("train_fp32", "train_optimised", "equal_loss", "sampling_one", "sampling_batch", "data_loader",
-           "data_wait", "evaluator")
+FIGURES = ("train_fp32", "train_optimised", "equal_loss", "sampling_one", "sampling_batch", "sampling_one_optimised",
+           "sampling_batch_optimised", "sampling_difference", "data_loader", "data_wait", "evaluator",
+           "evaluator_optimised")
 """The measured figures, in the order they run (plus ``suite_wall`` at the end)."""
 
 TEXT_DIM = 512  # HumanML3D's pooled CLIP ViT-B/32 text embedding
@@ -190,7 +195,9 @@ def model_flops_utilisation(flops_per_sample: float, samples_per_s: float, peak_
 # Sizes and options
 # ---------------------------------------------------------------------------------------------------------------
 
-EVAL_TASKS = ("all", "main")
+EVAL_TASKS = ("all", "edits", "main")
+"""The evaluator's work: all (editing, FLAME metrics, MultiModality), edits (all but MultiModality, whose 30
+repetitions per text a CPU cannot afford at the full model size) or main (text-to-motion only)."""
 """Evaluator work per replication: 'all' = the protocol's editing tasks, FLAME and MultiModality too; 'main' = the
 text-to-motion metrics only (generation, embeddings, FID/diversity/R-precision), for a CPU run of the full model."""
 
@@ -368,8 +375,15 @@ def data_wait_figure(run: TrainingRun, workers: int) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------------------------
 
 
+def sampler_precision(options: SuiteOptions) -> str:
+    """The sampler's optimised precision: bf16 autocast where the optimised training step has it, else fp32."""
+    return "bf16" if options.optimised_precision == "bf16" else "fp32"
+
+
 def sampling_figures(options: SuiteOptions, model_config: ModelConfig) -> list[dict[str, Any]]:
-    """10 Euler steps with CFG 2.5 for one motion, then per motion at the size's large batch."""
+    """10 Euler steps with CFG 2.5 for one motion, then per motion at the size's large batch: fp32
+    (``sampling_one`` / ``sampling_batch``), at :func:`sampler_precision` (``*_optimised``), and the largest
+    |optimised − fp32| of the large batch's motions from the same noise (``sampling_difference``)."""
     size = options.size
     model = bench_sampling.preset_model(model_config, options.device)
     parameters = count_parameters(model)
@@ -380,14 +394,24 @@ def sampling_figures(options: SuiteOptions, model_config: ModelConfig) -> list[d
                                                compile=options.compile)
     figures = []
     with torch.inference_mode():
-        for name, batch in (("sampling_one", 1), ("sampling_batch", size.sampling_batch)):
-            record = bench_sampling.measure_sampling(model, model_config, batch, settings)
-            figures.append({"figure": name, "value": record["ms_per_motion"], "unit": "ms/motion",
-                            "batch_size": batch, "median_batch_s": record["median_batch_s"],
-                            "min_batch_s": record["min_batch_s"], "nfe": record["nfe"], "solver": "euler",
-                            "guidance": 2.5, "frames": size.window, "repeats": record["repeats"],
-                            "compile": options.compile, "precision": "fp32",
-                            "compile_s": record.get("compile_s"), "parameters": parameters})
+        for suffix, precision in (("", "fp32"), ("_optimised", sampler_precision(options))):
+            for name, batch in (("sampling_one", 1), ("sampling_batch", size.sampling_batch)):
+                record = bench_sampling.measure_sampling(model, model_config, batch,
+                                                         dataclasses.replace(settings, precision=precision))
+                figures.append({"figure": name + suffix, "value": record["ms_per_motion"], "unit": "ms/motion",
+                                "batch_size": batch, "median_batch_s": record["median_batch_s"],
+                                "min_batch_s": record["min_batch_s"], "nfe": record["nfe"], "solver": "euler",
+                                "guidance": 2.5, "frames": size.window, "repeats": record["repeats"],
+                                "compile": options.compile, "precision": precision,
+                                "compile_s": record.get("compile_s"), "parameters": parameters})
+        difference = bench_sampling.precision_difference(
+            model, model_config, size.sampling_batch,
+            dataclasses.replace(settings, precision=sampler_precision(options)))
+    figures.append({"figure": "sampling_difference", "value": difference["max_abs_difference"],
+                    "unit": "max abs difference, optimised vs fp32 (normalised features)",
+                    "mean_abs_difference": difference["mean_abs_difference"], "fp32_std": difference["fp32_std"],
+                    "precision": sampler_precision(options), "batch_size": size.sampling_batch,
+                    "state_dtype": difference["state_dtype"]})
     return figures
 
 
@@ -406,32 +430,48 @@ def loader_figure(options: SuiteOptions, manifest_path: Path, cfg: TrainConfig) 
             "feature_dim": manifest.data["feature_spec"]["dim"], "text_dim": manifest.data["text_encoder"]["dim"]}
 
 
-def evaluator_figure(options: SuiteOptions) -> dict[str, Any]:
-    """One replication of the evaluation job (bench_eval.run_evaluation_bench) and the whole protocol's estimate:
-    the ground-truth phase once plus the protocol's replications, each as long as the measured one."""
+def evaluator_figures(options: SuiteOptions) -> list[dict[str, Any]]:
+    """The evaluation job (bench_eval.run_evaluation_bench) as it was and as issue 26 runs it, in one run:
+    ``evaluator``, fp32 with the editing tasks in every replication (one replication measured); and
+    ``evaluator_optimised``, the generator's passes at the sampler's precision (:func:`sampler_precision`) with one
+    single editing pass (``tasks.editing_passes=single``; two replications measured, the first with the pass).
+    Each: the time and the generator's passes per replication averaged over the protocol's replications, and the
+    protocol's estimated wall time (the ground truth once + every replication)."""
     size = options.size
-    everything = size.eval_tasks == "all"
-    settings = bench_eval.EvalBenchSettings(
-        items=size.eval_items, protocol=size.eval_protocol, replications=1, steps=10,
+    editing = size.eval_tasks in ("all", "edits")
+    # Where the protocol has replications with and without the editing tasks (the single pass; the fast protocol's
+    # editing_replications 1 of 3), a replication of each kind is measured.
+    some_edit = load_eval_config(size.eval_protocol).tasks.editing_replications > 0
+    base = bench_eval.EvalBenchSettings(
+        items=size.eval_items, protocol=size.eval_protocol, replications=2 if editing and some_edit else 1, steps=10,
         batch_size=size.eval_batch_size, model_preset=size.preset,
-        editing=bench_eval.EDITING_TASKS if everything else (), flame=everything, multimodality=everything,
+        editing=bench_eval.EDITING_TASKS if editing else (), flame=editing, multimodality=size.eval_tasks == "all",
         device=options.device, text_dim=TEXT_DIM)
-    record = bench_eval.run_evaluation_bench(settings)
-    if record is None:  # not rank 0: the suite runs as one process, so this does not happen
-        raise RuntimeError("the evaluator bench returned no record")
-    phases = record["phases_s"]
-    replication_s = record["replications_wall_s"]
-    protocol_replications = load_eval_config(size.eval_protocol).protocol.replications
-    metric_s = phases.get("features", 0.0) + phases.get("metrics", 0.0)
-    protocol_s = phases.get("ground_truth", 0.0) + protocol_replications * replication_s
-    return {"figure": "evaluator", "value": round(size.eval_items / replication_s, 3), "unit": "test motions/s",
-            "items": size.eval_items, "protocol": size.eval_protocol, "tasks": size.eval_tasks,
-            "replication_s": replication_s,
-            "full_protocol_s_estimate": round(protocol_s, 2),
-            "protocol_replications": protocol_replications,
-            "metric_motions_per_s": round(size.eval_items / metric_s, 2) if metric_s > 0 else None,
+    runs = (("evaluator", base),
+            ("evaluator_optimised", dataclasses.replace(base, precision=sampler_precision(options), **(
+                {"replications": 2, "editing_passes": "single"} if editing else {}))))
+    figures = []
+    for name, settings in runs:
+        record = bench_eval.run_evaluation_bench(settings)
+        if record is None:  # not rank 0: the suite runs as one process, so this does not happen
+            raise RuntimeError("the evaluator bench returned no record")
+        estimate = record["protocol_estimate"]
+        phases = record["phases_s"]
+        metric_s = phases.get("features", 0.0) + phases.get("metrics", 0.0)
+        figures.append({
+            "figure": name, "value": round(size.eval_items / estimate["s_per_replication"], 3),
+            "unit": "test motions/s", "items": size.eval_items, "protocol": size.eval_protocol,
+            "tasks": size.eval_tasks, "precision": record["precision"], "editing_passes": record["editing_passes"],
+            "single_pass_edits": record["single_pass_edits"], "replication_s": estimate["s_per_replication"],
+            "replication_cpu_s": estimate["cpu_s_per_replication"],
+            "model_calls_per_replication": estimate["model_calls_per_replication"],
+            "model_rows_per_replication": estimate["model_rows_per_replication"],
+            "full_protocol_s_estimate": estimate["s"], "protocol_replications": estimate["replications"],
+            "measured_replications": [r["wall_s"] for r in record["per_replication"]],
+            "metric_motions_per_s": round(size.eval_items * settings.replications / metric_s, 2) if metric_s else None,
             "generation_ms_per_motion": round(1000 * record["seconds_per_motion"], 3),
-            "phases_s": phases, "batch_size": size.eval_batch_size, "model_preset": size.preset}
+            "phases_s": phases, "batch_size": size.eval_batch_size, "model_preset": size.preset})
+    return figures
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -476,7 +516,8 @@ def run_suite(options: SuiteOptions, emit: Callable[[dict[str, Any]], None]) -> 
             add(record)
         add(loader_figure(options, manifest, opt_cfg))
         add(data_wait_figure(optimised, options.workers))
-    add(evaluator_figure(options))
+    for record in evaluator_figures(options):
+        add(record)
     add({"figure": "suite_wall", "value": round(time.perf_counter() - start, 2), "unit": "s"})
     return records
 
@@ -501,11 +542,15 @@ DETAILS: dict[str, tuple[str, ...]] = {
     "sampling_one": ("batch_size", "median_batch_s", "nfe", "guidance", "frames", "compile", "precision"),
     "data_loader": ("batches_per_s", "batch_size", "num_workers", "first_batch_s"),
     "data_wait": ("num_workers", "s_per_step", "samples_per_s_with_loader"),
-    "evaluator": ("items", "protocol", "tasks", "replication_s", "full_protocol_s_estimate", "metric_motions_per_s",
-                  "generation_ms_per_motion"),
+    "sampling_difference": ("mean_abs_difference", "fp32_std", "precision", "batch_size", "state_dtype"),
+    "evaluator": ("items", "protocol", "tasks", "precision", "editing_passes", "replication_s", "replication_cpu_s",
+                  "model_calls_per_replication", "model_rows_per_replication", "full_protocol_s_estimate",
+                  "metric_motions_per_s", "generation_ms_per_motion"),
 }
 DETAILS["train_optimised"] = DETAILS["train_fp32"]
-DETAILS["sampling_batch"] = DETAILS["sampling_one"]
+DETAILS["sampling_batch"] = DETAILS["sampling_one_optimised"] = DETAILS["sampling_one"]
+DETAILS["sampling_batch_optimised"] = DETAILS["sampling_one"]
+DETAILS["evaluator_optimised"] = DETAILS["evaluator"]
 
 
 def details(record: dict[str, Any]) -> str:
@@ -564,7 +609,8 @@ def parse_options(argv: Sequence[str] | None) -> SuiteOptions:
     parser.add_argument("--sampling-batch", type=int, help="the large sampling batch (default 256; smoke 8)")
     parser.add_argument("--repeats", type=int, help="timed sampling calls per batch size (default 10; smoke 2)")
     parser.add_argument("--eval-items", type=int, help="synthetic test-set size (default 4384; smoke 16)")
-    parser.add_argument("--eval-tasks", choices=EVAL_TASKS, help="evaluator work (default all; smoke main)")
+    parser.add_argument("--eval-tasks", choices=EVAL_TASKS, help="evaluator work: all, edits (no MultiModality) or "
+                                                                 "main (default all; smoke main)")
     parser.add_argument("--threads", type=int, help="torch CPU intra-op threads (default: torch's)")
     args = parser.parse_args(argv)
     if args.device == "cuda" and not torch.cuda.is_available():

@@ -288,6 +288,7 @@ def compose(
     attention_chunk: int | None = None,
     return_trajectory: bool = False,
     max_nfe: int = DEFAULT_MAX_NFE,
+    precision: str = "fp32",
 ) -> Composition:
     """Sample ``segments`` = [(condition, frames), ...] as one sequence (FlowMDM composition).
 
@@ -303,6 +304,7 @@ def compose(
         ``switch`` all-absolute reproduces :func:`mfm.solvers.sample` for the same seed.
     text_tokens (L, token_dim) / text_token_len: the text's token features, for a cross_attention model.
     attention_chunk: blockwise attention for bpe models (see MotionFlowTransformer.forward).
+    precision: ``fp32`` or ``bf16`` (the model's passes under bf16 autocast; :func:`mfm.solvers.guided_velocity`).
     """
     config = model.config
     if getattr(model, "training", False):
@@ -340,7 +342,7 @@ def compose(
     total = sum(lengths)
     x0 = initial_noise((1, total, config.feature_dim), seed=seed, generator=generator, device=device)
     velocity = guided_velocity(bound, conds[:1], scale=guidance, null_cond=null_cond,
-                               conditional_channels=conditional_channels)
+                               conditional_channels=conditional_channels, precision=precision)
     result = solve(velocity, x0, solver=solver, steps=steps, return_trajectory=return_trajectory)
     return Composition(
         motion=result.x1[0],

@@ -146,6 +146,7 @@ def sample_diffusion(
     seed: int = 0,
     generator: NoiseGenerators | None = None,
     return_trajectory: bool = False,
+    precision: str = "fp32",
 ) -> SolveResult:
     """Generate B = len(lengths) motions (B, num_frames, D) with a diffusion denoiser, as :func:`mfm.solvers.sample`.
 
@@ -157,7 +158,8 @@ def sample_diffusion(
     clip_denoised: bounds of the x_0 estimates (:func:`mfm.diffusion.clamp_x0`): c = [−c, c] on every channel
         (FLAME's ``True`` = 1.0, on its raw SMPL features), per-channel (:func:`rotation_6d_range`: FLAME's clamp on
         our normalised features) or None (default).
-    feature_dim defaults to ``model.config.feature_dim``.
+    feature_dim defaults to ``model.config.feature_dim``. precision: ``fp32`` or ``bf16`` (the denoiser's passes under
+    bf16 autocast, its output fp32; the chain's arithmetic stays fp32: :func:`mfm.guidance.classifier_free_guidance`).
     """
     device, cond, lengths = sampling_inputs(model, cond, lengths, num_frames)
     dim = model_feature_dim(model, feature_dim)
@@ -166,7 +168,7 @@ def sample_diffusion(
     x_start = draw_noise((lengths.shape[0], num_frames, dim), generator, lengths=lengths, device=device)
     x_start = x_start * frame_mask.unsqueeze(-1)
     denoise_fn = classifier_free_guidance(model, cond, scale=guidance, lengths=lengths, null_cond=null_cond,
-                                          guided_channels=dim)
+                                          guided_channels=dim, precision=precision)
     return reverse_diffusion(denoise_fn, _schedule_for(diffusion, steps), x_start, generator=generator,
                              sampler=sampler, eta=eta, clip_denoised=clip_denoised, frame_mask=frame_mask,
                              return_trajectory=return_trajectory)

@@ -1,6 +1,13 @@
 """Classifier-free guidance as one batched model pass (shared by the flow-matching solvers and the diffusion
 samplers): the conditional and unconditional halves run as a single forward of size 2B, the condition is encoded
-once by the caller and never re-encoded, and scale 1 / 0 need only one half."""
+once by the caller and never re-encoded, and scale 1 / 0 need only one half.
+
+Precision (:data:`SAMPLING_PRECISIONS`): ``fp32`` runs the model as it is; ``bf16`` runs each forward pass under
+``torch.autocast`` with bfloat16 on the input's device (CPU or CUDA) and hands back its output as fp32
+(:class:`AutocastForward`), so the guidance mix, the ODE state and every solver or sampler update stay fp32: only
+the network's matmuls and attention run in bf16. :func:`resolve_precision` turns a setting (``auto`` included) into
+the precision a device runs.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +19,53 @@ from torch import Tensor
 from mfm.layout import FeatureLayout
 from mfm.skeleton import Skeleton
 
+SAMPLING_PRECISIONS = ("fp32", "bf16")
+"""The arithmetic of a sampler's model passes: fp32, or bf16 autocast (the state and the solver stay fp32)."""
+PRECISION_SETTINGS = ("auto", *SAMPLING_PRECISIONS)
+"""What a user may ask for: ``auto`` = bf16 on a CUDA device that supports it, fp32 elsewhere (CPU included)."""
+
+
+class AutocastForward:
+    """``model`` with every forward pass under ``torch.autocast(dtype)`` on the input's device and its output
+    converted to fp32: the caller's arithmetic (guidance mix, solver) never sees the low precision. Callable with
+    the model's own signature."""
+
+    def __init__(self, model: Callable[..., Tensor], dtype: torch.dtype = torch.bfloat16) -> None:
+        self.model = model
+        self.dtype = dtype
+
+    def __call__(self, x: Tensor, t: Tensor, *args, **kwargs) -> Tensor:
+        with torch.autocast(device_type=x.device.type, dtype=self.dtype):
+            out = self.model(x, t, *args, **kwargs)
+        return out.float()
+
+
+def in_precision(model: Callable[..., Tensor], precision: str) -> Callable[..., Tensor]:
+    """``model`` itself for ``fp32``; wrapped in :class:`AutocastForward` (bf16) for ``bf16``."""
+    if precision == "fp32":
+        return model
+    if precision == "bf16":
+        return AutocastForward(model, torch.bfloat16)
+    raise ValueError(f"precision must be one of {list(SAMPLING_PRECISIONS)}, got {precision!r}")
+
+
+def resolve_precision(setting: str, device: torch.device | str) -> str:
+    """The precision ``setting`` means on ``device``: ``auto`` is bf16 on a CUDA device with native bf16 (Ampere and
+    later) and fp32 anywhere else; ``fp32`` is fp32; ``bf16`` is bf16 where autocast supports it (CPU, and CUDA
+    devices with bf16), else a ValueError saying why."""
+    if setting not in PRECISION_SETTINGS:
+        raise ValueError(f"precision must be one of {list(PRECISION_SETTINGS)}, got {setting!r}")
+    device = torch.device(device)
+    # native bf16 only: an older GPU emulates it, slower than fp32
+    cuda_bf16 = (device.type == "cuda" and torch.cuda.is_available()
+                 and torch.cuda.is_bf16_supported(including_emulation=False))
+    if setting == "auto":
+        return "bf16" if cuda_bf16 else "fp32"
+    if setting == "bf16" and not (device.type == "cpu" or cuda_bf16):
+        raise ValueError(f"precision bf16: autocast has no bf16 on device {str(device)!r} (it runs on cpu and on CUDA "
+                         "GPUs with native bf16); use fp32 or auto")
+    return setting
+
 
 def classifier_free_guidance(
     model: Callable[..., Tensor],
@@ -22,6 +76,7 @@ def classifier_free_guidance(
     null_cond: Tensor | None = None,
     guided_channels: int | None = None,
     conditional_channels: Tensor | None = None,
+    precision: str = "fp32",
 ) -> Callable[[Tensor, Tensor], Tensor]:
     """``(x, t) -> out``: ``out(∅) + scale·(out(c) − out(∅))`` from one batched model pass of size 2B.
 
@@ -34,7 +89,9 @@ def classifier_free_guidance(
     conditional_channels: (C,) bool mask of output channels that take the conditional output unguided (True)
         instead of the mix, e.g. :attr:`mfm.layout.FeatureLayout.root_motion_mask` for ``model.guided_features='pose'``
         (applied after ``guided_channels``). None or all False: no exception.
+    precision: the model passes' arithmetic (:data:`SAMPLING_PRECISIONS`); the output and the mix are fp32 either way.
     """
+    model = in_precision(model, precision)
     batch = cond.shape[0]
     uncond = cond if null_cond is None else null_cond.to(cond.device, cond.dtype).expand_as(cond)
     keep = torch.zeros(batch, dtype=torch.bool, device=cond.device)

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -758,21 +757,22 @@ def _heading(joints: np.ndarray, face_joints: tuple[int, int, int, int]) -> np.n
 
 
 def _canonical_parts(joints: np.ndarray, root: int, face_joints: tuple[int, int, int, int] | None):
-    """TEMOS-style decomposition of one (T, J, 3) clip: global joints, root, xz trajectory, local pose.
+    """TEMOS-style decomposition of (N, T, J, 3) clips, each on its own: global joints, root, xz trajectory, local pose.
 
-    The clip is translated so the root's first-frame ground position is the origin and, with ``face_joints``,
-    rotated about y so the first frame faces +z. Local pose = non-root joints with the root's xz removed (height
-    kept), expressed in each frame's own heading frame when ``face_joints`` is given.
+    Every clip is translated so the root's first-frame ground position is the origin and, with ``face_joints``,
+    rotated about y so its first frame faces +z. Local pose = non-root joints with the root's xz removed (height
+    kept), expressed in each frame's own heading frame when ``face_joints`` is given. Frame by frame (the first
+    frame aside), so padding frames never reach a clip's valid ones.
     """
-    g = joints - np.array([joints[0, root, 0], 0.0, joints[0, root, 2]])
+    g = joints - joints[:, :1, root : root + 1] * np.array([1.0, 0.0, 1.0])
     if face_joints is not None:
-        headings = _heading(g, face_joints)  # (T,)
-        g = g @ _yaw_rotation(headings[0])
-    root_pos = g[:, root]  # (T, 3)
-    local = np.delete(g, root, axis=1) - np.stack([root_pos[:, 0], np.zeros(len(g)), root_pos[:, 2]], -1)[:, None]
+        first = _yaw_rotation(_heading(g[:, 0], face_joints))  # (N, 3, 3)
+        g = g @ first[:, None]  # (T, J, 3) @ (3, 3) per clip
+    root_pos = g[:, :, root]  # (N, T, 3)
+    local = np.delete(g, root, axis=2) - (root_pos * np.array([1.0, 0.0, 1.0]))[:, :, None]
     if face_joints is not None:
-        local = np.einsum("tjk,tkl->tjl", local, _yaw_rotation(_heading(g, face_joints)))
-    return g, root_pos, root_pos[:, [0, 2]], local
+        local = local @ _yaw_rotation(_heading(g, face_joints))  # (J, 3) @ (3, 3) per clip and frame
+    return g, root_pos, root_pos[..., [0, 2]], local
 
 
 TEMOS_FLOOR_SOFTNESS = 0.5
@@ -796,11 +796,22 @@ def temos_floor_height(joints: np.ndarray, foot_joints: Sequence[int], *,
     by an amount that depends on each clip's foot-height range (log(0.5 + e^(−range)) m), so generated and
     ground-truth clips got different offsets and APE_root / APE_mean_global were biased by 0.1–0.3 m.
     """
+    clip = np.asarray(joints, dtype=np.float64)
+    return float(temos_floor_heights(clip[None], foot_joints, millimetres_per_unit=millimetres_per_unit)[0])
+
+
+def temos_floor_heights(joints: np.ndarray, foot_joints: Sequence[int], lengths: Any = None, *,
+                        millimetres_per_unit: float = TEMOS_FLOOR_MM_PER_UNIT) -> np.ndarray:
+    """:func:`temos_floor_height` of every clip of (N, T, J, 3) joints at once, over its frames ``< lengths[i]``:
+    (N,) heights in the clips' unit."""
     if not millimetres_per_unit > 0:
         raise ValueError(f"millimetres_per_unit must be > 0, got {millimetres_per_unit}")
-    heights = joints[:, list(foot_joints), 1].min(axis=1) * millimetres_per_unit
-    low, high = float(heights.min()), float(heights.max())
-    return (low - math.log(TEMOS_FLOOR_SOFTNESS + math.exp(low - high))) / millimetres_per_unit
+    n, t = joints.shape[:2]
+    valid = _frame_mask(_lengths_or_full(lengths, n, t), t)
+    heights = joints[:, :, list(foot_joints), 1].min(axis=2) * millimetres_per_unit  # (N, T)
+    low = np.where(valid, heights, np.inf).min(axis=1)
+    high = np.where(valid, heights, -np.inf).max(axis=1)
+    return (low - np.log(TEMOS_FLOOR_SOFTNESS + np.exp(low - high))) / millimetres_per_unit
 
 
 def ape_ave(
@@ -839,6 +850,9 @@ def ape_ave(
     1e-3 for KIT's millimetres), converted to metres first: results are in metres (TEMOS's ``force_in_meter``);
     ``lengths`` (N,) valid frames (≥ 2). Keys: ``APE_root, APE_traj, APE_mean_local, APE_mean_global, AVE_root,
     AVE_traj, AVE_mean_local, AVE_mean_global``.
+
+    All clips are computed at once (array operations over the batch, every clip masked to its own frames; no loop
+    over clips): the same numbers as one clip at a time, up to summation order.
     """
     pred, gt = _as_numpy(pred_joints, "pred_joints"), _as_numpy(gt_joints, "gt_joints")
     _check_joints(pred, "pred_joints")
@@ -852,24 +866,34 @@ def ape_ave(
     if not 0 <= root < j:
         raise ValueError(f"root index {root} out of range for {j} joints")
     lens = _lengths_or_full(lengths, n, t, minimum=2)
+    valid = _frame_mask(lens, t)  # (N, T)
+    clips = [pred, gt]
+    if floor_joints is not None:
+        clips = [clip - temos_floor_heights(clip, floor_joints, lens)[:, None, None, None] * np.array([0.0, 1.0, 0.0])
+                 for clip in clips]
     names = ("mean_global", "root", "traj", "mean_local")
-    ape_sum = dict.fromkeys(names, 0.0)
-    ave_sum = dict.fromkeys(names, 0.0)
-    for i in range(n):
-        clips = [pred[i, : lens[i]], gt[i, : lens[i]]]
-        if floor_joints is not None:
-            clips = [clip - np.array([0.0, temos_floor_height(clip, floor_joints), 0.0]) for clip in clips]
-        parts_pred = _canonical_parts(clips[0], root, face_joints)
-        parts_gt = _canonical_parts(clips[1], root, face_joints)
-        for name, p, g in zip(names, parts_pred, parts_gt):
-            # (T, ..., D): sum errors over frames, mean over joints (if any)
-            ape_sum[name] += np.linalg.norm(p - g, axis=-1).sum(axis=0).mean()
-            var_p, var_g = p.var(axis=0, ddof=1), g.var(axis=0, ddof=1)
-            ave_sum[name] += np.linalg.norm(var_p - var_g, axis=-1).mean()
-    total_frames = float(lens.sum())
-    out = {f"APE_{k}": ape_sum[k] / total_frames for k in ("root", "traj", "mean_local", "mean_global")}
-    out.update({f"AVE_{k}": ave_sum[k] / n for k in ("root", "traj", "mean_local", "mean_global")})
-    return {k: float(v) for k, v in out.items()}
+    parts_pred = _canonical_parts(clips[0], root, face_joints)
+    parts_gt = _canonical_parts(clips[1], root, face_joints)
+    out = {}
+    for name, p, g in zip(names, parts_pred, parts_gt):
+        # (N, T, [joints,] D): the error per frame (mean over joints, if any), summed over each clip's frames
+        mask = valid.reshape(n, t, *([1] * (p.ndim - 2)))
+        error = np.linalg.norm(p - g, axis=-1)
+        error = error.reshape(n, t, -1).mean(axis=-1)
+        out[f"APE_{name}"] = float(np.where(valid, error, 0.0).sum() / lens.sum())
+        spread = [_masked_variance(x, mask, lens) for x in (p, g)]  # (N, [joints,] D), T − 1 denominator
+        ave = np.linalg.norm(spread[0] - spread[1], axis=-1).reshape(n, -1).mean(axis=-1)
+        out[f"AVE_{name}"] = float(ave.mean())
+    return {k: out[k] for k in (*(f"APE_{k}" for k in ("root", "traj", "mean_local", "mean_global")),
+                                *(f"AVE_{k}" for k in ("root", "traj", "mean_local", "mean_global")))}
+
+
+def _masked_variance(x: np.ndarray, mask: np.ndarray, lens: np.ndarray) -> np.ndarray:
+    """Per clip (axis 0), the variance over frames (axis 1) where ``mask``, with the ``lens − 1`` denominator."""
+    shape = (-1, *([1] * (x.ndim - 2)))
+    count = lens.reshape(shape).astype(np.float64)
+    mean = np.where(mask, x, 0.0).sum(axis=1) / count
+    return (np.where(mask, x - mean[:, None], 0.0) ** 2).sum(axis=1) / (count - 1.0)
 
 
 def mclip_score(text_emb: Any, motion_emb: Any) -> float:

@@ -19,6 +19,10 @@ model class. :func:`guided_velocity` turns a model with MFM's forward signature
 
 Padding: :func:`sample` zeroes the padded frames of the initial noise and of every velocity
 (:func:`zero_padded_frames`), so padded frames of the state are exactly zero at every time and never drift.
+
+Precision: ``precision='bf16'`` (:func:`guided_velocity`, :func:`sample`) runs the model's passes under bf16 autocast
+(mfm.guidance.AutocastForward); the velocity comes back as fp32 and the state, the guidance mix and every solver
+update stay fp32, so only the network's own rounding changes.
 """
 
 from __future__ import annotations
@@ -286,6 +290,7 @@ def guided_velocity(
     lengths: Tensor | None = None,
     null_cond: Tensor | None = None,
     conditional_channels: Tensor | None = None,
+    precision: str = "fp32",
 ) -> VelocityFn:
     """Classifier-free guided velocity ``v = v(∅) + scale·(v(c) - v(∅))`` of ``model``.
 
@@ -299,9 +304,10 @@ def guided_velocity(
         (``model.guided_features='pose'``: :attr:`mfm.layout.FeatureLayout.root_motion_mask`).
     null_cond: what the unconditional half receives as ``cond`` (default: ``cond`` itself, which the model drops
         because of ``cond_mask``); for models whose null condition is an explicit input. Broadcast to cond's shape.
+    precision: ``fp32`` or ``bf16`` (the model's passes under bf16 autocast; the velocity is fp32 either way).
     """
     return classifier_free_guidance(model, cond, scale=scale, lengths=lengths, null_cond=null_cond,
-                                    conditional_channels=conditional_channels)
+                                    conditional_channels=conditional_channels, precision=precision)
 
 
 def initial_noise(
@@ -423,6 +429,7 @@ def sample(
     rtol: float = 1e-5,
     atol: float = 1e-5,
     options: dict | None = None,
+    precision: str = "fp32",
 ) -> SolveResult:
     """Generate B = len(lengths) motions (B, num_frames, D) of normalised features by integrating the guided field.
     ``conditional_channels``: feature channels left unguided (:func:`guided_velocity`).
@@ -430,7 +437,8 @@ def sample(
     The initial noise comes from ``generator`` or, by default, a CPU generator seeded with ``seed``: the same seed,
     batch (cond, lengths) and device give identical results. Frames ``>= lengths[b]`` are zero in the output.
     The model should be in eval mode (dropout on makes the field random). feature_dim defaults to
-    ``model.config.feature_dim``.
+    ``model.config.feature_dim``. ``num_frames``: the batch's window; the pipeline's samplers pass its longest
+    length, so no pass computes frames that no motion of the batch has. ``precision``: see :func:`guided_velocity`.
     """
     device, cond, lengths = sampling_inputs(model, cond, lengths, num_frames)
     shape = (lengths.shape[0], num_frames, model_feature_dim(model, feature_dim))
@@ -438,7 +446,8 @@ def sample(
     x0 = initial_noise(shape, seed=seed, generator=generator, device=device) * valid
     velocity = zero_padded_frames(
         guided_velocity(model, cond, scale=guidance, lengths=lengths, null_cond=null_cond,
-                        conditional_channels=conditional_channels), lengths
+                        conditional_channels=conditional_channels, precision=precision),
+        lengths,
     )
     return solve(
         velocity, x0, solver=solver, steps=steps, grid=grid, rtol=rtol, atol=atol, options=options,

@@ -517,6 +517,97 @@ def test_each_replication_generates_edits_and_scores_its_own_draw(text_run, mani
     assert calls and {c[0] for c in calls} == {0, 1, 2}
 
 
+def _edit_rows_per_replication(job, dist, ctx, monkeypatch) -> tuple[dict, dict[int, list[int]]]:
+    """Run every replication of ``ctx``'s first point; the result and, per replication, the noise seed of every
+    edited row (the same item edited twice draws two seeds)."""
+    from pipeline.evaluation import replications
+    from pipeline.evaluation.replications import PhaseTimer
+
+    edits: dict[int, list[int]] = {}
+    current = {"replication": -1}
+    generate, replicate = replications.generate, replications.PointRun.replicate
+
+    def recording_generate(trained, cond, extras, lengths, seeds, *args, known=None, **kwargs):
+        if known is not None:
+            edits.setdefault(current["replication"], []).extend(seeds)
+        return generate(trained, cond, extras, lengths, seeds, *args, known=known, **kwargs)
+
+    def recording_replicate(self, replication):
+        current["replication"] = replication
+        return replicate(self, replication)
+
+    monkeypatch.setattr(replications, "generate", recording_generate)
+    monkeypatch.setattr(replications.PointRun, "replicate", recording_replicate)
+    return job.scorer.evaluate_point(ctx, ctx.points[0], PhaseTimer(dist.device)), edits
+
+
+def test_single_editing_pass_edits_once_and_per_replication_edits_every_replication(text_run, manifest, tmp_path,
+                                                                                      monkeypatch):
+    """tasks.editing_passes=single (MFM's Table 3 as issue 26 reads it): one pass of editing_samples edits per preset
+    in the first replication, none in the others, each repetition of an item with its own noise; per_replication
+    (the default) edits each replication's items in every replication it covers."""
+    evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
+    checkpoint = text_run / "checkpoints" / "step-00000001"
+    common = ["protocol.replications=3", "protocol.multimodality=false"]
+    job, dist, ctx = _scored_context(checkpoint, evaluator, tmp_path / "single", *common,
+                                     "tasks.editing_passes=single", "tasks.editing_samples=15")
+    presets = len(job.cfg.tasks.editing)
+    items = len(ctx.gt)
+    assert (ctx.plan.editing_passes, ctx.plan.single_pass_edits, ctx.plan.editing_replications) == ("single", 15, 1)
+    assert any("one pass of 15 edits" in note for note in ctx.plan.notes)
+    single, edits = _edit_rows_per_replication(job, dist, ctx, monkeypatch)
+    assert set(edits) == {0} and len(edits[0]) == 15 * presets  # once, in the first replication
+    assert len(set(edits[0])) == 15 * presets  # every edit its own noise, repeated items included
+    settings = single["editing_settings"]
+    assert (settings["passes"], settings["edits_per_preset"], settings["replications"]) == ("single", 15, 1)
+    for preset in job.cfg.tasks.editing:
+        assert len(single["editing"][preset]["fid"]["values"]) == 1 and single["editing"][preset]["ade"]["ci"] is None
+
+    job, dist, ctx = _scored_context(checkpoint, evaluator, tmp_path / "per", *common,
+                                     "tasks.editing_replications=0")
+    per, edits = _edit_rows_per_replication(job, dist, ctx, monkeypatch)
+    assert set(edits) == {0, 1, 2} and all(len(rows) == items * presets for rows in edits.values())
+    assert (per["editing_settings"]["passes"], per["editing_settings"]["edits_per_preset"]) == ("per_replication",
+                                                                                                 items)
+    assert all(len(per["editing"][p]["fid"]["values"]) == 3 for p in job.cfg.tasks.editing)
+
+
+def test_editing_passes_and_precision_are_validated_and_keyed(monkeypatch):
+    """The single pass and bf16 units get keys of their own; the defaults (per_replication, fp32, and auto on a CPU,
+    which runs fp32) keep the keys results had before the settings existed (nothing of theirs is hashed)."""
+    from types import SimpleNamespace
+
+    from pipeline.evaluation import job
+
+    point, ids, folder = SamplingPoint("euler", 10, 2.5), {"checkpoint": "c", "evaluator": "e", "gt": "g"}, Path("s")
+    cpu = SimpleNamespace(device=torch.device("cpu"))
+
+    def key(*overrides: str) -> str:
+        return job.CheckpointScorer(load_eval_config("fast", overrides=list(overrides)), cpu).unit_for(
+            folder, ids, point).key
+
+    default = key()
+    assert default == key("tasks.editing_passes=per_replication", "sampling.precision=fp32") == key(
+        "sampling.precision=auto")
+    assert len({default, key("tasks.editing_passes=single"), key("tasks.editing_passes=single",
+                                                                  "tasks.editing_samples=20"),
+                key("sampling.precision=bf16")}) == 4
+    with pytest.raises(ConfigError, match="editing_replications must be 0 or 1"):
+        load_eval_config("full", overrides=["tasks.editing_passes=single", "tasks.editing_replications=2"])
+    with pytest.raises(ConfigError, match="editing_samples sizes the single editing pass"):
+        load_eval_config("full", overrides=["tasks.editing_samples=100"])
+    with pytest.raises(ConfigError, match="precision"):
+        load_eval_config("full", overrides=["sampling.precision=fp16"])
+    assert load_eval_config("full", overrides=["tasks.editing_passes=single"]).tasks.single_pass_edits() == 5000
+    hashed = []
+    monkeypatch.setattr(job, "digest", lambda value: hashed.append(value) or "k")
+    key(), key("sampling.precision=auto"), key("tasks.editing_passes=single"), key("sampling.precision=bf16")
+    assert not {"editing_passes", "editing_samples"} & set(hashed[0]["tasks"]) and "precision" not in hashed[0][
+        "sampling"]
+    assert hashed[1] == hashed[0] and hashed[2]["tasks"]["editing_passes"] == "single"
+    assert hashed[3]["sampling"]["precision"] == "bf16"
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # end to end
 
@@ -531,6 +622,27 @@ def test_train_evaluator_reports_held_out_retrieval(trained_evaluator, manifest)
     assert 0.0 <= test["retrieval_top1"] <= test["retrieval_top2"] <= test["retrieval_top3"] <= 1.0
     assert report["losses"]["contrastive"][-1] < report["losses"]["contrastive"][0]
     assert (path.parent / "action_classifier.safetensors").is_file() and "action_accuracy" in test
+
+
+def test_single_editing_pass_and_bf16_are_recorded_in_results_json_and_the_table(text_run, manifest, tmp_path):
+    evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
+    out = tmp_path / "eval"
+    assert evaluate("--checkpoint", str(text_run / "checkpoints" / "step-00000001"), "--protocol", "fast",
+                    *SMALL_PROTOCOL, "sampling.steps=[1]", "protocol.multimodality=false", f"evaluator.path={evaluator}",
+                    f"output.dir={out}", "tasks.editing_passes=single", "tasks.editing_samples=5",
+                    "sampling.precision=bf16") == 0
+    (path,) = (out / "results" / "step-00000001").glob("*.json")
+    result = json.loads(path.read_text())
+    assert (result["tasks"]["editing_passes"], result["tasks"]["editing_samples"]) == ("single", 5)
+    assert (result["editing_settings"]["passes"], result["editing_settings"]["edits_per_preset"]) == ("single", 5)
+    assert (result["protocol"]["editing_passes"], result["protocol"]["single_pass_edits"]) == ("single", 5)
+    # fewer edits than the protocol's Diversity pairs (9 on 10 test items): Diversity over the 5, noted
+    assert "editing Diversity over 5 pairs (the single pass's edits), not 9" in result["protocol"]["notes"]
+    assert (result["sampling"]["precision"], result["sampling"]["precision_setting"]) == ("bf16", "bf16")
+    (generated, truth) = ResultsStore(out).table_rows()
+    assert (generated["edit_passes"], generated["edit_edits_per_preset"], generated["precision"]) == ("single", 5,
+                                                                                                     "bf16")
+    assert truth["precision"] == "bf16" and np.isfinite(generated["edit_prediction_ade"])
 
 
 def test_evaluate_checkpoint_with_a_steps_sweep(text_run, trained_evaluator, tmp_path, capsys):
@@ -782,7 +894,11 @@ def test_diffusion_baseline_is_scored_with_its_reverse_sampler(manifest, text_ru
             # root translation copied into the output as FLAME's edit_motion.py, the rest of the kept part not
             assert result["editing_settings"] == {"method": "replacement (FLAME)", "sampler": "ddim",
                                                   "steps": result["sampling"]["steps"], "guidance": 8.0,
-                                                  "restore_known": False, "reference_translation": True}
+                                                  "restore_known": False, "reference_translation": True,
+                                                  "passes": "per_replication", "replications": 1,
+                                                  "edits_per_preset": result["protocol"]["num_samples"],
+                                                  "statistic": "per replication, then mean ± 95 % CI over "
+                                                               "replications"}
             # sampled as FLAME's authors did: guidance 8.0 (not the sweep's 2.5), output smoothed with σ = 1
             assert (result["sampling"]["guidance"], result["sampling"]["smoothing_sigma"]) == (8.0, 1.0)
             own = result["sampling"]["baseline_defaults"]  # FLAME's settings as run (the sweep varied the steps)

@@ -59,6 +59,18 @@ def test_smoke_run_reports_every_figure_finite(smoke_run):
         assert records[name]["mfu"] is None and "CPU" in records[name]["mfu_note"]
         assert records[name]["gflop_per_sample"] > 0
     assert records["sampling_batch"]["batch_size"] == 8 and records["sampling_one"]["nfe"] == 10
+    # issue 26: the sampler and the evaluator at the optimised precision beside fp32, in the same run
+    optimised = "bf16" if records["environment"]["optimised_precision"] == "bf16" else "fp32"
+    assert records["sampling_batch_optimised"]["precision"] == records["evaluator_optimised"]["precision"] == optimised
+    assert records["sampling_one"]["precision"] == records["evaluator"]["precision"] == "fp32"
+    assert records["sampling_difference"]["state_dtype"] == "float32"
+    if optimised == "bf16":
+        from test_sampling_precision import BF16_MAX_ABS
+
+        assert 0 < records["sampling_difference"]["value"] <= BF16_MAX_ABS
+    for name in ("evaluator", "evaluator_optimised"):  # smoke: text-to-motion only, 10 guided passes per batch
+        assert records[name]["model_calls_per_replication"] == 10 and records[name]["editing_passes"] == \
+            "per_replication"
 
 
 def test_smoke_run_writes_a_markdown_table_naming_the_device(smoke_run):
@@ -141,3 +153,28 @@ def test_dense_bf16_peak_table(name, peak):
     assert lookup.tflops == peak and lookup.source
     cpu = load_suite().dense_bf16_peak("cpu", "cpu: anything")
     assert cpu.tflops is None and "CPU" in cpu.source
+
+
+def test_evaluator_bench_counts_the_generators_passes_and_estimates_a_single_editing_pass_once():
+    """bench_eval before/after issue 26 at a tiny size: per replication the generator's forward calls per phase;
+    with tasks.editing_passes=single the editing calls happen in the first replication only, and the protocol's
+    estimate counts them once where per_replication counts them in every replication."""
+    bench_eval = load_suite().bench_eval
+    base = bench_eval.EvalBenchSettings(items=8, protocol="full", replications=1, steps=2, batch_size=8,
+                                        model_preset="tiny", editing=("prediction",), flame=False,
+                                        multimodality=False, device="cpu")
+    before = bench_eval.run_evaluation_bench(base)
+    after = bench_eval.run_evaluation_bench(dataclasses.replace(base, replications=2, editing_passes="single",
+                                                                editing_samples=8, precision="bf16"))
+    edit_steps = 30  # the paper's edit settings: 30 Euler steps at guidance 1 (one pass of B per step)
+    assert before["per_replication"][0]["model_calls"] == {"generation": 2, "editing": edit_steps}
+    assert [r["model_calls"] for r in after["per_replication"]] == [{"generation": 2, "editing": edit_steps},
+                                                                    {"generation": 2}]
+    assert after["per_replication"][0]["model_rows"] == {"generation": 2 * 16, "editing": edit_steps * 8}
+    assert (after["precision"], after["editing_passes"], after["single_pass_edits"]) == ("bf16", "single", 8)
+    replications = before["protocol_estimate"]["replications"]  # the full protocol's 20
+    assert before["protocol_estimate"]["model_calls_per_replication"] == 2 + edit_steps
+    assert after["protocol_estimate"]["model_calls_per_replication"] == pytest.approx(
+        (replications * 2 + edit_steps) / replications, abs=0.1)
+    with pytest.raises(ValueError, match="with and without the editing tasks"):
+        bench_eval.run_evaluation_bench(dataclasses.replace(base, editing_passes="single"))

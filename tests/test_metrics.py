@@ -379,6 +379,25 @@ def test_ape_ave_invariant_to_ground_translation_and_heading_with_face_joints():
     assert shifted["APE_mean_global"] == pytest.approx(0.0, abs=1e-12)
 
 
+def test_ape_ave_of_a_batch_is_that_of_its_clips_one_at_a_time():
+    """ape_ave computes every clip of a batch at once, each masked to its own length (padding frames hold garbage
+    here): the figures equal those of the clips one by one, APE weighted by frames and AVE by clips (TEMOS)."""
+    rng = np.random.default_rng(12)
+    lengths = np.array([2, 9, 23, 40, 40])
+    pred = np.stack([_random_walk_body(rng, t=40) for _ in lengths]) + rng.normal(0, 0.05, (5, 40, 22, 3))
+    gt = np.stack([_random_walk_body(rng, t=40) for _ in lengths])
+    pred[0, 2:] = 1e3  # padding: must not count
+    settings = {"face_joints": HUMANML3D.face_joints, "floor_joints": HUMANML3D.foot_left + HUMANML3D.foot_right}
+    batched = metrics.ape_ave(pred, gt, lengths, **settings)
+    single = [metrics.ape_ave(p[None, :n], g[None, :n], **settings) for p, g, n in zip(pred, gt, lengths)]
+    for name, value in batched.items():
+        weights = lengths if name.startswith("APE") else np.ones(len(lengths))
+        expected = sum(w * s[name] for w, s in zip(weights, single)) / weights.sum()
+        assert value == pytest.approx(expected, rel=1e-12, abs=1e-15), name
+    floors = metrics.temos_floor_heights(pred, settings["floor_joints"], lengths)
+    assert floors[1] == metrics.temos_floor_height(pred[1, :9], settings["floor_joints"])
+
+
 def test_mclip_score_orthogonal_parallel_antiparallel():
     text = np.array([[1.0, 0.0], [0.0, 2.0], [3.0, 0.0]])
     motion = np.array([[0.0, 5.0], [0.0, 0.1], [-1.0, 0.0]])

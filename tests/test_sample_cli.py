@@ -163,6 +163,29 @@ def test_same_seed_same_motions_whatever_the_batching(text_run, tmp_path):
     assert not np.array_equal(reference[0], features_of(tmp_path / "e", raw_weights)[0])
 
 
+def test_precision_is_recorded_and_bf16_changes_only_the_networks_rounding(text_run, tmp_path, capsys):
+    """--precision: auto (the default) is fp32 on the CPU; bf16 runs the model's passes under bf16 autocast, the
+    same motions within the bound of tests/test_sampling_precision.py; results.json records both."""
+    from test_sampling_precision import BF16_MAX_ABS
+
+    args = ["--text", "a person walks", "--num-samples", "2", "--no-video", "--no-bvh", "--seed", "3"]
+    default = sample(text_run, tmp_path / "auto", *args)
+    fp32 = sample(text_run, tmp_path / "fp32", *args, "--precision", "fp32")
+    bf16 = sample(text_run, tmp_path / "bf16", *args, "--precision", "bf16")
+    assert (default["precision"], default["precision_setting"]) == ("fp32", "auto")
+    assert (fp32["precision"], bf16["precision"], bf16["precision_setting"]) == ("fp32", "bf16", "bf16")
+    for a, b, c in zip(features_of(tmp_path / "auto", default), features_of(tmp_path / "fp32", fp32),
+                       features_of(tmp_path / "bf16", bf16)):
+        np.testing.assert_array_equal(a, b)
+        trained = load_trained_model(text_run)  # the bound is in normalised units: compare there
+        difference = np.abs((c - b) / trained.std.cpu().numpy())
+        assert 0 < difference.max() <= BF16_MAX_ABS
+    capsys.readouterr()
+    assert sample_entry.main(["--checkpoint", str(text_run), "--out", str(tmp_path / "x"), "--text", "x",
+                              "precision=fp16"]) == 2
+    assert capsys.readouterr().err == "error: SampleRequest: precision must be one of ['auto', 'fp32', 'bf16'], got 'fp16'\n"
+
+
 def test_inbetween_edit_keeps_the_source_frames_and_records_the_mask(text_run, tmp_path):
     source_out = tmp_path / "source"
     source = sample(text_run, source_out, "--text", "a person walks", "--length", "30", "--no-video", "--no-bvh")

@@ -102,6 +102,7 @@ from pipeline.evaluation.replications import (
     gather_stats,
     plausibility_record,
     rng_of,
+    sampling_precision,
     summarise,
 )
 from pipeline.evaluation.spaces import (
@@ -441,8 +442,9 @@ def prepare_composition(cfg: EvalConfig, dist: Dist, ctx: CheckpointContext, cac
 
 
 def composition_unit(checkpoint_name: str, ids: Mapping[str, str], point: SamplingPoint, switch: float,
-                     cfg: EvalConfig, cset: CompositionSet) -> Unit:
-    """One (checkpoint, sampling point, switch): its key hashes everything that decides the numbers."""
+                     cfg: EvalConfig, cset: CompositionSet, precision: str = "fp32") -> Unit:
+    """One (checkpoint, sampling point, switch): its key hashes everything that decides the numbers (``precision``:
+    the resolved ``sampling.precision``; fp32, the arithmetic of every earlier result, adds nothing)."""
     ccfg = {k: v for k, v in to_dict(cfg.composition).items() if k != "switch"}
     settings = {"format": COMPOSITION_FORMAT, "task": "composition", "ids": dict(ids),
                 "point": dataclasses.asdict(point), "switch": switch, "composition": ccfg, "set": cset.key,
@@ -455,6 +457,8 @@ def composition_unit(checkpoint_name: str, ids: Mapping[str, str], point: Sampli
                 "sampling": {"use_ema": cfg.sampling.use_ema}}
     if cfg.sampling.guided_features is not None:  # unset: the checkpoint's own, as keys were before it existed
         settings["sampling"]["guided_features"] = cfg.sampling.guided_features
+    if precision != "fp32":
+        settings["sampling"]["precision"] = precision
     name = f"compose-{point.name}-switch{switch:.4g}-{cfg.composition.scenario}"
     return Unit(checkpoint_name, name, digest(settings))
 
@@ -507,6 +511,7 @@ class CompositionRun:
         self.ccfg, self.cset, self.plan = cfg.composition, cctx.cset, cctx.plan
         self.switch = switch
         self.switch_time = resolve_switch(switch, point.steps)
+        self.precision = sampling_precision(cfg.sampling, ctx.trained.device)
         self.window = self.ccfg.transition_window
         self.generated: list[dict[str, float]] = []
         self.ground_truth: list[dict[str, float]] = []
@@ -545,7 +550,7 @@ class CompositionRun:
             try:
                 composition = compose(trained.model, list(zip(conds, lengths)), solver=self.point.solver,
                                       steps=self.point.steps, guidance=self.point.guidance, switch=self.switch,
-                                      seed=seed, attention_chunk=chunk,
+                                      seed=seed, attention_chunk=chunk, precision=self.precision,
                                       conditional_channels=guided_feature_mask(
                                           guided_features(trained, self.cfg.sampling), trained.skeleton))
             except ValueError as exc:
@@ -630,7 +635,8 @@ class CompositionRun:
                          "redraw_items": False, "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(self.point), "use_ema": self.cfg.sampling.use_ema,
                          "switch": self.switch, "sampling_point": self.cfg.protocol.sampling_point,
-                         "guided_features": guided_features(self.ctx.trained, self.cfg.sampling)},
+                         "guided_features": guided_features(self.ctx.trained, self.cfg.sampling),
+                         "precision": self.precision, "precision_setting": self.cfg.sampling.precision},
             "composition": {
                 "switch": self.switch,
                 "switch_label": {0.0: "relative-only", 1.0: "absolute-only"}.get(self.switch, "blended"),

@@ -21,6 +21,9 @@ PROTOCOL_PRESETS = {"full": "eval_full", "fast": "eval_fast", "mdm": "eval_mdm"}
 (configs/eval_mdm.yaml, docs/protocol.md)."""
 EDIT_PRESETS = ("prediction", "inbetween", "interpolation", "upper_body")
 """mfm.editing presets the editing metrics may use."""
+EDITS_PER_SINGLE_PASS = 5000
+"""``tasks.editing_passes=single``'s edits per preset when ``tasks.editing_samples`` is null: the 5,000 generated
+edits issue 26 gives for MFM's Table 3 (the paper's text was not at hand to check it; set editing_samples)."""
 
 
 def _require(condition: bool, message: str) -> None:
@@ -190,6 +193,12 @@ class SamplingConfig:
     (``guided_features``)."""
     batch_size: int = 64
     """Motions generated per forward batch (per rank)."""
+    precision: Literal["fp32", "bf16", "auto"] = "fp32"
+    """The model passes' arithmetic in generation and editing (mfm.guidance): fp32 (default: the arithmetic of every
+    earlier result, which keeps their keys); bf16: bf16 autocast on the CPU or a CUDA GPU with bf16, the ODE state,
+    guidance mix and solver (or diffusion chain) staying fp32 (tests/test_sampling_precision.py bounds the
+    difference); auto: bf16 on a CUDA GPU with native bf16, fp32 elsewhere. Results record the precision that ran
+    (``sampling.precision``, table column ``precision``); a bf16 unit has a key of its own."""
     rtol: float = 1e-5
     atol: float = 1e-5
 
@@ -260,7 +269,19 @@ class TasksConfig:
     editing: tuple[str, ...] = ("prediction", "inbetween", "upper_body")
     """MFM Table 3 tasks, mfm.editing presets; empty: none. Needs a fixed-step solver."""
     editing_replications: int = 0
-    """0: as many as protocol.replications."""
+    """0: as many as protocol.replications. With ``editing_passes=single``: 0 or 1 (the pass runs in one)."""
+    editing_passes: Literal["per_replication", "single"] = "per_replication"
+    """per_replication (default): each of the first ``editing_replications`` replications edits every item it
+    generates for (its own ground-truth draw), and the editing figures are mean ± 95 % CI over those replications.
+    single (MFM's Table 3 as issue 26 reads it: one pass over generated edits, not one per replication): one pass of
+    ``editing_samples`` edits per preset, in the first replication, scored once (FID, Diversity, ADE/FDE and
+    plausibility over all of them; no interval): the editing work of the whole protocol is that of one pass. Results
+    record it (``editing_settings.passes``, ``edits_per_preset``; table column ``edit_passes``)."""
+    editing_samples: int | None = None
+    """With ``editing_passes=single``: edits per preset; null: EDITS_PER_SINGLE_PASS (5,000, the figure issue 26
+    gives for MFM's Table 3). The first replication's items in a seeded random order, repeated while more edits are
+    asked than there are items (each item then edited ⌊N/n⌋ or ⌈N/n⌉ times, every repetition from its own noise).
+    per_replication mode edits each replication's items once: there it must stay null."""
     edit_settings: str = "paper"
     """Flow edits' steps, ς and guidance (mfm.editing.EDIT_SETTINGS): 'paper' (the MFM paper's §4.1: 30 Euler
     steps, ς = 0.2; guidance 1.0 as its edit.py) or 'reference-debug' (edit.py's debug presets: 100 steps, ς per
@@ -288,6 +309,17 @@ class TasksConfig:
         unknown = [p for p in self.editing if p not in EDIT_PRESETS]
         _require(not unknown, f"tasks.editing: unknown preset(s) {unknown}; known: {list(EDIT_PRESETS)}")
         _require(self.editing_replications >= 0, "tasks.editing_replications must be >= 0")
+        if self.editing_passes == "single":
+            _require(self.editing_replications <= 1,
+                     f"tasks.editing_passes=single edits in one replication: tasks.editing_replications must be 0 or "
+                     f"1, got {self.editing_replications}")
+            _require(self.editing_samples is None or self.editing_samples >= 1,
+                     f"tasks.editing_samples must be >= 1 (or null: {EDITS_PER_SINGLE_PASS}), got "
+                     f"{self.editing_samples}")
+        else:
+            _require(self.editing_samples is None,
+                     "tasks.editing_samples sizes the single editing pass: set tasks.editing_passes=single, or leave "
+                     "it null (per_replication edits each replication's items once)")
         _require(self.edit_settings in EDIT_SETTINGS,
                  f"tasks.edit_settings must be one of {list(EDIT_SETTINGS)}, got {self.edit_settings!r}")
         unknown = [p for p in self.edit_rewrite_until if p not in EDIT_PRESETS]
@@ -297,6 +329,10 @@ class TasksConfig:
         _require(self.edit_steps >= 0, f"tasks.edit_steps must be >= 0 (0: the settings'), got {self.edit_steps}")
         _require(self.text_to_motion or self.composition,
                  "tasks.text_to_motion and tasks.composition are both false: nothing to evaluate")
+
+    def single_pass_edits(self) -> int:
+        """``editing_passes=single``: the edits per preset of the pass (``editing_samples`` or its default)."""
+        return EDITS_PER_SINGLE_PASS if self.editing_samples is None else self.editing_samples
 
     def edit_setup(self) -> dict[str, Any]:
         """The flow edits' settings as run: name, steps (the settings' base count and ``steps_per_preset``, what

@@ -91,6 +91,7 @@ from pipeline.evaluation.replications import (
     output_smoothing,
     plan_protocol,
     points_for,
+    sampling_precision,
 )
 from pipeline.evaluation.spaces import (
     CLASSIFIER_FILE,
@@ -297,10 +298,19 @@ class CheckpointScorer:
         # a setting only diffusion edits read (kind_settings carries it for them): flow units keep their keys.
         tasks = {k: v for k, v in to_dict(cfg.tasks).items()
                  if k not in ("text_to_motion", "composition", "edit_reference_translation")}
+        # The editing passes at their default (one per replication, no single-pass size) score as before the
+        # setting existed: earlier results keep their keys.
+        if tasks.get("editing_passes") == "per_replication":
+            tasks.pop("editing_passes")
+        if tasks.get("editing_samples") is None:
+            tasks.pop("editing_samples", None)
         settings = {"format": RESULT_FORMAT, "ids": dict(ctx_ids), "point": dataclasses.asdict(point),
                     "protocol": protocol_key(cfg.protocol), "tasks": tasks, "split": cfg.data.split,
                     "sampling": {"use_ema": cfg.sampling.use_ema, "rtol": cfg.sampling.rtol,
                                  "atol": cfg.sampling.atol}}
+        # fp32, the arithmetic of every earlier result, keeps their keys; bf16 (asked, or auto on a bf16 GPU) adds it
+        if cfg.sampling.precision != "fp32" and sampling_precision(cfg.sampling, self.dist.device) != "fp32":
+            settings["sampling"]["precision"] = "bf16"
         setup = cfg.tasks.edit_setup()
         own_steps = {p: setup["steps_per_preset"][p] for p in cfg.tasks.editing
                      if setup["steps_per_preset"][p] != setup["steps"]}
@@ -329,7 +339,9 @@ class CheckpointScorer:
             kind = checkpoint_settings(ctx.trained, self.cfg)
             out += [Work(self.unit_for(folder, ids, point, kind), point) for point in points]
         if comp is not None:
-            out += [Work(composition_unit(folder.name, ids, point, switch, self.cfg, comp.cset), point, switch)
+            precision = sampling_precision(self.cfg.sampling, self.dist.device)
+            out += [Work(composition_unit(folder.name, ids, point, switch, self.cfg, comp.cset, precision), point,
+                         switch)
                     for point in points for switch in self.cfg.composition.switch_times()]
         return out
 
@@ -434,6 +446,8 @@ def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
         "sampling_point": result["sampling"].get("sampling_point", "sweep"),
         "solver": result["sampling"]["solver"], "steps": result["sampling"]["steps"],
         "guidance": result["sampling"]["guidance"], "nfe": result["nfe"],
+        # the model passes' arithmetic; results written before the setting ran fp32
+        "precision": result["sampling"].get("precision", "fp32"),
         "model_passes_per_motion": result["model_passes_per_motion"],
         "generation_seconds_per_motion": result["generation_seconds_per_motion"],
         "world_size": result["world_size"], "created": result["created"], "result_key": result["key"],
@@ -448,7 +462,11 @@ def table_rows(result: Mapping[str, Any]) -> list[dict[str, Any]]:
     edits = result.get("editing_settings")
     if edits:  # which edit settings the edit_* columns were measured with
         generated.update(edit_method=edits["method"], edit_settings=edits.get("settings"),
-                         edit_steps=edits["steps"], edit_guidance=edits["guidance"])
+                         edit_steps=edits["steps"], edit_guidance=edits["guidance"],
+                         # one pass of N edits (tasks.editing_passes=single) or one per replication (results
+                         # written before the setting)
+                         edit_passes=edits.get("passes", "per_replication"),
+                         edit_edits_per_preset=edits.get("edits_per_preset"))
         # what each preset integrated with when a preset has its own count (reference-debug's interpolation: 1)
         for preset, steps in (edits.get("steps_per_preset") or {}).items():
             generated[f"edit_{preset}_steps"] = steps
@@ -738,7 +756,11 @@ class EvaluationJob:
                      "data_verified": bool(gt.verification.get("verified")), "verification": dict(gt.verification)},
             "protocol": {**ctx.plan.as_dict(), "config": to_dict(self.cfg.protocol)},
             "sampling": {**dataclasses.asdict(point), "use_ema": self.cfg.sampling.use_ema,
-                         "batch_size": self.cfg.sampling.batch_size, **baseline_record(trained, self.cfg.sampling),
+                         "batch_size": self.cfg.sampling.batch_size,
+                         # the model passes' arithmetic as it ran, and the setting (auto resolves per device)
+                         "precision": sampling_precision(self.cfg.sampling, self.dist.device),
+                         "precision_setting": self.cfg.sampling.precision,
+                         **baseline_record(trained, self.cfg.sampling),
                          **sampling_point_record(self.cfg)},
             "tasks": to_dict(self.cfg.tasks),
             **computed,

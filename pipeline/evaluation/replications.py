@@ -49,7 +49,7 @@ from mfm.diffusion_sampling import (
 )
 from mfm.editing import edit, edit_mask
 from mfm.features import features_to_joints
-from mfm.guidance import classifier_free_guidance, guided_feature_mask
+from mfm.guidance import classifier_free_guidance, guided_feature_mask, resolve_precision
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
 from mfm.skeleton import Skeleton
@@ -83,7 +83,7 @@ logger = logging.getLogger(__name__)
 
 # Task tags keep the random streams of different uses independent (noise, subsets, shuffles, draws).
 _TAG = {"main": 1, "mm": 2, "edit": 3, "subset": 4, "mm_texts": 5, "shuffle": 6, "diversity": 7,
-        "multimodality": 8, "bootstrap": 9, "gt": 11, "gt_row": 12, "gt_stats": 13}
+        "multimodality": 8, "bootstrap": 9, "gt": 11, "gt_row": 12, "gt_stats": 13, "edit_items": 14}
 GT_ROW_STREAM, GT_STATS_STREAM = 1, 2
 """``protocol.gt_draws=independent``: the ground-truth passes of a replication besides its own set (stream 0, which
 the generated motions take their captions and lengths from): the ground-truth row's, and FID's statistics'."""
@@ -123,10 +123,22 @@ def length_sorted_chunks(items: np.ndarray, lengths: np.ndarray, batch_size: int
     return [order[i:i + batch_size] for i in range(0, len(order), batch_size)]
 
 
-def plan_rows(kind: str, items: np.ndarray, lengths: np.ndarray, batch_size: int, first_index: int) -> list[Batch]:
-    """One batch per length-sorted chunk; slot = position in ``items``."""
-    return [Batch(first_index + b, kind, items[chunk], chunk, np.zeros(len(chunk), np.int64))
+def plan_rows(kind: str, items: np.ndarray, lengths: np.ndarray, batch_size: int, first_index: int,
+              repeats: np.ndarray | None = None) -> list[Batch]:
+    """One batch per length-sorted chunk; slot = position in ``items``; ``repeats``: each position's repetition
+    number (an item listed more than once: a single editing pass), zeros by default."""
+    repeats = np.zeros(len(items), np.int64) if repeats is None else repeats
+    return [Batch(first_index + b, kind, items[chunk], chunk, repeats[chunk])
             for b, chunk in enumerate(length_sorted_chunks(items, lengths, batch_size))]
+
+
+def single_pass_items(num_items: int, edits: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``tasks.editing_passes=single``: the items of ``edits`` edits and each one's repetition number: the items in a
+    seeded random order, repeated while more edits are asked than there are items (repetition k of an item draws
+    its own noise), so every item is edited ⌊edits/n⌋ or ⌈edits/n⌉ times."""
+    order = rng_of(seed, _TAG["edit_items"]).permutation(num_items)
+    positions = np.arange(edits)
+    return order[positions % num_items], positions // num_items
 
 
 def plan_repeats(items: np.ndarray, lengths: np.ndarray, repeats: int, batch_size: int,
@@ -397,6 +409,11 @@ class ProtocolPlan:
     """Replications that run MultiModality (the first ones); 0 when it is off."""
     gt_row_items: int = 0
     """gt_draws=independent: items each ground-truth pass scores (whole R-precision batches); else 0."""
+    editing_passes: str = "per_replication"
+    """``tasks.editing_passes``: 'per_replication' (each of the first ``editing_replications`` edits its items) or
+    'single' (one pass of ``single_pass_edits`` edits per preset, in the first replication)."""
+    single_pass_edits: int = 0
+    """Edits per preset of the single pass; 0 in per_replication mode."""
 
     @property
     def independent_gt(self) -> bool:
@@ -456,11 +473,23 @@ def plan_protocol(cfg: EvalConfig, num_items: int, mm_candidates: int) -> Protoc
             notes.append(f"Diversity over {diversity_times} pairs: each ground-truth pass scores {gt_row_items} "
                          "items (whole batches)")
     edit_reps = cfg.tasks.editing_replications or p.replications
+    single_edits = 0
+    if cfg.tasks.editing_passes == "single":
+        edit_reps, single_edits = 1, cfg.tasks.single_pass_edits()
+        if cfg.tasks.editing:
+            notes.append(f"editing: one pass of {single_edits} edits per preset in the first replication "
+                         f"(tasks.editing_passes=single; {num_items} test items, each edited "
+                         f"{single_edits // num_items} or {-(-single_edits // num_items)} time(s)); its figures have "
+                         "no interval")
+            if single_edits < diversity_times:
+                notes.append(f"editing Diversity over {single_edits} pairs (the single pass's edits), not "
+                             f"{diversity_times}")
     intervals = interval_sources(p.redraw_items, num_samples < num_items, p.multimodality,
                                  independent=p.gt_draws == "independent")
     return ProtocolPlan(p.name, p.replications, edit_reps, num_items, num_samples, rp, diversity_times,
                         p.multimodality, mm_texts, p.mm_repeats, p.mm_times, tuple(notes), p.redraw_items,
-                        intervals, p.loop, p.rules(), mm_reps, gt_row_items)
+                        intervals, p.loop, p.rules(), mm_reps, gt_row_items, cfg.tasks.editing_passes,
+                        single_edits)
 
 
 def interval_sources(redraw: bool, subset: bool, multimodality: bool, independent: bool = False) -> str:
@@ -664,6 +693,15 @@ def guided_features(trained: TrainedModel, sampling: SamplingConfig) -> str:
     return sampling.guided_features or trained.model_config.guided_features
 
 
+def sampling_precision(sampling: SamplingConfig, device: torch.device | str) -> str:
+    """``sampling.precision`` as it runs on ``device``: 'fp32' or 'bf16' (auto: bf16 on a CUDA GPU with native bf16);
+    bf16 on a device whose autocast has none is an :class:`EvaluationError`."""
+    try:
+        return resolve_precision(sampling.precision, device)
+    except ValueError as err:
+        raise EvaluationError(f"sampling.{err}") from err
+
+
 def output_smoothing(trained: TrainedModel, sampling: SamplingConfig) -> float:
     """σ (frames) of the output smoothing: ``sampling.output_smoothing`` when set; else the checkpoint's own
     sampling defaults' (a diffusion baseline's, or the model's ``model.output_smoothing``) with
@@ -677,9 +715,14 @@ def output_smoothing(trained: TrainedModel, sampling: SamplingConfig) -> float:
 def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], lengths: Tensor,
              seeds: Sequence[int], point: SamplingPoint, sampling: SamplingConfig, *, known: Tensor | None = None,
              keep: Tensor | None = None, rewrite_until: float = 1.0, restore_known: bool = False,
-             reference_translation: bool = False, window: int | None = None) -> tuple[Tensor, int]:
+             reference_translation: bool = False, window: int | None = None,
+             precision: str = "fp32") -> tuple[Tensor, int]:
     """Sample (or, with ``known``/``keep``, edit) one batch with the sampling code; raw (un-normalised) features,
-    zero past each length, and the number of (guided) model evaluations.
+    zero past each length, and the number of (guided) model evaluations. The batch is sampled in a window of its
+    longest length (the items are length-sorted into batches), not the model's max_frames.
+
+    ``precision`` (:func:`sampling_precision`): the model passes' arithmetic, fp32 or bf16 autocast; the state and
+    the solver or chain stay fp32.
 
     ``window`` (``protocol.generated_padding=model``, sampling only): every motion is sampled in a window of
     ``max(window, longest length)`` frames, as the reference samples all 196 frames of every motion: its initial
@@ -710,13 +753,14 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
         if keep is None:
             result = sample_diffusion(model, schedule, cond, lengths, num_frames=num_frames, feature_dim=dim,
                                       sampler=point.solver, guidance=point.guidance, generator=generator,
-                                      clip_denoised=clamp)
+                                      clip_denoised=clamp, precision=precision)
         else:
-            denoise = classifier_free_guidance(model, cond, scale=point.guidance, lengths=lengths, guided_channels=dim)
+            denoise = classifier_free_guidance(model, cond, scale=point.guidance, lengths=lengths, guided_channels=dim,
+                                               precision=precision)
             result = replacement_edit(denoise, schedule, known, keep, sampler=point.solver, lengths=lengths,
                                       generator=generator, restore_known=restore_known, clip_denoised=clamp)
     else:
-        velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths,
+        velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths, precision=precision,
                                    conditional_channels=guided_feature_mask(guided_features(trained, sampling),
                                                                             trained.skeleton))
         x0 = draw_noise((len(seeds), num_frames, dim), seeded_generators(seeds),
@@ -755,6 +799,8 @@ class PointRun:
         self.layout = FeatureLayout(self.skeleton)
         self.flame = cfg.tasks.flame and not ctx.is_action
         check_point(ctx.trained, point)
+        self.precision = sampling_precision(cfg.sampling, ctx.trained.device)
+        """The model passes' arithmetic as it runs here: 'fp32' or 'bf16' (``sampling.precision``)."""
         editable = ctx.trained.objective == "diffusion" or point.solver in FIXED_STEP_SOLVERS
         self.edit_presets: tuple[str, ...] = cfg.tasks.editing if editable else ()
         # Flow edits integrate with the edit settings' Euler steps and guidance (MFM paper: 30, 1.0), not the
@@ -773,9 +819,9 @@ class PointRun:
 
     # -- plan ------------------------------------------------------------------------------------------------
 
-    def batches(self, replication: int) -> tuple[np.ndarray, np.ndarray, list[Batch]]:
-        """The replication's items, MultiModality texts and batches, on the lengths of its ground truth (set by
-        :meth:`replicate` first)."""
+    def batches(self, replication: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[Batch]]:
+        """The replication's items, MultiModality texts, edited items (empty when it edits nothing) and batches, on
+        the lengths of its ground truth (set by :meth:`replicate` first)."""
         plan, lengths, size = self.plan, self.gt.lengths, self.cfg.sampling.batch_size
         seed = self.cfg.protocol.seed
         items = np.arange(plan.num_items)
@@ -789,11 +835,15 @@ class PointRun:
             mm_items = np.sort(rng_of(seed, _TAG["mm_texts"], replication).choice(candidates, plan.mm_num_texts,
                                                                                 replace=False))
             batches += plan_repeats(mm_items, lengths, plan.mm_repeats, size, len(batches))
-        if replication < plan.editing_replications:
+        edit_items, edit_repeats = np.zeros(0, np.int64), None
+        if replication < plan.editing_replications and self.edit_presets:
+            edit_items = items
+            if plan.editing_passes == "single":
+                edit_items, edit_repeats = single_pass_items(plan.num_items, plan.single_pass_edits, seed)
             for preset in self.edit_presets:
                 batches += [dataclasses.replace(b, kind=f"edit:{preset}")
-                            for b in plan_rows("edit", items, lengths, size, len(batches))]
-        return items, mm_items, batches
+                            for b in plan_rows("edit", edit_items, lengths, size, len(batches), edit_repeats)]
+        return items, mm_items, edit_items, batches
 
     # -- one replication ---------------------------------------------------------------------------------------
 
@@ -810,7 +860,7 @@ class PointRun:
             record.update(passes, embeddings_from_cache=record["embeddings_from_cache"]
                           and passes["embeddings_from_cache"])
         self.truths.append(record)
-        items, mm_items, batches = self.batches(replication)
+        items, mm_items, edit_items, batches = self.batches(replication)
         parts: dict[str, list] = defaultdict(list)
         stats: list[tuple[int, str, dict]] = []
         for batch in my_batches(batches, self.dist):
@@ -819,14 +869,14 @@ class PointRun:
             width = self.width
             totals = {"main": len(items), "mm": len(mm_items) * self.plan.mm_repeats}
             kinds = sorted({b.kind for b in batches})
-            rows = {k: gather_rows(self.dist, parts[k], totals.get(k, len(items)), width) for k in kinds}
+            rows = {k: gather_rows(self.dist, parts[k], totals.get(k, len(edit_items)), width) for k in kinds}
             logits = None
             if self.ctx.is_action:
                 logits = gather_rows(self.dist, parts["logits"], len(items), len(self.trained.action_classes))
             all_stats = gather_stats(self.dist, stats)
         if self.dist.is_main:
             with self.timer.phase("metrics"):
-                self._metrics(replication, items, mm_items, rows, logits, all_stats)
+                self._metrics(replication, items, mm_items, edit_items, rows, logits, all_stats)
 
     def _conditions(self, items: np.ndarray) -> tuple[Tensor, dict[str, Tensor]]:
         """The model's condition for each row (cached caption embedding or action id) and extra inputs."""
@@ -859,10 +909,11 @@ class PointRun:
                                     self.cfg.sampling,
                                     known=known, keep=keep, rewrite_until=self.edit_setup["rewrite_until"][preset],
                                     restore_known=self.cfg.tasks.edit_restore_known,
-                                    reference_translation=self.cfg.tasks.edit_reference_translation)
+                                    reference_translation=self.cfg.tasks.edit_reference_translation,
+                                    precision=self.precision)
             else:
                 raw, nfe = generate(self.trained, cond, extras, lengths, seeds, self.point, self.cfg.sampling,
-                                    window=self.window)
+                                    window=self.window, precision=self.precision)
         stats: dict[str, Any] = {"nfe": nfe, "rows": len(batch.items), "seconds": self.timer.seconds[phase] - before}
         with self.timer.phase("features"):
             parts[kind].append((batch.slots, self.encode_generated(kind, raw, lengths)))
@@ -916,8 +967,9 @@ class PointRun:
 
     # -- metrics (rank 0) ----------------------------------------------------------------------------------------
 
-    def _metrics(self, replication: int, items: np.ndarray, mm_items: np.ndarray, rows: Mapping[str, np.ndarray],
-                 logits: np.ndarray | None, stats: Sequence[tuple[int, str, dict]]) -> None:
+    def _metrics(self, replication: int, items: np.ndarray, mm_items: np.ndarray, edit_items: np.ndarray,
+                 rows: Mapping[str, np.ndarray], logits: np.ndarray | None,
+                 stats: Sequence[tuple[int, str, dict]]) -> None:
         seed, plan, gt_emb = self.cfg.protocol.seed, self.plan, self.truth.emb
         gt_all, gt_motion = gt_emb.motion, gt_emb.motion[items]
 
@@ -965,14 +1017,14 @@ class PointRun:
                 gen["joint_variance"] = float(np.mean(variances))
         self.generated.append(gen)
         self.ground_truth.append(truth)
-        for preset in self.edit_presets if replication < plan.editing_replications else ():
+        for preset in self.edit_presets if len(edit_items) else ():
             kind = f"edit:{preset}"
             edited = self._spread(rows[kind], gt_all, draws)
             per_batch = [(s["ade"], s["fde"], s["rows"]) for _, k, s in stats if k == kind]
             n = sum(r for *_, r in per_batch)
             edited["ade"] = sum(a * r for a, _, r in per_batch) / n
             edited["fde"] = sum(f * r for _, f, r in per_batch) / n
-            edited.update(self._plausibility(stats, kind, items))
+            edited.update(self._plausibility(stats, kind, edit_items))
             self.edited[preset].append(edited)
         main = [s for _, kind, s in stats if kind == "main"]
         self.nfe += [(s["nfe"], s["rows"]) for s in main]
@@ -991,7 +1043,9 @@ class PointRun:
                 draws: Callable[[str], np.random.Generator]) -> dict[str, float]:
         """FID against the whole ground truth (unless ``gt_all`` is None) and Diversity. The GT row's FID is that
         of a bootstrap resample of the ground truth: the sampling-noise floor of the metric."""
-        out = {"diversity": metrics.diversity(motion, self.plan.diversity_times, draws("diversity"))}
+        # a single editing pass smaller than the protocol's pairs: Diversity over as many pairs as it has (noted)
+        times = min(self.plan.diversity_times, len(motion))
+        out = {"diversity": metrics.diversity(motion, times, draws("diversity"))}
         if gt_all is not None:
             out["fid"] = metrics.fid(motion, gt_all)
         return out
@@ -1023,6 +1077,17 @@ class PointRun:
                 "rewrite_until": {p: setup["rewrite_until"][p] for p in self.edit_presets},
                 "steps_per_preset": {p: setup["steps_per_preset"][p] for p in self.edit_presets}}
 
+    def _editing_passes(self) -> dict[str, Any]:
+        """How many edits the editing figures hold: one pass (``tasks.editing_passes=single``: its size, no interval)
+        or one per replication (the edits of each, mean ± CI over them)."""
+        plan = self.plan
+        if plan.editing_passes == "single":
+            return {"passes": "single", "replications": 1, "edits_per_preset": plan.single_pass_edits,
+                    "statistic": "one pass: each figure over all its edits, no interval"}
+        replications = min(plan.editing_replications, plan.replications)
+        return {"passes": "per_replication", "replications": replications, "edits_per_preset": plan.num_samples,
+                "statistic": "per replication, then mean ± 95 % CI over replications"}
+
     def result(self) -> dict[str, Any]:
         rows = sum(r for _, r in self.nfe)
         nfe = sum(n * r for n, r in self.nfe) / rows
@@ -1036,7 +1101,7 @@ class PointRun:
             "metrics": summary,
             "ground_truth": summarise(self.ground_truth),
             "editing": {preset: summarise(values) for preset, values in self.edited.items()},
-            "editing_settings": self._editing_settings() if self.edited else None,
+            "editing_settings": {**self._editing_settings(), **self._editing_passes()} if self.edited else None,
             "nfe": nfe,
             "model_passes_per_motion": nfe * passes,
             "generation_seconds_per_motion": sum(s for s, _ in self.gen_seconds) / rows,

@@ -217,7 +217,8 @@ def generate_composition(request: SampleRequest, trained: TrainedModel, integrat
     settings = dict(solver=integrator.name, steps=integrator.steps, guidance=request.guidance_for(trained),
                     switch=HUMANML3D_SWITCH if request.switch is None else request.switch, seed=seed,
                     attention_chunk=attention_chunk, return_trajectory=request.plot_trajectory,
-                    conditional_channels=request.conditional_channels_for(trained), **encoded.tokens)
+                    conditional_channels=request.conditional_channels_for(trained), precision=integrator.precision,
+                    **encoded.tokens)
     lengths = [length for _, length in segments]
     try:
         if len(encoded.prompts) == 1:

@@ -12,6 +12,7 @@ import torch
 
 from mfm.diffusion import DenoisedRange, GaussianDiffusion
 from mfm.diffusion_sampling import SAMPLERS
+from mfm.guidance import resolve_precision
 from pipeline import checkpoint as ckpt
 from pipeline.generation.inference import TrainedModel, load_trained_model
 from pipeline.generation.request import (
@@ -26,18 +27,20 @@ from pipeline.generation.request import (
 
 @dataclasses.dataclass(frozen=True)
 class Integrator:
-    """How a request integrates its checkpoint: an ODE solver (flow) or a diffusion sampler, with its steps."""
+    """How a request integrates its checkpoint: an ODE solver (flow) or a diffusion sampler, with its steps, and the
+    precision its model passes run in."""
 
     objective: str  # "flow" or "diffusion"
     name: str  # the solver (flow) or sampler (diffusion: "ddpm" / "ddim")
     steps: int
     diffusion: GaussianDiffusion | None = None  # diffusion: the training process respaced to ``steps``
     clip_denoised: DenoisedRange | None = None  # diffusion: the bounds of every step's x0 estimate (FLAME's clamp)
+    precision: str = "fp32"  # the request's precision setting resolved on the model's device: "fp32" or "bf16"
 
     def record(self, trained: TrainedModel) -> dict[str, Any]:
         """results.json's description of the objective and sampler."""
         info: dict[str, Any] = {"objective": self.objective, "sampler": self.name, "solver": self.name,
-                                "steps": self.steps}
+                                "steps": self.steps, "precision": self.precision}
         if self.diffusion is not None:
             process = trained.diffusion
             info["diffusion"] = {"preset": trained.diffusion_preset, "train_steps": process.num_train_steps,
@@ -58,14 +61,19 @@ def load_for_request(request: SampleRequest) -> TrainedModel:
         raise SamplingError(str(err)) from err
 
 def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integrator:
-    """The solver or sampler and steps for ``trained``'s objective; a mismatch is a clear SamplingError."""
+    """The solver or sampler, steps and precision for ``trained``'s objective and device; a mismatch (or bf16 on a
+    device without it) is a clear SamplingError."""
+    try:
+        precision = resolve_precision(request.precision, trained.device)
+    except ValueError as err:
+        raise SamplingError(str(err)) from err
     if trained.objective == "flow":
         solver = request.solver or DEFAULT_FLOW_SOLVER
         if solver in SAMPLERS:
             raise SamplingError(f"{trained.checkpoint} is a flow-matching model (train.objective=flow): {solver!r} is "
                                 f"a diffusion sampler; use an ODE solver ({', '.join(known_solvers())})")
         default_steps = request.settings_steps if request.edit is not None else DEFAULT_FLOW_STEPS
-        return Integrator("flow", solver, request.steps or default_steps)
+        return Integrator("flow", solver, request.steps or default_steps, precision=precision)
     sampler = request.solver or DEFAULT_DIFFUSION_SAMPLER
     if sampler not in SAMPLERS:
         raise SamplingError(f"{trained.checkpoint} is a diffusion model (train.objective=diffusion, preset "
@@ -87,7 +95,8 @@ def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integra
     except ValueError as err:
         raise SamplingError(f"cannot sample {trained.checkpoint} with {steps} steps of its "
                             f"{trained.diffusion.num_train_steps}: {err}") from err
-    return Integrator("diffusion", sampler, steps, schedule, trained.x0_clamp(baseline))
+    return Integrator("diffusion", sampler, steps, schedule, clip_denoised=trained.x0_clamp(baseline),
+                      precision=precision)
 
 DEVICE_TYPES = ("cpu", "cuda", "mps")
 

@@ -187,6 +187,7 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
         "mode": mode,
         "conditioning": "text" if request.texts or request.compose_file else "action" if request.actions else "none",
         **integrator.record(trained),
+        "precision_setting": request.precision,
         "guidance": request.guidance_for(trained) if conditioned else 0.0,
         "guided_features": request.guided_features_for(trained),
         "smoothing_sigma": request.smoothing_for(trained),

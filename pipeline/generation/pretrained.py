@@ -551,12 +551,13 @@ class MotionPipeline:
                  num_inference_steps: int | None = None, solver: str | None = None, guidance: float | None = None,
                  guidance_scale: float | None = None, batch_size: int = 64,
                  output_type: str = "np", baseline_defaults: bool = True,
-                 clip_denoised: bool = True) -> GeneratedMotions:
+                 clip_denoised: bool = True, precision: str = "auto") -> GeneratedMotions:
         """Motions for ``texts`` (or ``actions``), ``num_samples`` each, ``seconds`` or ``lengths`` long (one value
         or one per prompt; default: drawn from the training lengths). The same arguments give the same motions as
         ``launch/sample.py``. A FLAME-preset diffusion checkpoint samples as FLAME's authors did unless
         ``baseline_defaults=False`` (or ``clip_denoised=False``: no x0 clamp; ``steps``: fewer than every training
-        step), as SampleRequest's keys of those names.
+        step), as SampleRequest's keys of those names. ``precision``: fp32, bf16 or auto (bf16 on a CUDA GPU with
+        bf16, else fp32; SampleRequest.precision).
 
         Each diffusers name is an alias of ours (:data:`ARGUMENT_ALIASES`; giving both is a TypeError): ``prompt``
         = ``texts``, ``num_motions_per_prompt`` = ``num_samples`` (default 1), ``num_inference_steps`` = ``steps``
@@ -600,7 +601,7 @@ class MotionPipeline:
             seconds=_as_list(seconds), lengths=_as_list(lengths), num_samples=1 if num_samples is None else num_samples,
             seed=0 if seed is None else seed, steps=steps, solver=solver, guidance=guidance, batch_size=batch_size,
             text_weights=self.text_weights, weights=self.weights, baseline_defaults=baseline_defaults,
-            baseline_clip_denoised=clip_denoised)
+            baseline_clip_denoised=clip_denoised, precision=precision)
         trained = self.trained
         integrator = integration.resolve_integrator(request, trained)
         conditions = sampling.encode_prompts(request, trained)

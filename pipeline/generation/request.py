@@ -25,7 +25,7 @@ from mfm.editing import (
     EDIT_SETTINGS,
     EditSettings,
 )
-from mfm.guidance import guided_feature_mask
+from mfm.guidance import PRECISION_SETTINGS, guided_feature_mask
 from mfm.solvers import (
     FIXED_STEP_SOLVERS,
 )
@@ -138,6 +138,11 @@ class SampleRequest:
     device: str = "auto"
     """auto (cuda when available), cpu, cuda, cuda:1, ..., mps; a device this machine does not have is refused
     before the checkpoint is loaded (pipeline.generation.integration.resolve_device)."""
+    precision: str = "auto"
+    """The model passes' arithmetic: fp32; bf16 (bf16 autocast on CPU or a CUDA GPU with bf16; the ODE state, the
+    guidance mix and the solver stay fp32, so the motions differ from fp32 ones by the network's rounding only); auto
+    (default): bf16 on a CUDA GPU with native bf16 (as training's ``train.mixed_precision=auto``), fp32 anywhere else,
+    the CPU included. results.json records what ran (``precision``) and the setting (``precision_setting``)."""
     text_weights: str | None = None
     """CLIP datasets: the text encoder weights file, checked against the checkpoint's hash."""
     edit: str | None = None
@@ -208,6 +213,8 @@ class SampleRequest:
                                 f"{list(SAMPLERS)} for diffusion models")
         if self.video_format not in ("auto", "mp4", "gif"):
             raise SamplingError(f"video_format must be 'auto', 'mp4' or 'gif', got {self.video_format!r}")
+        if self.precision not in PRECISION_SETTINGS:
+            raise SamplingError(f"precision must be one of {list(PRECISION_SETTINGS)}, got {self.precision!r}")
         if self.decode not in JOINT_DECODES:
             raise SamplingError(f"decode must be one of {sorted(JOINT_DECODES)}, got {self.decode!r}")
         if self.composes:
@@ -436,6 +443,7 @@ FLAGS: tuple[Flag, ...] = (
     Flag("--mdm-results", "mdm_results", "true"),
     Flag("--decode", "decode", choices=tuple(sorted(JOINT_DECODES))),
     Flag("--device", "device"),
+    Flag("--precision", "precision", choices=PRECISION_SETTINGS),
     Flag("--model-weights", "weights", choices=("ema", "model")),
     Flag("--text-weights", "text_weights"),
     Flag("--overwrite", "overwrite", "true"),

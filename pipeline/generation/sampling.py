@@ -295,8 +295,10 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
                    conditions: PromptConditions | None, source: SourceMotion | None,
                    options: Mapping[str, Any],
                    noise_generators: Mapping[int, torch.Generator] | None = None) -> BatchResult:
-    """Sample (or edit) one batch of motions. ``noise_generators``: sample index -> the generator its noise is drawn
-    from (the Python API's ``generator=``); by default each sample's own, seeded with its ``seed``."""
+    """Sample (or edit) one batch of motions, in a window of the batch's longest length (not the model's
+    max_frames): :func:`batches` puts similar lengths together, and no pass computes frames no motion has.
+    ``noise_generators``: sample index -> the generator its noise is drawn from (the Python API's ``generator=``);
+    by default each sample's own, seeded with its ``seed``."""
     device = trained.device
     lengths = torch.tensor([s.length for s in specs], dtype=torch.long, device=device)
     num_frames = int(lengths.max())
@@ -320,15 +322,18 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
             result: SolveResult = sample_diffusion(
                 model, integrator.diffusion, cond, lengths, num_frames=num_frames, feature_dim=dim,
                 sampler=integrator.name, guidance=scale, generator=generator,
-                return_trajectory=request.plot_trajectory, clip_denoised=integrator.clip_denoised)
+                return_trajectory=request.plot_trajectory, clip_denoised=integrator.clip_denoised,
+                precision=integrator.precision)
         else:
-            denoise = classifier_free_guidance(model, cond, scale=scale, lengths=lengths, guided_channels=dim)
+            denoise = classifier_free_guidance(model, cond, scale=scale, lengths=lengths, guided_channels=dim,
+                                               precision=integrator.precision)
             result = replacement_edit(denoise, integrator.diffusion, known, keep, sampler=integrator.name,
                                       lengths=lengths, generator=generator, return_trajectory=request.plot_trajectory,
                                       clip_denoised=integrator.clip_denoised)
     else:
         velocity = guided_velocity(model, cond, scale=scale, lengths=lengths,
-                                   conditional_channels=request.conditional_channels_for(trained))
+                                   conditional_channels=request.conditional_channels_for(trained),
+                                   precision=integrator.precision)
         x0 = draw_noise((len(specs), num_frames, dim), _noise_generators(specs, noise_generators), lengths=lengths,
                         device=device)
         if source is None:
