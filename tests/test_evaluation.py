@@ -441,6 +441,94 @@ def test_ground_truth_items_are_redrawn_per_replication_from_seeds(manifest):
     assert other_seed.key != draws[2].key and items(other_seed) != items(draws[2])
 
 
+@pytest.fixture(scope="module")
+def sub_span_manifest(tmp_path_factory) -> Path:
+    """A test split whose captions have HumanML3D sub-spans (seconds at 20 fps; 121 joint frames = 120 features):
+    ``two_spans`` a whole-clip caption and two caption lines with different sub-spans (frames 10-60, 60-110),
+    ``shared_span`` a whole-clip caption and two caption lines sharing the sub-span 20-80, ``whole`` two whole-clip
+    captions, ``long`` 210 frames (at least the reference's 200; built without the default 199-frame limit)."""
+    from test_shards import ListSource, make_clip
+
+    from mfm.text import build_text_encoder
+    from preprocess.clip import Caption
+    from preprocess.shards import BuildConfig, build_dataset
+
+    clips = {
+        "two_spans": make_clip("two_spans", 121, split="test", seed=1, captions=[
+            Caption("walks the whole time"), Caption("starts walking", start=0.5, end=3.0),
+            Caption("keeps walking", start=3.0, end=5.5)]),
+        "shared_span": make_clip("shared_span", 101, split="test", seed=2, captions=[
+            Caption("a walk"), Caption("walks in the middle", start=1.0, end=4.0),
+            Caption("strides mid-clip", start=1.0, end=4.0)]),
+        "whole": make_clip("whole", 81, split="test", seed=3, captions=[Caption("walks"), Caption("strolls")]),
+        "long": make_clip("long", 211, split="test", seed=4, captions=[Caption("walks for long")]),
+        "train": make_clip("train", 81, split="train", seed=5),
+    }
+    out = tmp_path_factory.mktemp("sub-spans") / "ds"
+    build_dataset(BuildConfig(out=out, formats=("tar",), max_frames=None, progress=False), source=ListSource(clips),
+                  text_encoder=build_text_encoder("minilm"))
+    return out / "manifest.json"
+
+
+def test_test_items_caption_makes_one_item_per_sub_span_caption_line(sub_span_manifest):
+    """protocol.test_items: span (ours) pools the captions sharing a span into one item; caption (the reference,
+    MDM dataset.py: 271-298) makes each sub-span caption line its own item (its own span, length and caption),
+    keeps whole-clip captions pooled and drops motions of 200 frames or more. Each item's caption is the text its
+    generated motion and its R-precision / MultiModality rows read."""
+    span = read_ground_truth_pool(sub_span_manifest, "test", seed=0)
+    caption = read_ground_truth_pool(sub_span_manifest, "test", seed=0, test_items="caption")
+    assert read_ground_truth_pool(sub_span_manifest, "test", seed=0, test_items="span").draw().key == span.draw().key
+    assert caption.draw().key != span.draw().key and caption.draw(1).key != span.draw(1).key
+
+    def items(pool, replication=None):
+        gt = pool.draw(replication)
+        return {i: (n, c) for i, n, c in zip(gt.ids, gt.lengths.tolist(), gt.captions)}
+
+    span_items = items(span)
+    assert sorted(span_items) == ["long", "shared_span#0-100", "shared_span#20-80", "two_spans#0-120",
+                                  "two_spans#10-60", "two_spans#60-110", "whole"]
+    assert span_items["long"][0] == 196 and span_items["shared_span#20-80"][0] == 60  # cropped; pooled
+    assert {span_items["shared_span#20-80"][1]} <= {"walks in the middle", "strides mid-clip"}
+    assert span.dropped == {}
+
+    expected = {"two_spans#0-120": (120, "walks the whole time"), "two_spans#10-60#1": (48, "starts walking"),
+                "two_spans#60-110#2": (48, "keeps walking"), "shared_span#0-100": (100, "a walk"),
+                "shared_span#20-80#1": (60, "walks in the middle"), "shared_span#20-80#2": (60, "strides mid-clip")}
+    whole = {"walks", "strolls"}
+    for replication in (None, 0, 1, 2):
+        got = items(caption, replication)
+        assert set(got) == {*expected, "whole"}
+        assert {i: c for i, (_, c) in got.items() if i != "whole"} == {i: c for i, (_, c) in expected.items()}
+        assert got["whole"][1] in whole  # whole-clip captions stay pooled, as in the reference
+        for item_id, (length, _) in expected.items():  # the fixed set: the span's unit multiple; a re-draw may
+            assert got[item_id][0] in (length, length - 4)  # take one unit off (the reference's coin)
+        if replication is None:
+            assert {i: n for i, (n, _) in got.items() if i != "whole"} == {i: n for i, (n, _) in expected.items()}
+    assert caption.dropped == {"motion_200_frames_or_longer": 1}
+    # the two lines sharing a span are drawn independently (their own seeds), not as one crop
+    offsets = [dict(zip(d.ids, d.offsets.tolist())) for d in (caption.draw(r) for r in range(8))]
+    assert any(o["shared_span#20-80#1"] != o["shared_span#20-80#2"] for o in offsets)
+
+
+def test_test_items_is_a_rule_of_the_mdm_loop_recorded_and_keyed():
+    """The mdm protocol makes the reference's items; our presets keep span and their keys; overriding the rule
+    makes a mixed loop and another key."""
+    from pipeline.evaluation.config import MDM_RULES, OUR_RULES
+    from pipeline.evaluation.job import protocol_key
+
+    fast, mdm = load_eval_config("fast").protocol, load_eval_config("mdm").protocol
+    assert (fast.test_items, mdm.test_items) == ("span", "caption")
+    assert MDM_RULES["test_items"] == "caption" and OUR_RULES["test_items"] == "span"
+    assert "test_items" not in protocol_key(fast) and protocol_key(mdm)["test_items"] == "caption"
+    assert mdm.rules()["test_items"] == "caption" and (fast.loop, mdm.loop) == ("ours", "mdm")
+    spans = load_eval_config("mdm", overrides=["protocol.test_items=span"]).protocol
+    assert spans.loop == "mixed" and protocol_key(spans) != protocol_key(mdm)
+    captions = load_eval_config("fast", overrides=["protocol.test_items=caption"]).protocol
+    assert captions.loop == "mixed" and protocol_key(captions) == {**protocol_key(fast), "test_items": "caption"}
+    with pytest.raises(ConfigError, match="test_items"):
+        load_eval_config("fast", overrides=["protocol.test_items=line"])
+
+
 def _scored_context(checkpoint: Path, evaluator: Path, out: Path, *overrides: str):
     """An evaluation job's scorer and the context of ``checkpoint`` under the small protocol (one process)."""
     from pipeline.distributed import Dist

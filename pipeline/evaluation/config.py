@@ -96,6 +96,14 @@ class ProtocolConfig:
     mm_replications: int = 0
     """MultiModality runs in the first this many replications (its interval over those); 0: every replication.
     The reference's MultiModality comes from its ``mm_short`` mode: 5 replications."""
+    test_items: Literal["span", "caption"] = "span"
+    """Which ground-truth items the test set makes (pipeline.evaluation.spaces). span (ours): one per distinct caption
+    span of a motion, the captions sharing it pooled (each draw picks one), long spans cropped to ``max_length``.
+    caption (the reference, MDM dataset.py: 271-298): the whole-clip captions of a motion pooled into one item, every
+    sub-span caption line its own item (its own span's clip and length, its one caption as condition and as the
+    R-precision / MultiModality text); motions (dataset.py: 254) and sub-spans (276-280) of 200 frames or more dropped
+    and counted. A sub-span that covers the whole clip cannot be told from a whole-clip caption once preprocessing
+    has mapped seconds to frames: it is pooled."""
     sampling_point: Literal["sweep", "paper", "released"] = "sweep"
     """Where the motions are sampled. sweep (ours): every point of ``sampling.solvers/steps/guidance`` (the sweep
     flags). paper: MFM's paper point, N = 10 Euler steps (guidance 2.5). released: MFM's released evaluation
@@ -144,7 +152,7 @@ class ProtocolConfig:
 
 MDM_RULES: dict[str, Any] = {"round_to_batches": True, "gt_draws": "independent",
                               "generated_caption_length": "padded", "generated_padding": "model",
-                              "mm_normalisation": "model", "mm_replications": 5}
+                              "mm_normalisation": "model", "mm_replications": 5, "test_items": "caption"}
 """The reference loop's value of every rule of ProtocolConfig (MFM dongzhuoyao/motionfm 08eb88d, whose loop is MDM's
 before its fixes of 2024-01 (caption lengths) and 2025-03 (MultiModality normalisation)); configs/eval_mdm.yaml."""
 OUR_RULES: dict[str, Any] = {f.name: f.default for f in dataclasses.fields(ProtocolConfig) if f.name in MDM_RULES}

@@ -258,7 +258,7 @@ class CheckpointScorer:
                 pool = read_ground_truth_pool(manifest, data.split, max_length=p.max_length,
                                               unit_length=p.unit_length, seed=p.seed,
                                               backend=backend_for_format(data.format), require_action=is_action,
-                                              token_features=tokens)
+                                              token_features=tokens, test_items=p.test_items)
             self._gt[key] = GroundTruthDraws(pool, space, trained.skeleton, p.redraw_items,
                                              self.cfg.sampling.batch_size,
                                              padded_text=p.generated_caption_length == "padded")

@@ -15,6 +15,11 @@ offset). The split is verified and read once (:class:`GroundTruthPool`, in memor
 
 Either way a set is the same for every checkpoint, job and rank, and its evaluator embeddings are cached per
 evaluator and set (:attr:`GroundTruthSet.key`).
+
+Which items (``protocol.test_items``): ``span`` (ours) one per distinct caption span of a motion, the captions
+sharing it pooled; ``caption`` (the reference loader, ``Text2MotionDatasetV2.__init__``) the whole-clip captions
+pooled into one item, but every sub-span caption line its own item with its own span and its one caption, and
+motions of :data:`REFERENCE_SPAN_LIMIT` frames or more dropped (counted).
 """
 
 from __future__ import annotations
@@ -57,6 +62,11 @@ REDRAW_SHORTEN_PROB = 1.0 / 3.0
 """The reference loader's 'double' coin: one unit shorter with this probability (``unit_length < 10``)."""
 EVALUATOR_FILE = "contrastive.safetensors"
 CLASSIFIER_FILE = "action_classifier.safetensors"
+TEST_ITEMS = ("span", "caption")
+"""``protocol.test_items``: one item per distinct caption span (ours), or per sub-span caption line (the reference)."""
+REFERENCE_SPAN_LIMIT = 200
+"""test_items=caption: the reference loader drops motions (dataset.py: 254) and sub-spans (276-280) of this many
+frames or more; span (ours) crops them to ``max_length`` instead."""
 _TAG_GT_PICK = 10
 _TAG_GT_REDRAW = 12
 _TAG_GT_PASS = 13
@@ -133,11 +143,12 @@ class GroundTruthSet:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class _Motion:
-    """A test motion as read, with its usable caption spans: ((start, end), caption indices) in order of
-    appearance."""
+    """A test motion as read, with its items: ((start, end), caption indices, caption line) in order of
+    appearance. The caption line is None for an item pooling its span's captions; with ``test_items=caption`` a
+    sub-span caption line's own item names it (its id and its draw's seed then include it)."""
 
     record: MotionRecord
-    spans: tuple[tuple[tuple[int, int], tuple[int, ...]], ...]
+    spans: tuple[tuple[tuple[int, int], tuple[int, ...], int | None], ...]
     named_spans: bool
     """The motion has several caption spans (dropped ones included): its item ids name theirs."""
 
@@ -146,8 +157,9 @@ class _Motion:
 class GroundTruthPool:
     """Every motion of a split, verified and read once and kept in memory: each ground-truth set of the split (the
     fixed one, or one per replication) is drawn from it without reading the shards again. The items, their ids and
-    order are the same in every draw (one per motion and caption span at least one unit long); only the caption
-    picks and the crops differ. A set's clips are views into the pool's features (no copy per draw)."""
+    order are the same in every draw (one per motion and caption span at least one unit long; with
+    ``test_items=caption`` one per sub-span caption line); only the caption picks and the crops differ. A set's clips
+    are views into the pool's features (no copy per draw)."""
 
     dataset_id: str
     location: str
@@ -182,24 +194,26 @@ class GroundTruthPool:
         fields: dict[str, list] = defaultdict(list)
         for motion in self.motions:
             record = motion.record
-            for (start, end), captions in motion.spans:
+            for (start, end), captions, line in motion.spans:
+                own = [] if line is None else [line]  # a caption line's own item: its own draw beside its span's
                 span = end - start
                 units = min(span, max_length) // unit
                 if replication is None:
                     rng = np.random.default_rng(np.random.SeedSequence(
-                        [seed, _TAG_GT_PICK, stable_id_hash(record.id), start, end]))
+                        [seed, _TAG_GT_PICK, stable_id_hash(record.id), start, end, *own]))
                     c = captions[int(rng.integers(len(captions)))]
                 else:
                     pass_seed = [_TAG_GT_REDRAW] if stream == 0 else [_TAG_GT_PASS, stream]
                     rng = np.random.default_rng(np.random.SeedSequence(
-                        [seed, *pass_seed, replication, stable_id_hash(record.id), start, end]))
+                        [seed, *pass_seed, replication, stable_id_hash(record.id), start, end, *own]))
                     c = captions[int(rng.integers(len(captions)))]
                     if unit < 10:  # the reference: coin2 = choice(['single', 'single', 'double'])
                         shorten = rng.random() < REDRAW_SHORTEN_PROB  # drawn always: a stable stream position
                         units -= int(shorten and units > 1)
                 length = units * unit
                 offset = start + int(rng.integers(0, span - length + 1))
-                fields["ids"].append(f"{record.id}#{start}-{end}" if motion.named_spans else record.id)
+                item_id = f"{record.id}#{start}-{end}" if motion.named_spans or own else record.id
+                fields["ids"].append(item_id if line is None else f"{item_id}#{line}")
                 fields["features"].append(np.ascontiguousarray(record.features[offset:offset + length], np.float32))
                 fields["lengths"].append(length)
                 fields["offsets"].append(offset - start)
@@ -233,11 +247,14 @@ class GroundTruthPool:
 
 def read_ground_truth_pool(manifest: Manifest | str | Path, split: str = "test", *, max_length: int = 196,
                            unit_length: int = 4, seed: int = 0, backend: str = "webdataset",
-                           require_action: bool = False, token_features: bool = False) -> GroundTruthPool:
+                           require_action: bool = False, token_features: bool = False,
+                           test_items: str = "span") -> GroundTruthPool:
     """Verify ``split`` strictly (the training reader's checks: a shard that does not match the manifest raises
     :class:`UnverifiedGroundTruth` naming the file and the reason, before any item is built), then read its motions
     into a :class:`GroundTruthPool`. ``token_features``: also keep each caption's token features (the manifest must
-    store them)."""
+    store them). ``test_items``: span (ours) or caption (the reference's items; the module docstring)."""
+    if test_items not in TEST_ITEMS:
+        raise ValueError(f"test_items must be one of {TEST_ITEMS}, got {test_items!r}")
     manifest = open_manifest(manifest)
     if token_features and not manifest.record_spec.token_features:
         raise EvaluationError(f"{manifest.location}: the model needs caption token features, which this dataset "
@@ -253,15 +270,27 @@ def read_ground_truth_pool(manifest: Manifest | str | Path, split: str = "test",
         if require_action and not record.action:
             dropped["no_action_label"] += 1
             continue
+        length = len(record.features)
+        if test_items == "caption" and length >= REFERENCE_SPAN_LIMIT:
+            dropped[f"motion_{REFERENCE_SPAN_LIMIT}_frames_or_longer"] += 1
+            continue
         spans: dict[tuple[int, int], list[int]] = {}
         for c, (start, end) in enumerate(record.spans.tolist()):
             spans.setdefault((int(start), int(end)), []).append(c)
-        usable = []
+        items: list[tuple[tuple[int, int], tuple[int, ...], int | None]] = []
         for (start, end), captions in spans.items():
+            # the reference pools whole-clip captions too; its sub-span limit (dataset.py: 276-280) never bites once the
+            # motion is under it, as a sub-span lies within its motion
+            if test_items == "span" or (start, end) == (0, length):
+                items.append(((start, end), tuple(captions), None))
+            else:
+                items.extend(((start, end), (c,), c) for c in captions)
+        usable = []
+        for (start, end), captions, line in items:
             if min(end - start, max_length) // unit_length < 1:  # whatever the draw: the items never change
                 dropped["shorter_than_unit_length"] += 1
                 continue
-            usable.append(((start, end), tuple(captions)))
+            usable.append(((start, end), captions, line))
         if usable:
             motions.append(_Motion(record, tuple(usable), len(spans) > 1))
     if not motions:
@@ -269,6 +298,8 @@ def read_ground_truth_pool(manifest: Manifest | str | Path, split: str = "test",
                               f"(dropped: {dict(dropped) or 'none'})")
     settings = {"format": GT_FORMAT, "dataset_id": manifest.dataset_id, "split": split,
                 "max_length": max_length, "unit_length": unit_length, "seed": seed, "require_action": require_action}
+    if test_items != "span":  # span sets keep the keys (and cached embeddings) they always had
+        settings["test_items"] = test_items
     return GroundTruthPool(manifest.dataset_id, str(manifest.location), split, tuple(motions), dict(dropped),
                            settings, token_features, source.report.as_dict())
 
@@ -276,14 +307,14 @@ def read_ground_truth_pool(manifest: Manifest | str | Path, split: str = "test",
 def build_ground_truth(manifest: Manifest | str | Path, split: str = "test", *, max_length: int = 196,
                        unit_length: int = 4, seed: int = 0, backend: str = "webdataset",
                        require_action: bool = False, token_features: bool = False,
-                       replication: int | None = None) -> GroundTruthSet:
+                       replication: int | None = None, test_items: str = "span") -> GroundTruthSet:
     """The evaluation items of ``split`` (see the module docstring); deterministic in (manifest, settings,
     ``replication``): None = the fixed set, r = replication r's re-drawn set (:meth:`GroundTruthPool.draw`). The
     split is verified strictly first (:func:`read_ground_truth_pool`). Several draws of one split: read the pool
     once and draw from it."""
     return read_ground_truth_pool(manifest, split, max_length=max_length, unit_length=unit_length, seed=seed,
                                   backend=backend, require_action=require_action,
-                                  token_features=token_features).draw(replication)
+                                  token_features=token_features, test_items=test_items).draw(replication)
 
 
 # ---------------------------------------------------------------------------------------------------------------
