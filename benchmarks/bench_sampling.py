@@ -36,6 +36,7 @@ import torch
 if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from mfm.compilation import compiled_for_sampling  # benchmarks/gpu_suite.py takes it from here too
 from mfm.guidance import SAMPLING_PRECISIONS
 from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters
 from mfm.solvers import sample
@@ -74,12 +75,6 @@ def preset_model(config: ModelConfig, device: str) -> MotionFlowTransformer:
     depend on the weights' values."""
     torch.manual_seed(0)
     return MotionFlowTransformer(dataclasses.replace(config, dropout=0.0)).to(device).eval()
-
-
-def compiled_for_sampling(model: torch.nn.Module, device: str) -> torch.nn.Module:
-    """``torch.compile`` of the model; on CUDA with ``mode="reduce-overhead"`` (CUDA graphs: a fixed-step solver
-    calls the model with the same shapes every step, so launch overhead disappears after the first call)."""
-    return torch.compile(model, mode="reduce-overhead" if device.startswith("cuda") else "default")
 
 
 def build_model(args: argparse.Namespace) -> tuple[torch.nn.Module, ModelConfig, str]:

@@ -37,6 +37,32 @@ def single_thread():
         yield
 
 
+class RecordedCompile(torch.nn.Module):
+    """What the ``compile_calls`` fixture's ``torch.compile`` returns: the model itself, counting its calls."""
+
+    def __init__(self, model: torch.nn.Module, mode: str | None) -> None:
+        super().__init__()
+        self.inner, self.mode, self.calls = model, mode, 0
+
+    def forward(self, *args, **kwargs):
+        self.calls += 1
+        return self.inner(*args, **kwargs)
+
+
+@pytest.fixture
+def compile_calls(monkeypatch) -> list[RecordedCompile]:
+    """``torch.compile`` replaced by a recording identity wrapper (inductor would take minutes on a CPU): the list
+    of the wrappers it made, one per compile."""
+    made: list[RecordedCompile] = []
+
+    def recording_compile(model, *, mode=None, **_options):
+        made.append(RecordedCompile(model, mode))
+        return made[-1]
+
+    monkeypatch.setattr(torch, "compile", recording_compile)
+    return made
+
+
 @pytest.fixture
 def reference_data() -> Path:
     """The real HumanML3D clip and normalisation files (../shared/reference-data)."""

@@ -696,6 +696,52 @@ def test_editing_passes_and_precision_are_validated_and_keyed(monkeypatch):
     assert hashed[3]["sampling"]["precision"] == "bf16"
 
 
+def test_sampling_compile_is_validated_and_keyed_only_when_it_compiles(monkeypatch):
+    """sampling.compile: false (default) and auto on a CPU (which does not compile) keep the keys results had before
+    the setting existed; compiling (true, or auto on a CUDA device) has a key of its own."""
+    from types import SimpleNamespace
+
+    from pipeline.evaluation import job
+
+    point, ids, folder = SamplingPoint("euler", 10, 2.5), {"checkpoint": "c", "evaluator": "e", "gt": "g"}, Path("s")
+    hashed = []
+    monkeypatch.setattr(job, "digest", lambda value: hashed.append(value) or str(len(hashed)))
+
+    def key(device: str, *overrides: str) -> dict:
+        dist = SimpleNamespace(device=torch.device(device))
+        job.CheckpointScorer(load_eval_config("fast", overrides=list(overrides)), dist).unit_for(folder, ids, point)
+        return hashed[-1]
+
+    assert load_eval_config("fast").sampling.compile is False
+    default = key("cpu")
+    assert "compile" not in default["sampling"]
+    assert key("cpu", "sampling.compile=false") == key("cpu", "sampling.compile=auto") == default
+    assert key("cpu", "sampling.compile=true")["sampling"]["compile"] is True
+    assert key("cuda", "sampling.compile=auto")["sampling"]["compile"] is True
+    assert key("cuda", "sampling.compile=false") == default
+    with pytest.raises(ConfigError, match="sampling.compile"):
+        load_eval_config("fast", overrides=["sampling.compile=maybe"])
+
+
+def test_compiled_generation_compiles_once_per_checkpoint_and_is_recorded(text_run, manifest, tmp_path,
+                                                                           compile_calls):
+    evaluator = random_contrastive_evaluator(manifest, tmp_path / "ev" / "contrastive.safetensors")
+    args = ["--checkpoint", str(text_run / "checkpoints" / "step-00000001"), "--protocol", "fast", *SMALL_PROTOCOL,
+            "sampling.steps=[1]", "protocol.multimodality=false", f"evaluator.path={evaluator}"]
+    assert evaluate(*args, f"output.dir={tmp_path / 'plain'}") == 0  # default: false
+    assert compile_calls == []
+    assert evaluate(*args, f"output.dir={tmp_path / 'compiled'}", "sampling.compile=true") == 0
+    (compiled,) = compile_calls  # one model for every replication and editing pass
+    assert compiled.mode == "default" and compiled.calls > 0
+    (plain,) = (json.loads(p.read_text()) for p in (tmp_path / "plain" / "results" / "step-00000001").glob("*.json"))
+    (result,) = (json.loads(p.read_text())
+                 for p in (tmp_path / "compiled" / "results" / "step-00000001").glob("*.json"))
+    assert (plain["sampling"]["compiled"], plain["sampling"]["compile_setting"]) == (False, False)
+    assert (result["sampling"]["compiled"], result["sampling"]["compile_setting"]) == (True, True)
+    assert result["key"] != plain["key"]
+    assert result["metrics"]["fid"] == plain["metrics"]["fid"]  # the identity wrapper: the same motions
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # end to end
 

@@ -207,6 +207,12 @@ class SamplingConfig:
     guidance mix and solver (or diffusion chain) staying fp32 (tests/test_sampling_precision.py bounds the
     difference); auto: bf16 on a CUDA GPU with native bf16, fp32 elsewhere. Results record the precision that ran
     (``sampling.precision``, table column ``precision``); a bf16 unit has a key of its own."""
+    compile: bool | Literal["auto"] = False
+    """torch.compile the generator's passes in generation and editing (mfm.compilation, the rule of training's
+    ``train.compile``; built once per checkpoint): false (default: every earlier result's, which keeps their keys);
+    auto: on a CUDA device only, with CUDA graphs (``mode="reduce-overhead"``); true: always (inductor's default
+    mode off CUDA: minutes of compilation on a CPU). Results record what ran (``sampling.compiled``) and the setting
+    (``sampling.compile_setting``); a compiled unit has a key of its own (compiled kernels may round differently)."""
     rtol: float = 1e-5
     atol: float = 1e-5
 

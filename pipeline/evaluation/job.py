@@ -67,9 +67,15 @@ from typing import Any
 
 import numpy as np
 
+from mfm.compilation import compiles
 from pipeline import checkpoint as ckpt
 from pipeline.config import ConfigError, parse_yaml, to_dict, wandb_mode
-from pipeline.data.stream import Manifest, ManifestError, backend_for_format, open_manifest
+from pipeline.data.stream import (
+    Manifest,
+    ManifestError,
+    backend_for_format,
+    open_manifest,
+)
 from pipeline.distributed import Dist
 from pipeline.evaluation.composition import (
     CompositionContext,
@@ -78,7 +84,12 @@ from pipeline.evaluation.composition import (
     evaluate_switch,
     prepare_composition,
 )
-from pipeline.evaluation.config import OUR_RULES, SAMPLING_POINT_SOURCES, EvalConfig, SamplingPoint
+from pipeline.evaluation.config import (
+    OUR_RULES,
+    SAMPLING_POINT_SOURCES,
+    EvalConfig,
+    SamplingPoint,
+)
 from pipeline.evaluation.replications import (
     CheckpointContext,
     GroundTruthDraws,
@@ -240,6 +251,7 @@ class CheckpointScorer:
     def context(self, folder: Path, cache_dir: Path, timer: PhaseTimer) -> CheckpointContext:
         with timer.phase("load"):
             trained = load_trained_model(folder, use_ema=self.cfg.sampling.use_ema, device=self.dist.device)
+            trained = trained.compiled_with(self.cfg.sampling.compile)  # once per checkpoint, for every replication
             try:  # protocol.sampling_point: a named point (its steps follow the skeleton) or the sweep
                 wanted = self.cfg.sampling_points(trained.skeleton.name)
             except ConfigError as exc:
@@ -311,6 +323,9 @@ class CheckpointScorer:
         # fp32, the arithmetic of every earlier result, keeps their keys; bf16 (asked, or auto on a bf16 GPU) adds it
         if cfg.sampling.precision != "fp32" and sampling_precision(cfg.sampling, self.dist.device) != "fp32":
             settings["sampling"]["precision"] = "bf16"
+        # uncompiled, every earlier result's way, adds nothing; compiling (true, or auto on CUDA) adds it
+        if cfg.sampling.compile is not False and compiles(cfg.sampling.compile, self.dist.device):
+            settings["sampling"]["compile"] = True
         setup = cfg.tasks.edit_setup()
         own_steps = {p: setup["steps_per_preset"][p] for p in cfg.tasks.editing
                      if setup["steps_per_preset"][p] != setup["steps"]}
@@ -760,6 +775,7 @@ class EvaluationJob:
                          # the model passes' arithmetic as it ran, and the setting (auto resolves per device)
                          "precision": sampling_precision(self.cfg.sampling, self.dist.device),
                          "precision_setting": self.cfg.sampling.precision,
+                         "compiled": trained.is_compiled, "compile_setting": self.cfg.sampling.compile,
                          **baseline_record(trained, self.cfg.sampling),
                          **sampling_point_record(self.cfg)},
             "tasks": to_dict(self.cfg.tasks),

@@ -741,7 +741,8 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
     smoothing, as FLAME's procedure (``TrainedModel.finish_output``, as launch/sample.py); flow edits ignore it.
     ``extras``: per-motion model inputs (cross-attention token features), bound with ``BoundInputs``.
     """
-    model = BoundInputs(trained.model, dict(extras)) if extras else trained.model
+    model = trained.sampling_model  # the module, or it compiled once per checkpoint (sampling.compile)
+    model = BoundInputs(model, dict(extras)) if extras else model
     num_frames, dim = int(lengths.max()), trained.model_config.feature_dim
     windowed = window is not None and keep is None
     if windowed:

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from mfm.compilation import compiled_for_sampling, compiles
 from mfm.diffusion import DenoisedRange, GaussianDiffusion, diffusion_from_preset
 from mfm.diffusion_sampling import (
     BASELINE_SAMPLING,
@@ -82,6 +83,8 @@ class TrainedModel:
     objective: str = "flow"  # the training objective: "flow" (velocity field) or "diffusion" (denoiser)
     diffusion_preset: str | None = None  # diffusion models: "flowmdm", "flame" or "mdm" (mfm.diffusion.DIFFUSION_PRESETS)
     diffusion: GaussianDiffusion | None = None  # diffusion models: the process they were trained on
+    # sampling_model compiled (compiled_with): built once, reused by every batch; None: samplers call the module
+    compiled_model: torch.nn.Module | None = None
 
     @cached_property
     def mean(self) -> torch.Tensor:
@@ -148,18 +151,38 @@ class TrainedModel:
 
     @property
     def sampling_model(self) -> torch.nn.Module:
-        """What samplers call: the model itself in float32, else wrapped by :class:`RunInWeightDtype` (autocast)."""
+        """What samplers call: the model itself in float32, else wrapped by :class:`RunInWeightDtype` (autocast);
+        that compiled once when :meth:`compiled_with` compiled it."""
+        if self.compiled_model is not None:
+            return self.compiled_model
         return self.model if self.dtype == torch.float32 else RunInWeightDtype(self.model)
+
+    @property
+    def is_compiled(self) -> bool:
+        """Whether samplers call a ``torch.compile``-d model (:meth:`compiled_with`)."""
+        return self.compiled_model is not None
+
+    def compiled_with(self, setting: bool | str) -> TrainedModel:
+        """This model with its :attr:`sampling_model` compiled when the compile ``setting`` (auto / True / False,
+        :func:`mfm.compilation.compiles`: auto on CUDA only) says so on this device, else this model as is. The
+        compiled model (:func:`mfm.compilation.compiled_for_sampling`: CUDA graphs on CUDA) is built here, once, and
+        compiles on its first call; call this after :meth:`to`, which drops it."""
+        if not compiles(setting, self.device):
+            return self
+        uncompiled = dataclasses.replace(self, compiled_model=None).sampling_model
+        return dataclasses.replace(self, compiled_model=compiled_for_sampling(uncompiled, self.device))
 
     def to(self, device: str | torch.device | None = None, dtype: torch.dtype | None = None) -> TrainedModel:
         """This model on ``device`` and/or in weight ``dtype`` (one of :data:`SAMPLING_DTYPES`). The module is moved
         in place (as ``nn.Module.to`` does); the returned TrainedModel records the new device, and its Mean/Std
-        follow it (they stay float32: features are un-normalised in float32 whatever the weights are)."""
+        follow it (they stay float32: features are un-normalised in float32 whatever the weights are); it is not
+        compiled (:meth:`compiled_with` again)."""
         if dtype is not None and dtype not in SAMPLING_DTYPES:
             raise ValueError(f"dtype {dtype}: a model samples in one of {', '.join(map(str, SAMPLING_DTYPES))}")
         target = self.device if device is None else torch.device(device)
         self.model.to(device=target, dtype=dtype)
-        return dataclasses.replace(self, device=target)  # a new instance: the cached Mean/Std are made on ``target``
+        # a new instance: the cached Mean/Std are made on ``target``; a compiled model is of the old device/dtype
+        return dataclasses.replace(self, device=target, compiled_model=None)
 
     def x0_clamp(self, baseline: BaselineSampling | None) -> DenoisedRange | None:
         """The bounds of every step's x0 estimate with ``baseline`` (None: ours, no clamp): when its authors'

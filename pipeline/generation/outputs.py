@@ -188,6 +188,9 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
         "conditioning": "text" if request.texts or request.compose_file else "action" if request.actions else "none",
         **integrator.record(trained),
         "precision_setting": request.precision,
+        # whether the model passes ran torch.compile-d (CUDA graphs on CUDA), and the setting (auto: on CUDA only)
+        "compiled": trained.is_compiled,
+        "compile_setting": request.compile,
         "guidance": request.guidance_for(trained) if conditioned else 0.0,
         "guided_features": request.guided_features_for(trained),
         "smoothing_sigma": request.smoothing_for(trained),

@@ -480,26 +480,32 @@ class MotionPipeline:
     :meth:`from_pretrained` (``torch_dtype=``), :meth:`to`, a call taking ``prompt=``, ``num_inference_steps=``,
     ``guidance_scale=``, ``generator=`` and ``output_type=``, and :meth:`save_pretrained`; see the module docstring."""
 
-    def __init__(self, trained: TrainedModel, *, text_weights: str | None = None, weights: str | None = None) -> None:
+    def __init__(self, trained: TrainedModel, *, text_weights: str | None = None, weights: str | None = None,
+                 compile: bool | str = "auto") -> None:
         """``weights``: the weights asked for, 'ema' or 'model' (a FLAME checkpoint asked for its EMA that kept none
-        is refused when sampling, as launch/sample.py); None: those ``trained`` holds."""
-        self.trained = trained
+        is refused when sampling, as launch/sample.py); None: those ``trained`` holds. ``compile``: torch.compile the
+        model passes, auto (on a CUDA device only, with CUDA graphs), True or False (SampleRequest.compile); the
+        compiled model is built here (and again after :meth:`to`) and reused by every call."""
+        self.compile = compile
+        self.trained = trained.compiled_with(compile)
         self.text_weights = text_weights
         self.weights = weights or trained.weights
 
     @classmethod
     def from_pretrained(cls, folder: str | Path, *, device: str | torch.device = "auto",
                         torch_dtype: torch.dtype | str | None = None, weights: str = "ema",
-                        text_weights: str | None = None) -> MotionPipeline:
+                        text_weights: str | None = None, compile: bool | str = "auto") -> MotionPipeline:
         """``folder``: an exported folder, a checkpoint or a run folder. ``device``: auto (cuda when there is one),
         cpu, cuda, cuda:N or mps. ``torch_dtype``: the weights' dtype (float32 by default, whatever the folder
         stores; bfloat16 or float16, see :meth:`to`). ``text_weights``: CLIP datasets' weights file
-        (checked against the recorded hash)."""
+        (checked against the recorded hash). ``compile``: auto (on CUDA only, CUDA graphs), True or False
+        (:class:`MotionPipeline`)."""
         from pipeline.generation.integration import resolve_device
 
         trained = load_trained_model(folder, use_ema=weights == "ema", device=resolve_device(str(device)))
-        pipe = cls(trained, text_weights=text_weights, weights=weights)
-        return pipe if torch_dtype is None else pipe.to(dtype=torch_dtype)
+        if torch_dtype is not None:  # before compiling: the compiled model is of the weights' dtype
+            trained = trained.to(dtype=_as_dtype(torch_dtype))
+        return cls(trained, text_weights=text_weights, weights=weights, compile=compile)
 
     def to(self, *args: str | torch.device | torch.dtype, device: str | torch.device | None = None,
            dtype: torch.dtype | str | None = None) -> MotionPipeline:
@@ -522,7 +528,7 @@ class MotionPipeline:
             else:
                 raise TypeError(f"MotionPipeline.to() takes a device and/or a torch.dtype, got {arg!r}")
         target = None if device is None else resolve_device(str(device))
-        self.trained = self.trained.to(target, _as_dtype(dtype))
+        self.trained = self.trained.to(target, _as_dtype(dtype)).compiled_with(self.compile)  # for the new device
         return self
 
     @property
@@ -601,7 +607,7 @@ class MotionPipeline:
             seconds=_as_list(seconds), lengths=_as_list(lengths), num_samples=1 if num_samples is None else num_samples,
             seed=0 if seed is None else seed, steps=steps, solver=solver, guidance=guidance, batch_size=batch_size,
             text_weights=self.text_weights, weights=self.weights, baseline_defaults=baseline_defaults,
-            baseline_clip_denoised=clip_denoised, precision=precision)
+            baseline_clip_denoised=clip_denoised, precision=precision, compile=self.compile)
         trained = self.trained
         integrator = integration.resolve_integrator(request, trained)
         conditions = sampling.encode_prompts(request, trained)

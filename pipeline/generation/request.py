@@ -18,6 +18,7 @@ from typing import Any
 
 import torch
 
+from mfm.compilation import COMPILE_SETTINGS
 from mfm.composition import BABEL_SWITCH, HUMANML3D_SWITCH
 from mfm.diffusion_sampling import SAMPLERS, BaselineSampling
 from mfm.editing import (
@@ -143,6 +144,12 @@ class SampleRequest:
     guidance mix and the solver stay fp32, so the motions differ from fp32 ones by the network's rounding only); auto
     (default): bf16 on a CUDA GPU with native bf16 (as training's ``train.mixed_precision=auto``), fp32 anywhere else,
     the CPU included. results.json records what ran (``precision``) and the setting (``precision_setting``)."""
+    compile: bool | str = "auto"
+    """torch.compile the model passes (mfm.compilation, the rule of training's ``train.compile``): auto (default) on
+    a CUDA device only, with CUDA graphs (``mode="reduce-overhead"``: a fixed-step solver calls the model with the
+    same shapes every step); true / false: always (elsewhere inductor's default mode, minutes of compilation on a CPU)
+    / never. Built once per run, compiled on the first batch (and again for each new batch shape). Composition
+    requests do not use it. results.json records what ran (``compiled``) and the setting (``compile_setting``)."""
     text_weights: str | None = None
     """CLIP datasets: the text encoder weights file, checked against the checkpoint's hash."""
     edit: str | None = None
@@ -215,6 +222,8 @@ class SampleRequest:
             raise SamplingError(f"video_format must be 'auto', 'mp4' or 'gif', got {self.video_format!r}")
         if self.precision not in PRECISION_SETTINGS:
             raise SamplingError(f"precision must be one of {list(PRECISION_SETTINGS)}, got {self.precision!r}")
+        if self.compile not in COMPILE_SETTINGS or not isinstance(self.compile, (bool, str)):
+            raise SamplingError(f"compile must be auto, true or false, got {self.compile!r}")
         if self.decode not in JOINT_DECODES:
             raise SamplingError(f"decode must be one of {sorted(JOINT_DECODES)}, got {self.decode!r}")
         if self.composes:
@@ -400,6 +409,14 @@ class Flag:
     metavar: str | None = None
 
 
+def _compile_setting(text: str) -> bool | str:
+    """``--compile``'s value as the request key holds it: auto, True or False."""
+    settings = {"auto": "auto", "true": True, "on": True, "false": False, "off": False}
+    if text.lower() not in settings:
+        raise argparse.ArgumentTypeError(f"auto, true or false, got {text!r}")
+    return settings[text.lower()]
+
+
 def _key_value(text: str) -> tuple[str, str]:
     key, sep, value = text.partition("=")
     if not sep or not key:
@@ -444,6 +461,7 @@ FLAGS: tuple[Flag, ...] = (
     Flag("--decode", "decode", choices=tuple(sorted(JOINT_DECODES))),
     Flag("--device", "device"),
     Flag("--precision", "precision", choices=PRECISION_SETTINGS),
+    Flag("--compile", "compile", type=_compile_setting, metavar="{auto,true,false}"),
     Flag("--model-weights", "weights", choices=("ema", "model")),
     Flag("--text-weights", "text_weights"),
     Flag("--overwrite", "overwrite", "true"),

@@ -423,7 +423,7 @@ def run_sampling(request: SampleRequest) -> dict[str, Any]:
     if request.composes:
         raise SamplingError("a composition request is run by pipeline.generation.composing.run_composition")
     out_dir = Path(request.out_dir)
-    trained = load_for_request(request)
+    trained = load_for_request(request).compiled_with(request.compile)  # compiled once, used by every batch
     integrator = resolve_integrator(request, trained)
     source = None if request.source_motion is None else load_source_motion(request.source_motion, trained)
     options = preset_options(request) if request.edit else {}

@@ -71,6 +71,7 @@ import torch
 import yaml
 from tqdm.auto import tqdm
 
+from mfm.compilation import compiles  # train.compile's rule, shared with sampling's compile
 from mfm.diffusion import diffusion_from_preset
 from mfm.flow import FlowMatchingObjective, MotionGeometry
 from mfm.model import (
@@ -131,11 +132,6 @@ class CheckpointSaveError(RuntimeError):
 # ---------------------------------------------------------------------------------------------------------------
 
 # The loader state entries a resume must keep (pipeline.data.stream._PLAN_STATE_KEYS), as the settings that set them.
-def compiles(setting: bool | str, device: torch.device) -> bool:
-    """Whether ``train.compile`` compiles the model on ``device`` (auto: on CUDA only)."""
-    return device.type == "cuda" if setting == "auto" else bool(setting)
-
-
 DATA_STATE_SETTINGS = {
     "batch_size": "data.batch_size", "num_workers": "data.num_workers", "seed": "data.seed",
     "shuffle_buffer": "data.shuffle_buffer", "window": "data.window", "unit_length": "data.unit_length",
