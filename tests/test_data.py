@@ -294,6 +294,39 @@ def test_decode_tar_record_rejects_bad_records(dataset):
         DecodeTarRecord(SPEC)({**raw, "meta.json": json.dumps(meta).encode()})
 
 
+def test_a_header_parse_lost_to_cpythons_ast_thread_race_is_read_again_not_dropped(dataset, monkeypatch):
+    """CPython 3.11's shared AST recursion counter (python/cpython#106905) can fail np.load's header parse of a sound
+    record with a SystemError when another thread parses at once (seen in a 2-worker remote-shard run: a good record
+    left out in tolerant mode). That error is read again; one that persists, or any other SystemError, is still
+    the record's RecordError."""
+    import pipeline.data.stages as stages
+
+    raw, real_load, failures = _raw_records(dataset)[1], np.load, []
+
+    def racy_load(*args, **kwargs):
+        if len(failures) < failures_wanted:
+            failures.append(1)
+            raise SystemError(f"{stages.AST_RACE_MESSAGE} (before=222, after=244)")
+        return real_load(*args, **kwargs)
+
+    monkeypatch.setattr(stages.np, "load", racy_load)
+    failures_wanted = stages.AST_RACE_ATTEMPTS - 1
+    rec = DecodeTarRecord(SPEC)(raw)
+    assert np.array_equal(rec.features, fixture_motion(1)["features"]) and len(failures) == failures_wanted
+    failures.clear()
+    failures_wanted = 10 * stages.AST_RACE_ATTEMPTS  # never recovers: the record's error, naming the member
+    with pytest.raises(RecordError, match=r"cannot decode \.features\.npy: AST constructor recursion depth"):
+        DecodeTarRecord(SPEC)(raw)
+    assert len(failures) == stages.AST_RACE_ATTEMPTS
+
+    def other_system_error(*args, **kwargs):
+        raise SystemError("something else")
+
+    monkeypatch.setattr(stages.np, "load", other_system_error)
+    with pytest.raises(RecordError, match="something else"):
+        DecodeTarRecord(SPEC)(raw)
+
+
 def test_decode_parquet_row_equals_tar_record(dataset):
     part = pq.ParquetFile(dataset.parent / "train/part-00002.parquet")
     table = part.read_row_group(1)  # rows 3..5 of the shard: a sliced row exercises offsets

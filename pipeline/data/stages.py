@@ -168,13 +168,26 @@ def _validate_record(rec: MotionRecord, spec: RecordSpec, length: int) -> Motion
     return rec
 
 
+AST_RACE_MESSAGE = "AST constructor recursion depth mismatch"
+"""CPython 3.11's AST constructor keeps one recursion counter for every thread (python/cpython#106905): when two
+threads of a process parse at once (np.load reads a .npy header with ``ast.literal_eval``; a loader process also
+runs fsspec's and the HTTP client's threads), a good header can fail with a SystemError saying this. It says
+nothing about the data, so the read is tried again instead of dropping a sound record."""
+AST_RACE_ATTEMPTS = 3
+
+
 def _load_npy(raw: Mapping[str, Any], member: str, where: str) -> np.ndarray:
     if member not in raw:
         raise RecordError(f"{where}: missing member .{member}")
-    try:
-        return np.load(io.BytesIO(raw[member]), allow_pickle=False)
-    except Exception as exc:  # np.load raises several types for a damaged payload
-        raise RecordError(f"{where}: cannot decode .{member}: {exc}") from exc
+    for attempt in range(1, AST_RACE_ATTEMPTS + 1):
+        try:
+            return np.load(io.BytesIO(raw[member]), allow_pickle=False)
+        except SystemError as exc:
+            if AST_RACE_MESSAGE not in str(exc) or attempt == AST_RACE_ATTEMPTS:
+                raise RecordError(f"{where}: cannot decode .{member}: {exc}") from exc
+        except Exception as exc:  # np.load raises several types for a damaged payload
+            raise RecordError(f"{where}: cannot decode .{member}: {exc}") from exc
+    raise AssertionError("unreachable")  # the loop returns or raises
 
 
 class DecodeTarRecord:
