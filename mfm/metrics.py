@@ -694,6 +694,16 @@ def _median_or_none(values: np.ndarray) -> float | None:
     return float(np.median(defined)) if defined.size else None
 
 
+def padded_motions(motions: Sequence[np.ndarray], dtype: Any = np.float64) -> tuple[np.ndarray, list[int]]:
+    """Motions of different lengths as one zero-padded (N, max T, ...) array of ``dtype``, with their lengths (what
+    :func:`plausibility` and :func:`movement_spread` take)."""
+    lengths = [len(m) for m in motions]
+    padded = np.zeros((len(motions), max(lengths), *motions[0].shape[1:]), dtype=dtype)
+    for i, m in enumerate(motions):
+        padded[i, : len(m)] = m
+    return padded, lengths
+
+
 def plausibility(joints: Any, skeleton: Skeleton, lengths: Any = None, *, gt_joints: Any = None,
                  gt_lengths: Any = None, contact_height: float = FOOT_CONTACT_HEIGHT,
                  skating_speed: float = FOOT_SKATING_SPEED) -> PlausibilityFigures:

@@ -220,24 +220,32 @@ def test_loss_decreases_and_run_folder_is_complete(dataset, tmp_path):
 # ---------------------------------------------------------------------------------------------------------------
 
 
+def kill_and_resume(dataset, tmp_path, overrides, extra, kill_step: int, resumed_step: int,
+                    checkpoints_left: list[int] | None = None):
+    """Run A uninterrupted; run B SIGKILLed in the middle of ``kill_step`` (``checkpoints_left`` then complete, when
+    given), then resumed (resume=auto) from checkpoint ``resumed_step`` to the end. Returns both output folders."""
+    python = [sys.executable]
+    a_out, b_out = tmp_path / "a", tmp_path / "b"
+    proc = run_worker(python, [fit_scenario(a_out, overrides(dataset, a_out / "run", *extra))], a_out)
+    assert proc.returncode == 0, output_of(proc)
+    b_scenario = fit_scenario(b_out, overrides(dataset, b_out / "run", *extra))
+    proc = run_worker(python, [{**b_scenario, "kill_at": [0, kill_step]}], b_out)
+    assert proc.returncode == -signal.SIGKILL, output_of(proc)
+    if checkpoints_left is not None:
+        assert complete_steps(b_out / "run") == checkpoints_left
+    proc = run_worker(python, [b_scenario], b_out)
+    assert proc.returncode == 0, output_of(proc)
+    assert "resumed from" in proc.stderr and ckpt.step_dir_name(resumed_step) in proc.stderr
+    return a_out, b_out
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("num_workers", [0, 2])
 def test_resume_after_sigkill_is_bit_exact(dataset, tmp_path, num_workers):
     """Run A: 16 steps. Run B: SIGKILLed in the middle of step 12, resume=auto from checkpoint 10, on to 16.
     Dropout is on, so equal weights also prove the global RNG was restored."""
-    python = [sys.executable]
-    extra = (f"data.num_workers={num_workers}",)
-    a_out, b_out = tmp_path / "a", tmp_path / "b"
-    proc = run_worker(python, [fit_scenario(a_out, resume_overrides(dataset, a_out / "run", *extra))], a_out)
-    assert proc.returncode == 0, output_of(proc)
-
-    b_scenario = fit_scenario(b_out, resume_overrides(dataset, b_out / "run", *extra))
-    proc = run_worker(python, [{**b_scenario, "kill_at": [0, KILL_STEP]}], b_out)
-    assert proc.returncode == -signal.SIGKILL, output_of(proc)
-    assert complete_steps(b_out / "run") == [5, 10]
-    proc = run_worker(python, [b_scenario], b_out)
-    assert proc.returncode == 0, output_of(proc)
-    assert "resumed from" in proc.stderr and "step-00000010" in proc.stderr
+    a_out, b_out = kill_and_resume(dataset, tmp_path, resume_overrides, (f"data.num_workers={num_workers}",),
+                                   KILL_STEP, 10, checkpoints_left=[5, 10])
 
     assert_runs_identical(a_out / "run", b_out / "run", MAX_STEPS)
     ids_a, ids_b = ids_by_step(a_out, 0), ids_by_step(b_out, 0)
@@ -249,18 +257,9 @@ def test_length_aware_batches_of_varying_width_train_and_resume_bit_exactly(data
     """data.batching=length_aware: the trainer steps through batches whose width changes from step to step (each
     the longest clip rounded up to 16, below the 196-frame window), and a run SIGKILLed in the middle of step 5 and
     resumed from checkpoint 4 ends bit-identical to an uninterrupted one, with the same samples and widths per step."""
-    python = [sys.executable]
     extra = ("data.batching=length_aware", "data.window=196", "data.pad_multiple=16", "data.sort_window_batches=4",
              "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
-    a_out, b_out = tmp_path / "a", tmp_path / "b"
-    proc = run_worker(python, [fit_scenario(a_out, base_overrides(dataset, a_out / "run", *extra))], a_out)
-    assert proc.returncode == 0, output_of(proc)
-    b_scenario = fit_scenario(b_out, base_overrides(dataset, b_out / "run", *extra))
-    proc = run_worker(python, [{**b_scenario, "kill_at": [0, 5]}], b_out)
-    assert proc.returncode == -signal.SIGKILL, output_of(proc)
-    proc = run_worker(python, [b_scenario], b_out)
-    assert proc.returncode == 0, output_of(proc)
-    assert "resumed from" in proc.stderr and "step-00000004" in proc.stderr
+    a_out, b_out = kill_and_resume(dataset, tmp_path, base_overrides, extra, 5, 4)
 
     assert_runs_identical(a_out / "run", b_out / "run", 6)
     assert ids_by_step(a_out, 0) == ids_by_step(b_out, 0)
@@ -451,12 +450,9 @@ def test_flame_ema_schedule_in_training_and_exact_resume_across_ema_start(datase
     """optim.ema_every=2 ema_start=4 ema_warmup=false: checkpoints 2 and 4 hold EMA = the weights, 6 the average of
     4's and 6's (decay 0.5); a run SIGKILLed in step 3 and resumed from checkpoint 2 crosses ema_start and ends bit
     for bit as the uninterrupted one."""
-    python = [sys.executable]
     extra = ("optim.ema_every=2", "optim.ema_start=4", "optim.ema_warmup=false", "optim.ema_decay=0.5",
              "train.max_steps=8", "train.save_every=2", "train.keep_last=0")
-    a_out, b_out = tmp_path / "a", tmp_path / "b"
-    proc = run_worker(python, [fit_scenario(a_out, base_overrides(dataset, a_out / "run", *extra))], a_out)
-    assert proc.returncode == 0, output_of(proc)
+    a_out, b_out = kill_and_resume(dataset, tmp_path, base_overrides, extra, 3, 2, checkpoints_left=[2])
     saved = {step: ckpt.load_checkpoint(ckpt.checkpoints_dir(a_out / "run") / ckpt.step_dir_name(step))
              for step in (2, 4, 6, 8)}
     for step in (2, 4):
@@ -467,14 +463,6 @@ def test_flame_ema_schedule_in_training_and_exact_resume_across_ema_start(datase
         torch.testing.assert_close(ema6[k], 0.5 * model4[k].float() + 0.5 * model6[k].float(), rtol=1e-6, atol=1e-7)
     assert any(not torch.equal(ema6[k], model6[k].float()) for k in ema6)  # an average now, no longer a copy
     assert state6["extra"]["ema_updates"] == 3 and saved[8][2]["extra"]["ema_updates"] == 4
-
-    b_scenario = fit_scenario(b_out, base_overrides(dataset, b_out / "run", *extra))
-    proc = run_worker(python, [{**b_scenario, "kill_at": [0, 3]}], b_out)
-    assert proc.returncode == -signal.SIGKILL, output_of(proc)
-    assert complete_steps(b_out / "run") == [2]
-    proc = run_worker(python, [b_scenario], b_out)
-    assert proc.returncode == 0, output_of(proc)
-    assert "resumed from" in proc.stderr and "step-00000002" in proc.stderr
     assert_runs_identical(a_out / "run", b_out / "run", 8)
 
 

@@ -687,10 +687,8 @@ def check_weights(trained: TrainedModel, sampling: SamplingConfig) -> None:
 
 def guided_features(trained: TrainedModel, sampling: SamplingConfig) -> str:
     """Which channels guidance mixes: ``sampling.guided_features`` when set, else the checkpoint's own
-    ``model.guided_features``; 'all' for diffusion checkpoints (their guidance mixes every channel)."""
-    if trained.objective == "diffusion":
-        return "all"
-    return sampling.guided_features or trained.model_config.guided_features
+    (:meth:`TrainedModel.guided_features_with`)."""
+    return trained.guided_features_with(sampling.guided_features)
 
 
 def sampling_precision(sampling: SamplingConfig, device: torch.device | str) -> str:

@@ -27,7 +27,7 @@ import numpy as np
 from mfm.caption_checks import caption_check_summary, stated_attributes
 from mfm.export import render_contact_sheet
 from mfm.features import features_to_joints, features_to_joints_rigid
-from mfm.metrics import movement_spread, plausibility, plausibility_settings, plausibility_side_by_side
+from mfm.metrics import movement_spread, padded_motions, plausibility, plausibility_settings, plausibility_side_by_side
 from mfm.skeleton import Skeleton, get_skeleton
 from pipeline.data.stream import Manifest, iter_motions, open_manifest
 from pipeline.generation.inference import load_trained_model, skeleton_from_spec
@@ -117,7 +117,7 @@ def compare_with_clips(motions: Sequence[np.ndarray], clips: Sequence[np.ndarray
     generated = generated.with_jerk_reference(truth.mean_jerk)
     errors = np.array([[mean_joint_error(m, c) for c in clips] for m in motions])
     nearest = errors.argmin(axis=1)
-    movement = movement_spread(*_padded(motions)) / np.maximum(movement_spread(*_padded(clips)), 1e-9)
+    movement = movement_spread(*padded_motions(motions)) / np.maximum(movement_spread(*padded_motions(clips)), 1e-9)
     rows = [{"id": ids[i], "error_to_own_clip_m": float(errors[i, i]), "nearest_clip": ids[int(nearest[i])],
              "movement_ratio": float(movement[i]), **generated.clip(i)} for i in range(len(motions))]
     report = {"plausibility": plausibility_side_by_side(generated, truth), "thresholds": plausibility_settings(skeleton),
@@ -134,18 +134,9 @@ def compare_with_clips(motions: Sequence[np.ndarray], clips: Sequence[np.ndarray
     return report
 
 
-def _padded(motions: Sequence[np.ndarray]) -> tuple[np.ndarray, list[int]]:
-    """Motions of different lengths as one zero-padded array, with their lengths."""
-    lengths = [len(m) for m in motions]
-    padded = np.zeros((len(motions), max(lengths), *motions[0].shape[1:]))
-    for i, m in enumerate(motions):
-        padded[i, : len(m)] = m
-    return padded, lengths
-
-
 def plausibility_figures(motions: Sequence[np.ndarray], skeleton: Skeleton):
     """:func:`mfm.metrics.plausibility` of motions of different lengths (padded, with their lengths)."""
-    padded, lengths = _padded(motions)
+    padded, lengths = padded_motions(motions)
     return plausibility(padded, skeleton, lengths)
 
 

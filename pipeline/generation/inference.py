@@ -128,6 +128,13 @@ class TrainedModel:
         (FLAME: 1), else the model's ``output_smoothing`` (0 unless its preset says otherwise)."""
         return self.smoothing_with(self.baseline_sampling)
 
+    def guided_features_with(self, override: str | None) -> str:
+        """Which channels guidance mixes: ``override`` when set (a sample request's or the evaluator's), else the
+        model's ``guided_features``; 'all' for diffusion checkpoints (their guidance mixes every channel)."""
+        if self.objective == "diffusion":
+            return "all"
+        return override or self.model_config.guided_features
+
     @property
     def default_guidance(self) -> float:
         """The classifier-free guidance scale samplers use unless told otherwise: a diffusion baseline's own

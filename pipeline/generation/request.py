@@ -314,10 +314,8 @@ class SampleRequest:
         return trained.guidance_with(self.baseline_for(trained))
 
     def guided_features_for(self, trained: TrainedModel) -> str:
-        """Which channels guidance mixes: as given, else the model's ``guided_features``; 'all' for diffusion."""
-        if trained.objective == "diffusion":
-            return "all"
-        return self.guided_features or trained.model_config.guided_features
+        """Which channels guidance mixes: as given, else the model's (:meth:`TrainedModel.guided_features_with`)."""
+        return trained.guided_features_with(self.guided_features)
 
     def conditional_channels_for(self, trained: TrainedModel) -> torch.Tensor | None:
         """:func:`mfm.guidance.guided_feature_mask` of :meth:`guided_features_for`."""

@@ -44,7 +44,7 @@ from mfm.diffusion_sampling import BASELINE_SAMPLING, sample_diffusion, smooth_o
 from mfm.export import render_contact_sheet
 from mfm.features import features_to_joints
 from mfm.guidance import guided_feature_mask
-from mfm.metrics import plausibility
+from mfm.metrics import padded_motions, plausibility
 from mfm.model import ModelConfig
 from mfm.skeleton import Skeleton, get_skeleton
 from mfm.solvers import draw_noise, guided_velocity, sample_lengths, seeded_generators, solve, zero_padded_frames
@@ -135,7 +135,7 @@ class PreviewSampler:
         model.load_state_dict(self.ema_state())
         with torch.no_grad():
             motions = self._generate(model, prompts)
-        joints, lengths = _padded(motions)
+        joints, lengths = padded_motions(motions, np.float32)
         figures = plausibility(joints, self.skeleton, lengths).summary()
         png = preview_path(self.out_dir, step)
         png.parent.mkdir(parents=True, exist_ok=True)
@@ -242,11 +242,3 @@ class PreviewSampler:
 
 def _noise_seed(seed: int, index: int) -> int:
     return int(np.random.SeedSequence([seed, _SEED_TAG, index + 1]).generate_state(1, np.uint64)[0] >> 1)
-
-
-def _padded(motions: Sequence[np.ndarray]) -> tuple[np.ndarray, list[int]]:
-    lengths = [len(m) for m in motions]
-    padded = np.zeros((len(motions), max(lengths), *motions[0].shape[1:]), dtype=np.float32)
-    for i, m in enumerate(motions):
-        padded[i, : len(m)] = m
-    return padded, lengths
