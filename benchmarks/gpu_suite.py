@@ -216,7 +216,9 @@ class SuiteSize:
     sampling_batch: int
     sampling_repeats: int
     clips: int
-    """Synthetic clips built for the loader (about 80 % land in the train split; the stream cycles epochs)."""
+    """Synthetic clips built for the loader (about 80 % land in the train split; the stream cycles epochs), in about
+    32 shards: enough that each of 8 loader workers' shard slots holds a batch of 128 (1,024 clips held 96 per slot,
+    and the loader refused, seen on an H200)."""
     loader_batches: int
     eval_items: int
     eval_batch_size: int
@@ -225,7 +227,7 @@ class SuiteSize:
 
 
 FULL = SuiteSize(name="full", preset="humanml3d", batch_size=128, window=196, steps=30, warmup=5, sampling_batch=256,
-                 sampling_repeats=10, clips=1024, loader_batches=50, eval_items=4384, eval_batch_size=256,
+                 sampling_repeats=10, clips=2048, loader_batches=50, eval_items=4384, eval_batch_size=256,
                  eval_protocol="full", eval_tasks="all")
 SMOKE = SuiteSize(name="smoke", preset="tiny", batch_size=4, window=24, steps=2, warmup=1, sampling_batch=8,
                   sampling_repeats=2, clips=48, loader_batches=4, eval_items=16, eval_batch_size=16,

@@ -35,6 +35,9 @@ class OwnOutputs(torch.nn.Module):
     def __init__(self, graphed: torch.nn.Module) -> None:
         super().__init__()
         self.graphed = graphed
+        # A new Module starts in training mode; the wrapper takes the wrapped model's, or every sampler call warns
+        # "sampling from a model in training mode" (seen on an H200 in benchmarks/gpu_suite.py).
+        self.train(graphed.training)
 
     def forward(self, *args, **kwargs) -> torch.Tensor:
         return self.graphed(*args, **kwargs).clone()

@@ -43,6 +43,7 @@ class RecordedCompile(torch.nn.Module):
     def __init__(self, model: torch.nn.Module, mode: str | None) -> None:
         super().__init__()
         self.inner, self.mode, self.calls = model, mode, 0
+        self.train(model.training)  # as torch.compile's OptimizedModule, which is in its model's mode
 
     def forward(self, *args, **kwargs):
         self.calls += 1

@@ -38,6 +38,9 @@ def test_one_rule_for_training_and_sampling_and_cuda_graphs_on_cuda(compile_call
     assert [c.mode for c in compile_calls] == ["reduce-overhead"]
     out = graphed()
     assert torch.equal(out, held) and out.data_ptr() != held.data_ptr()  # the caller gets its own copy
+    # The wrapper is in the wrapped model's mode (a fresh Module is in training mode: the samplers then warned that
+    # dropout makes the network random, on every call on a GPU)
+    assert graphed.training and not compiled_for_sampling(GraphOutput().eval(), "cuda").training
     assert not isinstance(compiled_for_sampling(torch.nn.Module(), "cpu"), type(graphed))  # no copy off CUDA
     for bad in ("maybe", "true", 1, None):
         with pytest.raises(ValueError, match="compile must be auto, true or false"):
