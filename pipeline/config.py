@@ -102,6 +102,22 @@ class DataConfig:
     permission) are not retried. 0: fail at the first error."""
     retry_backoff_s: float = 1.0
     """Seconds before the first retry, doubled for each further one (at most 60 s)."""
+    cache_dir: str | None = None
+    """A folder for local copies of remote shards (http(s)://, s3://, gs://, ...; ``~`` is expanded): each is
+    downloaded once, written under its manifest sha256 only when its size and sha256 match the manifest (else the
+    error names the URL and nothing is kept), and read from there every later epoch and run (shared by manifests
+    listing the same bytes, by DataLoader workers and by the ranks of a machine). Every open checks the copy's size (a
+    truncated copy is downloaded again, with a warning); verification at start (data.verify strict/tolerant) hashes
+    every copy it uses and downloads a damaged one again. null (default): no cache, remote shards are read over the
+    network every epoch. Local shards are never copied."""
+    cache_max_gb: float = 0.0
+    """Size cap of data.cache_dir in gigabytes (10^9 bytes): after each download the least recently used copies are
+    removed until the cache is under it (the copy just downloaded stays). 0: no cap."""
+
+    @property
+    def cache_max_bytes(self) -> int:
+        """data.cache_max_gb in bytes (0: no cap)."""
+        return int(self.cache_max_gb * 1e9)
 
     def __post_init__(self) -> None:
         coerce_fields(self)
@@ -117,6 +133,15 @@ class DataConfig:
         _require(self.retries >= 0, f"data.retries must be >= 0, got {self.retries}")
         _require(0.0 <= self.retry_backoff_s < float("inf"),
                  f"data.retry_backoff_s must be a finite number >= 0, got {self.retry_backoff_s}")
+        _require(self.cache_dir is None or bool(self.cache_dir.strip()),
+                 "data.cache_dir must be a folder, or null for no shard cache; got an empty string")
+        _require(self.cache_dir is None or not os.path.exists(os.path.expanduser(self.cache_dir))
+                 or os.path.isdir(os.path.expanduser(self.cache_dir)),
+                 f"data.cache_dir {self.cache_dir!r} exists and is not a folder")
+        _require(0.0 <= self.cache_max_gb < float("inf"),
+                 f"data.cache_max_gb must be a finite number >= 0 (0: no cap), got {self.cache_max_gb}")
+        _require(self.cache_max_gb == 0.0 or self.cache_dir is not None,
+                 f"data.cache_max_gb={self.cache_max_gb} caps a shard cache, but data.cache_dir is not set")
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)

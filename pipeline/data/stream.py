@@ -78,6 +78,16 @@ in-place rewrite that keeps the server's ETag, an object replaced between two ep
 alone the next checkpoint; tolerant skips the shard's records (counted, logged), keeping the batch plan. Local
 shards are not re-hashed while read (their stat fingerprint was checked at start).
 
+The local shard cache (``LoaderOptions.cache_dir``, training's ``data.cache_dir``; off by default;
+:mod:`pipeline.data.download_cache`). A remote shard is downloaded once into it, hashed as it is written and kept
+(under its manifest sha256) only when it matches the manifest, then read from the local copy every later epoch and
+run instead of the spool above (:func:`cached_remote_copy`); bytes that do not match raise
+:class:`ShardChangedError` as above and nothing is kept. Each open checks the copy's size (a truncated copy is
+downloaded again); :func:`verify_shards` given the cache (``downloads``) checks remote shards from their copies,
+hashing each in full (a damaged copy is downloaded again), so a start needs no network for shards already there.
+Local shards are never copied. Counts: ``MotionLoader.shards_from_cache`` / ``shards_fetched`` and the report's
+``num_cache_served`` / ``num_downloaded``.
+
 Where data lives. Shard and manifest locations are local paths or any fsspec URL (``s3://``, ``gs://``,
 ``https://``, ``memory://``, ...; ``pipeline.data.locations``; the cloud packages are the ``remote`` extra). Shard paths
 in the manifest are relative to the manifest's own location; one that leaves it (an absolute path, a URL, '..') is
@@ -152,6 +162,7 @@ from pipeline.data.locations import (  # noqa: F401  (is_url, resolve_location, 
     scheme_of,
     wait_before_retry,
 )
+from pipeline.data.download_cache import DownloadMismatch, ShardDownloadCache
 from pipeline.data.shard_cache import RACY_S, VerificationCache
 from pipeline.data.stages import (
     CAPTION_POLICIES,
@@ -562,6 +573,11 @@ class VerificationReport:
     the manifest does not account for, e.g. a shard whose entry was removed (:func:`unlisted_files`)."""
     unlisted_files_checked: bool = False
     """Whether the split's folders were listed (local data only: object stores and HTTP servers are not)."""
+    num_cache_served: int = 0
+    """Remote shards checked from their copy in the local shard cache (``data.cache_dir``), not downloaded."""
+    num_downloaded: int = 0
+    """Remote shards downloaded into the local shard cache by this verification (none there, or a copy found
+    damaged)."""
 
     @property
     def bad_paths(self) -> tuple[str, ...]:
@@ -583,6 +599,7 @@ class VerificationReport:
         return {"split": self.split, "backend": self.backend, "mode": self.mode, "verified": self.verified,
                 "checks": list(VERIFICATION_CHECKS) if self.mode != "off" else [],
                 "num_checked": self.num_checked, "num_from_cache": self.num_from_cache,
+                "num_cache_served": self.num_cache_served, "num_downloaded": self.num_downloaded,
                 "samples_lost": self.samples_lost,
                 "bad": [{"path": b.path, "reason": b.reason, "num_motions": b.num_motions} for b in self.bad],
                 "manifest_problems": list(self.manifest_problems), "dataset_id": self.dataset_id,
@@ -702,7 +719,7 @@ def _size_problem(size: int, expected: int) -> str | None:
 
 
 def check_shard(shard: ShardInfo, backend: str = "webdataset", *, retry: RetryPolicy | None = None,
-                cache: VerificationCache | None = None) -> ShardCheck:
+                cache: VerificationCache | None = None, downloads: ShardDownloadCache | None = None) -> ShardCheck:
     """Check one shard against its manifest entry: missing / truncated / size / sha256 / records that cannot
     be listed / record count / an id twice. The count is checked even when the sha256 matches: a count
     lowered or raised in the manifest leaves the shard's bytes (and so its hash) unchanged.
@@ -713,7 +730,12 @@ def check_shard(shard: ShardInfo, backend: str = "webdataset", *, retry: RetryPo
     with only an ETag / Last-Modified / version id never is: it is hashed on every start). Transient errors
     (connection reset, timeout, HTTP 5xx/429) are retried per ``retry``; one that outlasts the retries raises
     :class:`~pipeline.data.locations.RetriesExhausted` (it says nothing about the shard). 404 / missing is
-    ``missing``, 403 / permission ``unreadable``."""
+    ``missing``, 403 / permission ``unreadable``.
+
+    With ``downloads`` (the local shard cache, ``data.cache_dir``) a remote shard is checked from its cached copy
+    (:func:`_check_cached_copy`); the verification cache is not used for it."""
+    if downloads is not None and local_path(shard.url) is None:
+        return _check_cached_copy(shard, backend, retry, downloads)
     started = time.time()
     try:
         before = fingerprint(shard.url, retry)
@@ -755,6 +777,35 @@ def check_shard(shard: ShardInfo, backend: str = "webdataset", *, retry: RetryPo
     return check
 
 
+def _check_cached_copy(shard: ShardInfo, backend: str, retry: RetryPolicy | None,
+                       downloads: ShardDownloadCache) -> ShardCheck:
+    """Check a remote shard from its copy in the local shard cache, downloading it there first when it is not
+    (verified as it is written: bytes that are not the manifest's are the verdict, and nothing is kept). The copy
+    is hashed in full, a local read: a copy damaged on disk since it was written (the same size, other bytes) is
+    removed (warning), downloaded again, and the new copy checked."""
+    for attempt in range(2):
+        def download() -> bool:
+            fetched_before = downloads.fetched
+            _open_cache_entry(shard, downloads).close()
+            return downloads.fetched > fetched_before
+
+        try:
+            downloaded = call_with_retries(download, shard.url, "downloading the shard into the shard cache", retry)
+        except (ImportError, RetriesExhausted):
+            raise
+        except ShardChangedError as exc:
+            if not isinstance(exc.__cause__, DownloadMismatch):
+                raise
+            return ShardCheck(f"{exc.__cause__.reason} (nothing was kept in the shard cache)")
+        except Exception as exc:  # noqa: BLE001  permanent (not retried): cannot be downloaded
+            return ShardCheck(_unreadable_reason(exc))
+        check = check_shard(replace(shard, url=downloads.entry_path(shard.sha256)), backend, retry=retry)
+        if check.reason is None or downloaded or attempt:
+            return check
+        downloads.discard(shard.sha256, f"{shard.url}: its copy in the shard cache is bad ({check.reason})")
+    raise AssertionError("unreachable")
+
+
 def _unreadable_reason(exc: BaseException) -> str:
     """The verdict on a shard that cannot be read: ``missing`` (no such file, HTTP 404), else ``unreadable``
     with the error (a permission error, HTTP 403, ...)."""
@@ -786,7 +837,8 @@ def _content_verdict(shard: ShardInfo, content: ShardContent) -> ShardCheck:
 
 def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str = "strict",
                   backend: str = "webdataset", *, retry: RetryPolicy | None = None,
-                  cache: str | os.PathLike | bool | None = None) -> VerificationReport:
+                  cache: str | os.PathLike | bool | None = None,
+                  downloads: ShardDownloadCache | None = None) -> VerificationReport:
     """Check a split against its manifest before any of it is used: every shard (:func:`check_shard`), record
     ids unique across the split, and the split's totals against its shard counts and lengths.
 
@@ -801,6 +853,10 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
     everything), a folder. ``retry``: transient errors (network) are retried; one that outlasts the retries raises
     :class:`~pipeline.data.locations.RetriesExhausted` naming the URL, in both modes (an unreachable shard is not a bad
     one, and tolerant mode must not drop data for a network outage).
+
+    ``downloads``: the local shard cache (``data.cache_dir``): remote shards are checked from their cached copies,
+    downloaded there first when missing (:func:`check_shard`); the report counts both (``num_cache_served``,
+    ``num_downloaded``).
     """
     if mode not in VERIFY_MODES:
         raise ValueError(f"verify mode must be one of {VERIFY_MODES}, got {mode!r}")
@@ -816,9 +872,10 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
     remembered = VerificationCache.for_manifest(manifest.location, cache)
     started = time.perf_counter()
     from_cache = 0
+    served_before, fetched_before = (downloads.served, downloads.fetched) if downloads is not None else (0, 0)
     try:
         for shard in shards:
-            check = check_shard(shard, backend, retry=retry, cache=remembered)
+            check = check_shard(shard, backend, retry=retry, cache=remembered, downloads=downloads)
             from_cache += check.from_cache
             reason = check.reason
             if reason is None:
@@ -838,9 +895,13 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
     finally:
         if remembered is not None:
             remembered.save(known_urls=_all_listed_urls(manifest))
-    logger.info("verified %d %s shards of split %r in %.2f s (%d unchanged since an earlier check, not read again%s)",
+    cache_served, downloaded = ((downloads.served - served_before, downloads.fetched - fetched_before)
+                                if downloads is not None else (0, 0))
+    logger.info("verified %d %s shards of split %r in %.2f s (%d unchanged since an earlier check, not read again%s%s)",
                 len(shards), backend, split, time.perf_counter() - started, from_cache,
-                f"; cache {remembered.path}" if remembered is not None else "; no cache")
+                f"; cache {remembered.path}" if remembered is not None else "; no cache",
+                f"; shard cache {downloads.folder}: {cache_served} read from it, {downloaded} downloaded"
+                if downloads is not None else "")
     unlisted = unlisted_files(manifest, split)
     if unlisted and mode == "strict":
         raise ShardVerificationError(
@@ -862,7 +923,8 @@ def verify_shards(manifest: Manifest | str | os.PathLike, split: str, mode: str 
     report = VerificationReport(split=split, backend=backend, mode=mode, num_checked=len(shards), bad=tuple(bad),
                                 manifest_problems=tuple(problems), num_from_cache=from_cache,
                                 dataset_id=manifest.dataset_id, unlisted_files=tuple(unlisted or ()),
-                                unlisted_files_checked=unlisted is not None)
+                                unlisted_files_checked=unlisted is not None, num_cache_served=cache_served,
+                                num_downloaded=downloaded)
     if bad:
         logger.warning("%d of %d %s shards of split %r are bad; %d motions will be skipped every epoch",
                        len(bad), len(shards), backend, split, report.samples_lost)
@@ -983,27 +1045,56 @@ def checked_remote_copy(shard: ShardInfo) -> Iterator[BinaryIO]:
         yield spool
 
 
-def _open_for_reading(shard: ShardInfo, check_remote_bytes: bool) -> contextlib.AbstractContextManager[BinaryIO]:
-    """A local shard as it is (checked before the run: its stat fingerprint or its hash); a remote one checked
-    while it is read, when ``check_remote_bytes`` (:func:`checked_remote_copy`)."""
-    if check_remote_bytes and local_path(shard.url) is None:
-        return checked_remote_copy(shard)
+def _open_cache_entry(shard: ShardInfo, downloads: ShardDownloadCache) -> BinaryIO:
+    """The shard's entry in the local shard cache, open for reading: the one there (size-checked), else downloaded
+    now and verified (size and sha256) before it becomes the entry. Bytes that are not the manifest's raise
+    :class:`ShardChangedError` naming the URL, and nothing is kept; transient errors of the download propagate."""
+    file = downloads.open_entry(shard.url, shard.bytes, shard.sha256)
+    if file is not None:
+        return file
+    with open_binary(shard.url) as stream:
+        try:
+            return downloads.store(shard.url, shard.bytes, shard.sha256, stream)
+        except DownloadMismatch as exc:
+            raise ShardChangedError(f"{exc}; none of its records was used. Restore the shard or rebuild the dataset "
+                                    "(training: data.verify=tolerant leaves its records out)") from exc
+
+
+@contextlib.contextmanager
+def cached_remote_copy(shard: ShardInfo, downloads: ShardDownloadCache) -> Iterator[BinaryIO]:
+    """A remote shard read from the local shard cache (``data.cache_dir``; :func:`_open_cache_entry`)."""
+    with _open_cache_entry(shard, downloads) as file:
+        yield file
+
+
+def _open_for_reading(shard: ShardInfo, check_remote_bytes: bool, downloads: ShardDownloadCache | None = None
+                      ) -> contextlib.AbstractContextManager[BinaryIO]:
+    """A local shard as it is (checked before the run: its stat fingerprint or its hash); a remote one from the
+    local shard cache when there is one (verified when it was downloaded, size-checked on every open:
+    :func:`cached_remote_copy`), else checked while it is read, when ``check_remote_bytes``
+    (:func:`checked_remote_copy`)."""
+    if local_path(shard.url) is None:
+        if downloads is not None:
+            return cached_remote_copy(shard, downloads)
+        if check_remote_bytes:
+            return checked_remote_copy(shard)
     return open_binary(shard.url)
 
 
-def read_tar_shard(shard: ShardInfo, wanted: np.ndarray, check_remote_bytes: bool = True
-                   ) -> Iterator[tuple[int, dict]]:
+def read_tar_shard(shard: ShardInfo, wanted: np.ndarray, check_remote_bytes: bool = True,
+                   downloads: ShardDownloadCache | None = None) -> Iterator[tuple[int, dict]]:
     """Yield ``(position, raw webdataset sample)`` for the wanted positions of one tar shard, in order.
     After the last wanted record the rest is counted without being kept: a shard that holds fewer or more
     records than the manifest says is an error (in whichever verification mode, even ``off``). With
     ``check_remote_bytes`` a remote shard is hashed as it is read, before any record is parsed
-    (:func:`checked_remote_copy`)."""
+    (:func:`checked_remote_copy`); with ``downloads`` it is read from the local shard cache
+    (:func:`cached_remote_copy`)."""
     positions = np.flatnonzero(wanted)
     if positions.size == 0:
         return
     count = 0
     try:
-        with _open_for_reading(shard, check_remote_bytes) as stream:
+        with _open_for_reading(shard, check_remote_bytes, downloads) as stream:
             for position, raw in enumerate(_tar_records(stream, shard.url)):
                 count = position + 1
                 if position < shard.num_motions and wanted[position]:
@@ -1015,16 +1106,20 @@ def read_tar_shard(shard: ShardInfo, wanted: np.ndarray, check_remote_bytes: boo
                              "(truncated or replaced shard, or a wrong count in the manifest?)")
 
 
-def read_parquet_part(shard: ShardInfo, wanted: np.ndarray, check_remote_bytes: bool = True
-                      ) -> Iterator[tuple[int, ParquetRow]]:
+def read_parquet_part(shard: ShardInfo, wanted: np.ndarray, check_remote_bytes: bool = True,
+                      downloads: ShardDownloadCache | None = None) -> Iterator[tuple[int, ParquetRow]]:
     """Yield ``(position, ParquetRow)`` for the wanted rows, reading only row groups that hold one. With
     ``check_remote_bytes`` a remote part is read whole and hashed first (:func:`checked_remote_copy`), and its row
-    groups are read from that copy."""
+    groups are read from that copy; with ``downloads`` from the local shard cache (:func:`cached_remote_copy`)."""
     import pyarrow.parquet as pq
 
     with contextlib.ExitStack() as opened:
-        checked = check_remote_bytes and local_path(shard.url) is None
-        source = opened.enter_context(checked_remote_copy(shard)) if checked else None
+        remote = local_path(shard.url) is None
+        source = None
+        if remote and downloads is not None:
+            source = opened.enter_context(cached_remote_copy(shard, downloads))
+        elif remote and check_remote_bytes:
+            source = opened.enter_context(checked_remote_copy(shard))
         try:
             if source is None:
                 source = open_seekable(shard.url)
@@ -1050,7 +1145,8 @@ def read_parquet_part(shard: ShardInfo, wanted: np.ndarray, check_remote_bytes: 
             start += rows
 
 
-_READERS: dict[str, Callable[[ShardInfo, np.ndarray, bool], Iterator[tuple[int, Any]]]] = {
+_READERS: dict[str, Callable[[ShardInfo, np.ndarray, bool, ShardDownloadCache | None],
+                              Iterator[tuple[int, Any]]]] = {
     "webdataset": read_tar_shard,
     "parquet": read_parquet_part,
 }
@@ -1061,7 +1157,8 @@ _RESTART_WITH_REMAINING = {"webdataset": False, "parquet": True}
 
 def read_shard(shard: ShardInfo, wanted: np.ndarray, backend: str = "webdataset",
                retry: RetryPolicy | None = None, *, check_remote_bytes: bool = True,
-               tolerate_bad_data: bool = False) -> Iterator[tuple[int, Any]]:
+               tolerate_bad_data: bool = False, downloads: ShardDownloadCache | None = None
+               ) -> Iterator[tuple[int, Any]]:
     """Stage 5's reader: ``(position, raw record)`` for the wanted positions of one shard, in order, riding out
     transient errors (connection reset, timeout, HTTP 5xx/429).
 
@@ -1078,7 +1175,11 @@ def read_shard(shard: ShardInfo, wanted: np.ndarray, backend: str = "webdataset"
     (:func:`checked_remote_copy`), so a shard that changed since verification while keeping its size, ETag and
     Last-Modified is never used: :class:`ShardChangedError`, or with ``tolerate_bad_data`` a
     :class:`SkippedRecord` in place of each of its wanted records (:func:`left_out_records`), counted and logged
-    as tolerant mode's other skipped records are, with the batch boundaries where the plan put them."""
+    as tolerant mode's other skipped records are, with the batch boundaries where the plan put them.
+
+    ``downloads``: a remote shard is read from the local shard cache (``data.cache_dir``;
+    :mod:`pipeline.data.download_cache`), downloaded into it first when it is not there; a download that is not the
+    manifest's bytes is handled as a changed shard (above), and a transient error during it is retried as here."""
     read, policy = _READERS[backend], retry or DEFAULT_RETRY
     last = -1  # the last position yielded
     failures = 0
@@ -1087,7 +1188,7 @@ def read_shard(shard: ShardInfo, wanted: np.ndarray, backend: str = "webdataset"
         if last >= 0 and _RESTART_WITH_REMAINING[backend]:
             mask = wanted.copy()
             mask[:last + 1] = False
-        records = read(shard, mask, check_remote_bytes)
+        records = read(shard, mask, check_remote_bytes, downloads)
         try:
             with contextlib.closing(records):  # closes the file when the consumer stops early, too
                 for position, raw in records:
@@ -1176,6 +1277,8 @@ class VerifiedSplit:
     """Records the last :meth:`iter_motions` left out (tolerant mode only)."""
     retry: RetryPolicy = DEFAULT_RETRY
     """How reads ride out transient errors (:func:`read_shard`)."""
+    downloads: ShardDownloadCache | None = None
+    """The local shard cache remote shards are read through (:func:`read_shard`), or None."""
 
     @property
     def shards(self) -> list[ShardInfo]:
@@ -1194,7 +1297,8 @@ class VerifiedSplit:
         self.records_skipped = 0
         for shard in self.shards:
             for _, raw in read_shard(shard, np.ones(shard.num_motions, dtype=bool), self.backend, self.retry,
-                                     check_remote_bytes=self.report.mode != "off", tolerate_bad_data=tolerant):
+                                     check_remote_bytes=self.report.mode != "off", tolerate_bad_data=tolerant,
+                                     downloads=self.downloads):
                 record = decode(raw)
                 if isinstance(record, SkippedRecord):
                     self.records_skipped += 1
@@ -1205,12 +1309,13 @@ class VerifiedSplit:
 
 def verified_split(manifest: Manifest | str | os.PathLike, split: str, backend: str = "webdataset",
                    mode: str = "strict", *, retry: RetryPolicy | None = None,
-                   cache: str | os.PathLike | bool | None = None) -> VerifiedSplit:
-    """Verify a split (:func:`verify_shards`, ``mode``, ``cache``) and return it for reading."""
+                   cache: str | os.PathLike | bool | None = None,
+                   downloads: ShardDownloadCache | None = None) -> VerifiedSplit:
+    """Verify a split (:func:`verify_shards`, ``mode``, ``cache``, ``downloads``) and return it for reading."""
     retry = retry or DEFAULT_RETRY
     manifest = open_manifest(manifest, retry=retry)
-    report = verify_shards(manifest, split, mode=mode, backend=backend, retry=retry, cache=cache)
-    return VerifiedSplit(manifest, split, backend, report, retry=retry)
+    report = verify_shards(manifest, split, mode=mode, backend=backend, retry=retry, cache=cache, downloads=downloads)
+    return VerifiedSplit(manifest, split, backend, report, retry=retry, downloads=downloads)
 
 
 def iter_motions(manifest: Manifest | str | os.PathLike, split: str, backend: str = "webdataset", *,
@@ -1276,6 +1381,12 @@ class LoaderOptions:
     """Retries of a shard read after a transient error (training's ``data.retries``; see :func:`read_shard`)."""
     retry_backoff_s: float = DEFAULT_RETRY.backoff_s
     """Seconds before the first retry, doubled for each further one (training's ``data.retry_backoff_s``)."""
+    cache_dir: str | None = None
+    """The local shard cache (training's ``data.cache_dir``; :mod:`pipeline.data.download_cache`): remote shards are
+    downloaded there once, verified, and read from there every later epoch and run. None: off. Local shards are
+    never copied."""
+    cache_max_bytes: int = 0
+    """The cache's size cap (least recently used entries go first); 0: no cap."""
 
     def __post_init__(self):
         if self.batch_size < 1:
@@ -1297,6 +1408,12 @@ class LoaderOptions:
             raise ValueError(f"pad_multiple and sort_window_batches must be >= 1, got {self.pad_multiple} and "
                              f"{self.sort_window_batches}")
         RetryPolicy(retries=self.retries, backoff_s=float(self.retry_backoff_s))  # validates both
+        if self.cache_max_bytes < 0:
+            raise ValueError(f"cache_max_bytes must be >= 0 (0: no cap), got {self.cache_max_bytes}")
+
+    def download_cache(self) -> ShardDownloadCache | None:
+        """A handle on the local shard cache (its own counters), or None when ``cache_dir`` is None."""
+        return None if self.cache_dir is None else ShardDownloadCache(self.cache_dir, self.cache_max_bytes)
 
     @property
     def retry_policy(self) -> RetryPolicy:
@@ -1376,6 +1493,9 @@ def batches_before(position: int, reader: int, readers: int) -> int:
 
 _DATA_ERROR_KEY = "_data_error"
 """The key of the item a DataLoader worker yields in place of a batch when it met bad data (the DataError)."""
+_SHARD_CACHE_KEY = "_shard_cache"
+"""The key of a batch's (shards read from the local shard cache, shards downloaded into it) since the reader's
+previous batch: how the counts of DataLoader workers reach the loader (``MotionLoader.shards_from_cache``)."""
 
 
 class _RankStream(IterableDataset):
@@ -1393,9 +1513,10 @@ class _RankStream(IterableDataset):
             raise RuntimeError(f"stream built for {readers} workers runs under {info.num_workers}")
         reader = (worker + self.start_batch) % readers
         skip = batches_before(self.start_batch, reader, readers)
+        downloads = self.spec.options.download_cache()
         try:
             for epoch in itertools.count(self.start_epoch):
-                yield from self.reader_epoch(epoch, reader, skip)
+                yield from self.reader_epoch(epoch, reader, skip, downloads)
                 skip = 0
         except DataError as err:
             if info is None:
@@ -1405,7 +1526,8 @@ class _RankStream(IterableDataset):
             # is this worker's traceback, not the one line naming the file and the reason.
             yield {_DATA_ERROR_KEY: err}
 
-    def reader_epoch(self, epoch: int, reader: int, skip_batches: int) -> Iterator[dict]:
+    def reader_epoch(self, epoch: int, reader: int, skip_batches: int,
+                     downloads: ShardDownloadCache | None = None) -> Iterator[dict]:
         spec, opts = self.spec, self.spec.options
         plan = spec.checked_plan(epoch)
         slot = plan.slot(spec.rank, reader)
@@ -1430,15 +1552,20 @@ class _RankStream(IterableDataset):
             functools.partial(ordered_records, shards, emission,
                               functools.partial(read_shard, backend=opts.backend, retry=opts.retry_policy,
                                                 check_remote_bytes=opts.check_remote_bytes,
-                                                tolerate_bad_data=opts.tolerate_bad_data),
+                                                tolerate_bad_data=opts.tolerate_bad_data, downloads=downloads),
                               spec.left_out(epoch)),
             *[wds.map(stage) for stage in sample_stages],
             wds.batched(batch_size, collation_fn=Collate(opts.window, spec.action_classes, spec.record_spec,
                                                          opts.batch_pad_multiple),
                         partial=False),
         )
+        counted = (downloads.served, downloads.fetched) if downloads is not None else (0, 0)
         for local, batch in enumerate(pipeline, start=skip_batches):
             batch["_position"] = (epoch, local * plan.readers_per_rank + reader)
+            if downloads is not None:
+                now = (downloads.served, downloads.fetched)
+                batch[_SHARD_CACHE_KEY] = (now[0] - counted[0], now[1] - counted[1])
+                counted = now
             yield batch
 
     def length_batches(self, emission: np.ndarray, shards: Sequence[ShardInfo], epoch: int, slot: int) -> np.ndarray:
@@ -1509,6 +1636,10 @@ class MotionLoader:
         self.batches_in_epoch = 0
         self.records_skipped = 0  # records left out of their batches (tolerant mode); saved with the position
         self.empty_batches = 0  # batches whose every record was left out, yielded empty (tolerant mode); saved too
+        # Remote shards this rank's readers read from the local shard cache / downloaded into it (data.cache_dir),
+        # in this process's life (not saved: a count of work done, not a position).
+        self.shards_from_cache = 0
+        self.shards_fetched = 0
         self._skip_reasons_logged: set[str] = set()
         self._generation = 0
         self._plan_logged = False
@@ -1679,6 +1810,9 @@ class MotionLoader:
                 raise RuntimeError(f"data stream out of order: got batch {position}, expected "
                                    f"{(self.epoch, self.batches_in_epoch)}")
             skipped = batch.pop(SKIPPED_RECORDS_KEY, None)
+            served, fetched = batch.pop(_SHARD_CACHE_KEY, (0, 0))
+            self.shards_from_cache += int(served)
+            self.shards_fetched += int(fetched)
             self._advance()
             if skipped:
                 self._count_skipped(position, skipped, len(batch["ids"]))
@@ -1703,6 +1837,10 @@ class MotionLoader:
     def _advance(self) -> None:
         self.batches_in_epoch += 1
         if self.batches_in_epoch == self.batches_per_epoch(self.epoch):
+            if self.options.cache_dir is not None:
+                logger.info("data %s epoch %d done: shard cache %s: %d remote shard(s) read from it, %d downloaded "
+                            "into it so far (rank %d)", self.split, self.epoch, self.options.cache_dir,
+                            self.shards_from_cache, self.shards_fetched, self.rank)
             self.epoch += 1
             self.batches_in_epoch = 0
             self._log_plan(self._spec.checked_plan(self.epoch))

@@ -85,6 +85,7 @@ from mfm.model import (
 from mfm.skeleton import get_skeleton
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, to_dict
+from pipeline.data.download_cache import ShardDownloadCache
 from pipeline.data.locations import RetryPolicy
 from pipeline.data.stages import DataError
 from pipeline.data.stream import (
@@ -452,6 +453,9 @@ class Trainer:
                 check_remote_bytes=cfg.data.verify != "off",
                 retries=cfg.data.retries,
                 retry_backoff_s=cfg.data.retry_backoff_s,
+                # remote shards downloaded once into data.cache_dir (verified), read from there every later epoch
+                cache_dir=cfg.data.cache_dir,
+                cache_max_bytes=cfg.data.cache_max_bytes,
             ),
             rank=dist.rank,
             world_size=dist.world_size,
@@ -486,8 +490,11 @@ class Trainer:
         that list and the report (for shard_report.json)."""
         mode = self.cfg.data.verify
         backend = backend_for_format(self.cfg.data.format)
+        downloads = (ShardDownloadCache(self.cfg.data.cache_dir, self.cfg.data.cache_max_bytes)
+                     if self.cfg.data.cache_dir is not None else None)
         report = self._decided_by_main(
-            lambda: verify_shards(self.manifest, split, mode=mode, backend=backend, retry=self.retry))
+            lambda: verify_shards(self.manifest, split, mode=mode, backend=backend, retry=self.retry,
+                                  downloads=downloads))
         bad = tuple(report.bad_paths)
         if bad:
             self.dist.log0(
@@ -1015,8 +1022,9 @@ class Trainer:
         grad_norm = float(result.grad_norm)
         # Tolerant mode's records left out of their batches, and batches left empty, so far (this run and the runs
         # it resumes), all ranks.
-        records_skipped, empty_batches = self.dist.all_reduce_sum(torch.tensor(
-            [self.loader.records_skipped, self.loader.empty_batches], device=self.dist.device)).tolist()
+        records_skipped, empty_batches, from_cache, fetched = self.dist.all_reduce_sum(torch.tensor(
+            [self.loader.records_skipped, self.loader.empty_batches, self.loader.shards_from_cache,
+             self.loader.shards_fetched], device=self.dist.device)).tolist()
         return {
             "step": self.step,
             "loss": stats["loss"],  # None (JSON null) when every step of the window was skipped
@@ -1030,6 +1038,9 @@ class Trainer:
             "records_skipped": int(records_skipped),
             "empty_batches": int(empty_batches),  # batches (all ranks) whose every record was skipped
             "empty_steps": self.empty_steps,  # steps with no sample on any rank: no update
+            # data.cache_dir only: remote shard reads (all ranks, this run) served by the local cache / downloaded
+            **({"shards_from_cache": int(from_cache), "shards_fetched": int(fetched)}
+               if self.cfg.data.cache_dir is not None else {}),
             **self._loss_scale_record(),
         }
 

@@ -152,7 +152,8 @@ def build_validator(cfg: TrainConfig, manifest: Manifest, dist: Dist, *, exclude
         unit_length=cfg.data.unit_length, shuffle=False, shuffle_buffer=0, caption_policy=cfg.data.caption_policy,
         backend=backend, tolerate_bad_data=cfg.data.verify == "tolerant",
         check_remote_bytes=cfg.data.verify != "off", retries=cfg.data.retries,
-        retry_backoff_s=cfg.data.retry_backoff_s)
+        retry_backoff_s=cfg.data.retry_backoff_s, cache_dir=cfg.data.cache_dir,
+        cache_max_bytes=cfg.data.cache_max_bytes)
     loader = MotionLoader(manifest, VAL_SPLIT, options, exclude_shards=exclude_shards)
     count = min(cfg.train.val_batches, loader.batches_per_epoch())
     mine = []
