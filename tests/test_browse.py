@@ -6,6 +6,7 @@ sampling and evaluation runs write their page themselves."""
 
 from __future__ import annotations
 
+import fnmatch
 import html
 import json
 import logging
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tomllib
 from conftest import load_launch_script
 from PIL import Image
 
@@ -193,6 +195,46 @@ def test_launch_browse_finds_the_kind_of_folder(tmp_path, capsys):
     assert browse_entry.main([str(tmp_path / "empty")]) == 2
     assert "neither a sampling output" in capsys.readouterr().err
     assert write_index(tmp_path / "samples") == tmp_path / "samples" / PAGE_FILE
+
+
+PAGE_FRONT_END = Path(__file__).resolve().parents[1] / "pipeline" / "generation" / "page"  # browse.PAGE_ASSETS
+
+
+def test_the_page_is_its_template_filled_with_the_front_end_files(tmp_path):
+    """Issue 27: the page's HTML shell, CSS and JavaScript are static files (pipeline/generation/page/), filled by
+    a string.Template: each file is in the written page as it is on disk, every placeholder is filled, and a ``$``
+    in a caption is text (escaped with the rest), not a placeholder."""
+    out = tmp_path / "samples"
+    captions = ["walks $title ${css} $$ <b>", "$script"]
+    fake_sampling_output(out, captions=captions, frames=(20, 20))
+    page = write_sample_index(out).read_text(encoding="utf-8")
+    assert {p.name for p in PAGE_FRONT_END.iterdir()} == {"index.html", "page.css", "error-hook.js", "player.js"}
+    for name, wrapped in (("page.css", "<style>\n{}</style>"), ("error-hook.js", "<script>\n{}</script>"),
+                          ("player.js", "<script>\n{}</script>")):
+        text = (PAGE_FRONT_END / name).read_text(encoding="utf-8")
+        assert page.count(wrapped.format(text)) == 1, f"page/{name} is not in the page as it is on disk"
+    template = (PAGE_FRONT_END / "index.html").read_text(encoding="utf-8")
+    placeholders = set(re.findall(r"\$(\w+)", template))
+    assert placeholders == {"generator", "title", "error_hook", "css", "body", "script"}
+    assert page.startswith(template.split("$generator")[0] + browse.PAGE_GENERATOR)
+    assert page.endswith(template.rsplit("$script", 1)[1])
+    for caption in captions:
+        assert html.escape(caption) in page
+    with pytest.raises(FileNotFoundError, match=r"page/no-such\.css of pipeline/generation/ is missing.*package data"):
+        browse.page_asset("no-such.css")
+
+
+def test_the_front_end_files_ship_as_package_data_and_not_as_python_strings():
+    """Issue 27: pyproject.toml's package data covers every file of pipeline/generation/page/ (a wheel without
+    them writes no page), and browse.py builds only the data-dependent parts: no CSS rule, no script function."""
+    root = Path(__file__).resolve().parents[1]
+    assert PAGE_FRONT_END == Path(browse.__file__).parent / browse.PAGE_ASSETS
+    globs = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["pipeline"]
+    files = [p.relative_to(root / "pipeline").as_posix() for p in PAGE_FRONT_END.iterdir()]
+    assert files and all(any(fnmatch.fnmatch(f, g) for g in globs) for f in files), (files, globs)
+    source = Path(browse.__file__).read_text(encoding="utf-8")
+    assert not re.search(r"function\s*\(|addEventListener|\{\s*[\w-]+\s*:\s*[^{}]+;\s*\}", source), \
+        "browse.py holds CSS or JavaScript: put it in pipeline/generation/page/"
 
 
 FOREIGN_PAGE = "<html><body>another tool's report</body></html>\n"

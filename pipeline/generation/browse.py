@@ -15,15 +15,24 @@ The pages are self-contained files: no network, no CDN. A sample page embeds the
 millimetres) in a ``<script type="application/json">`` element, so it opens from ``file://`` (where Chromium does
 not let a page fetch JSON); images and the sample files are relative links to the files beside the page. Captions
 and every other text are HTML-escaped. ``launch/browse.py DIR`` (re)builds the page of an existing folder.
+
+The front end is static files in pipeline/generation/page/ (package data): ``index.html``, the page's shell, a
+:class:`string.Template` whose ``$generator``, ``$title``, ``$error_hook``, ``$css``, ``$body`` and ``$script``
+:func:`page` fills; ``page.css``; ``error-hook.js`` (in every page's <head>); ``player.js`` (the sample page's
+stick-figure players, reading the embedded ``motion-data``). Edit them there; this module builds only the
+data-dependent parts (the embedded JSON, the cards, the header and the tables), escaping every text it puts in.
 """
 
 from __future__ import annotations
 
+import functools
 import html
+import importlib.resources
 import json
 import logging
 import math
 import os
+import string
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -41,20 +50,27 @@ from mfm.export.stick import (
     bones,
     equal_scale_limits,
 )
+from mfm.layout import FeatureLayout
 from mfm.skeleton import Skeleton, get_skeleton
 from pipeline.checkpoint import run_dir_of
+from pipeline.generation.outputs import (  # PAGE_GENERATOR, is_our_page: importable from here too
+    BROWSE_PAGE,
+    PAGE_GENERATOR,
+    RESULTS_FILE,
+    edited_joints,
+    is_our_page,
+)
 
 logger = logging.getLogger(__name__)
 
-PAGE_FILE = "index.html"
-PAGE_GENERATOR = "motion-flow-matching pipeline/generation/browse.py"  # in every page's <meta name="generator">
-_EARLIER_PAGE_FOOTER = "written by pipeline/generation/browse.py"  # what pages from before the tag say (lower case)
-SAMPLE_RESULTS = "results.json"  # pipeline.generation.sampling.RESULTS_FILE
+PAGE_FILE = BROWSE_PAGE
+SAMPLE_RESULTS = RESULTS_FILE
 EVAL_TABLE = "results.jsonl"  # pipeline.evaluation.store.TABLE_JSONL
 EVAL_RESULTS_DIR = "results"  # pipeline.evaluation.store.RESULTS_SUBDIR
 EVAL_PLOTS_DIR = "plots"  # pipeline.evaluation.store.PLOTS_SUBDIR
 GRID_SPACING_MM = 500  # mfm.export.render.GRID_SPACING_M
 CANVAS_PX = 320
+PAGE_ASSETS = "page"  # pipeline/generation/page/: the pages' HTML template, CSS and JavaScript (package data)
 MAX_MOTIONS = 200  # motions embedded in a sample page (about 0.3 kB per frame each); the rest listed without a player
 
 # Plausibility figures (mfm.metrics.PlausibilityFigures): unit and a one-line meaning, for the tables' tooltips.
@@ -112,17 +128,6 @@ class PageNotOursError(FileExistsError):
     """The page's file exists and was not written by this module: it is left as it is."""
 
 
-def is_our_page(path: Path) -> bool:
-    """Whether the file at ``path`` is a page this module wrote: it carries :data:`PAGE_GENERATOR` in its
-    ``<meta name="generator">`` or, for pages written before that tag existed, the footer line naming this module
-    (``written by pipeline/generation/browse.py``)."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError):
-        return False
-    return f'<meta name="generator" content="{PAGE_GENERATOR}">' in text or _EARLIER_PAGE_FOOTER in text.lower()
-
-
 def write_page(path: Path, text: str) -> Path:
     """Write atomically (concurrent evaluation jobs rewrite the same page). A file at ``path`` that is not a page of
     ours (:func:`is_our_page`; another tool's index.html) is never overwritten: PageNotOursError naming it."""
@@ -135,77 +140,28 @@ def write_page(path: Path, text: str) -> Path:
     return path
 
 
-# Registered first, in <head>: an error anywhere (a syntax error in the main script included) is shown on the page,
-# put in the title and in <html data-error>, where a headless browser's DOM dump finds it.
-ERROR_HOOK = """<script>
-window.pageErrors = [];
-window.addEventListener("error", function (event) {
-  var message = (event && event.message) || "script error";
-  window.pageErrors.push(message);
-  document.documentElement.setAttribute("data-error", window.pageErrors.join(" | "));
-  document.title = "ERROR: " + message;
-  var banner = document.getElementById("error-banner");
-  if (banner) { banner.textContent = "This page hit a script error: " + window.pageErrors.join("; "); banner.hidden = false; }
-});
-</script>"""
+def page_asset(name: str) -> str:
+    """The text of a front-end file of the pages (pipeline/generation/page/, shipped as package data)."""
+    return _page_asset(name)
 
-CSS = """
-:root { color-scheme: light; --ink: #1f2328; --muted: #656d76; --line: #d0d7de; --card: #ffffff; --bg: #f6f8fa; }
-* { box-sizing: border-box; }
-body { margin: 0; font: 14px/1.45 system-ui, -apple-system, "Segoe UI", Roboto, sans-serif; color: var(--ink);
-       background: var(--bg); }
-header { padding: 14px 20px 8px; background: var(--card); border-bottom: 1px solid var(--line); }
-h1 { font-size: 19px; margin: 0 0 4px; }
-h2 { font-size: 16px; margin: 22px 20px 8px; }
-h3 { font-size: 14px; margin: 14px 0 6px; }
-.meta { color: var(--muted); margin: 2px 0; font-size: 13px; }
-.meta b { color: var(--ink); font-weight: 600; }
-.controls { margin: 8px 0 2px; display: flex; gap: 14px; align-items: center; flex-wrap: wrap; }
-button { font: inherit; padding: 3px 12px; border: 1px solid var(--line); border-radius: 6px; background: #f3f4f6;
-         cursor: pointer; }
-button:hover { background: #e9ebef; }
-#error-banner { background: #ffebe9; color: #82071e; border: 1px solid #ff8182; padding: 8px 20px; margin: 0; }
-main.grid { display: grid; grid-template-columns: repeat(auto-fill, minmax(340px, 1fr)); gap: 14px; padding: 14px 20px; }
-.card { background: var(--card); border: 1px solid var(--line); border-radius: 8px; padding: 10px; min-width: 0; }
-.card canvas { display: block; width: 320px; height: 320px; max-width: 100%; margin: 0 auto; background: #fff;
-               border: 1px solid #eaeef2; border-radius: 4px; cursor: pointer; }
-.bar { display: flex; gap: 8px; align-items: center; margin: 6px 0; }
-.bar input[type=range] { flex: 1; min-width: 0; }
-.bar .frame { font-variant-numeric: tabular-nums; color: var(--muted); font-size: 12px; min-width: 92px;
-              text-align: right; }
-.caption { font-size: 15px; font-weight: 600; margin: 6px 0 2px; overflow-wrap: anywhere; }
-.index { color: var(--muted); font-weight: 400; font-size: 12px; }
-ol.segments { margin: 6px 0; padding-left: 22px; }
-ol.segments li { padding: 1px 4px; border-radius: 4px; overflow-wrap: anywhere; }
-ol.segments li.current { background: #fff5b1; }
-ol.segments .span { color: var(--muted); font-size: 12px; }
-.length { color: var(--muted); margin: 2px 0 6px; }
-table { border-collapse: collapse; font-size: 12.5px; background: var(--card); }
-td, th { border: 1px solid var(--line); padding: 3px 7px; text-align: left; vertical-align: top; }
-th { background: #f3f4f6; font-weight: 600; }
-td.id { white-space: nowrap; }
-td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
-table.figures { width: 100%; }
-table.figures td:first-child { color: var(--muted); }
-.files { font-size: 12px; color: var(--muted); margin: 6px 0 0; overflow-wrap: anywhere; }
-.note { color: var(--muted); font-size: 12.5px; margin: 4px 20px; }
-.tablewrap { overflow-x: auto; margin: 0 20px 10px; }
-tr.gt td { background: #f6f8fa; color: #424a53; }
-tr.first td { border-top: 2px solid #afb8c1; }
-.plots { display: flex; flex-wrap: wrap; gap: 14px; padding: 0 20px 20px; }
-figure { margin: 0; background: var(--card); border: 1px solid var(--line); border-radius: 8px; padding: 8px; }
-figure img { max-width: 100%; height: auto; display: block; }
-figcaption { color: var(--muted); font-size: 12px; margin-top: 4px; }
-footer { color: var(--muted); font-size: 12px; padding: 10px 20px 24px; }
-"""
+
+@functools.cache  # read once per process: the eval job rewrites its page after every result
+def _page_asset(name: str) -> str:
+    try:
+        return (importlib.resources.files(__package__) / PAGE_ASSETS / name).read_text(encoding="utf-8")
+    except FileNotFoundError as err:
+        raise FileNotFoundError(f"{PAGE_ASSETS}/{name} of pipeline/generation/ is missing: this install lacks the "
+                                f"pages' front-end files (package data of pyproject.toml) ({err})") from err
 
 
 def page(title: str, body: str, script: str = "") -> str:
-    return (f"<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
-            f"<meta name=\"generator\" content=\"{PAGE_GENERATOR}\">\n"
-            f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n"
-            f"<title>{esc(title)}</title>\n{ERROR_HOOK}\n<style>{CSS}</style>\n</head>\n<body>\n"
-            f"<p id=\"error-banner\" hidden></p>\n{body}\n{script}\n</body>\n</html>\n")
+    """A whole page: page/index.html filled with the title, page/error-hook.js (registered first, in <head>: an
+    error anywhere, a syntax error in the main script included, is shown on the page, put in the title and in
+    <html data-error>, where a headless browser's DOM dump finds it), page/page.css, ``body`` and ``script``.
+    Only the template's own ``$names`` are replaced: a ``$`` in a caption or the CSS/JS is left as it is."""
+    return string.Template(page_asset("index.html")).substitute(
+        generator=PAGE_GENERATOR, title=esc(title), error_hook=page_asset("error-hook.js"), css=page_asset("page.css"),
+        body=body, script=script)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -238,9 +194,6 @@ def _edited_flags(out_dir: Path, sample: Mapping[str, Any], skeleton: Skeleton, 
     path = _file_of(sample, "keep_mask")
     if path is None or not (out_dir / path).is_file():
         return None
-    from mfm.layout import FeatureLayout
-    from pipeline.generation.outputs import edited_joints
-
     keep = np.load(out_dir / path)
     edited = edited_joints(keep, FeatureLayout(skeleton))[:frames]
     if edited.shape != (frames, skeleton.num_joints):
@@ -401,164 +354,13 @@ def _sample_card(results: Mapping[str, Any], sample: Mapping[str, Any], fps: flo
             f"<p class=\"files\">{files}</p></section>")
 
 
-PLAYER_JS = r"""
-(function () {
-  "use strict";
-  var DATA = JSON.parse(document.getElementById("motion-data").textContent);
-  var fps = DATA.fps, J = DATA.joints, cam = DATA.camera, bones = DATA.bones;
-  var speed = 1, loop = true, players = [];
-  var dpr = Math.max(1, window.devicePixelRatio || 1);
-
-  function dot(p, v) { return p[0] * v[0] + p[1] * v[1] + p[2] * v[2]; }
-
-  function Player(card, m) {
-    var self = this;
-    this.card = card; this.m = m; this.L = m.frames;
-    this.canvas = card.querySelector("canvas");
-    this.ctx = this.canvas.getContext("2d");
-    this.canvas.width = Math.round(this.canvas.width * dpr);
-    this.canvas.height = Math.round(this.canvas.height * dpr);
-    this.W = this.canvas.width / dpr; this.H = this.canvas.height / dpr;
-    this.button = card.querySelector("button.play");
-    this.scrub = card.querySelector("input.scrub");
-    this.label = card.querySelector(".frame");
-    this.segmentItems = card.querySelectorAll("ol.segments li");
-    // Image-plane points (x right, y up), depth along the view, per frame and joint; the root on the floor.
-    var n = this.L * J, xy = new Float32Array(2 * n), depth = new Float32Array(n), centre = new Float32Array(2 * this.L);
-    var p = [0, 0, 0];
-    for (var i = 0; i < n; i++) {
-      p[0] = m.joints[3 * i]; p[1] = m.joints[3 * i + 1]; p[2] = m.joints[3 * i + 2];
-      xy[2 * i] = dot(p, cam.right); xy[2 * i + 1] = dot(p, cam.up); depth[i] = dot(p, cam.look);
-    }
-    for (var f = 0; f < this.L; f++) {
-      p[0] = m.joints[3 * f * J]; p[1] = m.floor; p[2] = m.joints[3 * f * J + 2];
-      centre[2 * f] = dot(p, cam.right); centre[2 * f + 1] = dot(p, cam.up);
-    }
-    this.xy = xy; this.depth = depth; this.centre = centre;
-    // Floor grid lines x = k·s and z = k·s over the ground the root covers (fixed in the world).
-    var g = m.grid, s = DATA.gridSpacing, lines = [];
-    function seg(a, b) {
-      lines.push([dot(a, cam.right), dot(a, cam.up), dot(b, cam.right), dot(b, cam.up)]);
-    }
-    for (var k = Math.ceil(g[0] / s); k * s <= g[2]; k++) seg([k * s, m.floor, g[1]], [k * s, m.floor, g[3]]);
-    for (k = Math.ceil(g[1] / s); k * s <= g[3]; k++) seg([g[0], m.floor, k * s], [g[2], m.floor, k * s]);
-    this.grid = lines;
-    this.order = bones.map(function (_, b) { return b; });
-    // The clock starts now (not at the first animation frame: a headless browser may render very few).
-    this.frame = 0; this.playing = true; this.origin = performance.now(); this.visible = true; this.drawn = -1;
-    this.button.addEventListener("click", function () { self.toggle(); });
-    this.canvas.addEventListener("click", function () { self.toggle(); });
-    this.scrub.addEventListener("input", function () {
-      self.setPlaying(false); self.frame = Number(self.scrub.value); self.draw();
-    });
-  }
-
-  Player.prototype.setPlaying = function (on) {
-    if (on && !loop && this.frame >= this.L - 1) this.frame = 0;  // play again from the start
-    this.playing = on; this.origin = null;
-    this.button.textContent = on ? "Pause" : "Play";
-  };
-  Player.prototype.toggle = function () { this.setPlaying(!this.playing); updateAllButton(); };
-
-  Player.prototype.advance = function (now) {
-    if (!this.playing) return;
-    if (this.origin === null) this.origin = now - this.frame / (fps * speed) * 1000;
-    var f = Math.floor((now - this.origin) / 1000 * fps * speed);
-    if (f >= this.L) {
-      if (loop) { f = f % this.L; } else { f = this.L - 1; this.frame = f; this.setPlaying(false); updateAllButton(); }
-    }
-    this.frame = f;
-  };
-
-  Player.prototype.draw = function () {
-    var c = this.ctx, m = this.m, f = this.frame, W = this.W, H = this.H, v = m.view, xy = this.xy;
-    var cx = this.centre[2 * f], cy = this.centre[2 * f + 1];
-    var x0 = cx + v[0], y0 = cy + v[1], scale = Math.min(W / (v[2] - v[0]), H / (v[3] - v[1]));
-    function X(x) { return (x - x0) * scale; }
-    function Y(y) { return H - (y - y0) * scale; }
-    c.setTransform(dpr, 0, 0, dpr, 0, 0);
-    c.fillStyle = "#ffffff"; c.fillRect(0, 0, W, H);
-    c.lineCap = "round"; c.lineJoin = "round";
-    c.strokeStyle = DATA.floorColor; c.lineWidth = 0.7; c.beginPath();
-    for (var i = 0; i < this.grid.length; i++) {
-      var l = this.grid[i]; c.moveTo(X(l[0]), Y(l[1])); c.lineTo(X(l[2]), Y(l[3]));
-    }
-    c.stroke();
-    c.strokeStyle = DATA.trajectoryColor; c.lineWidth = 1.3; c.beginPath();
-    for (var t = 0; t <= f; t++) {
-      var px = X(this.centre[2 * t]), py = Y(this.centre[2 * t + 1]);
-      if (t === 0) c.moveTo(px, py); else c.lineTo(px, py);
-    }
-    c.stroke();
-    // Painter's order: farther bones first.
-    var base = f * J, depth = this.depth, order = this.order;
-    order.sort(function (a, b) {
-      var da = depth[base + bones[a][0]] + depth[base + bones[a][1]], db = depth[base + bones[b][0]] + depth[base + bones[b][1]];
-      return db - da;
-    });
-    c.lineWidth = 3;
-    for (var o = 0; o < order.length; o++) {
-      var b = order[o], pa = base + bones[b][0], pb = base + bones[b][1];
-      c.strokeStyle = m.edited ? (m.edited.charAt(pb) === "1" ? DATA.editedColor : DATA.keptColor) : DATA.boneColors[b];
-      c.beginPath(); c.moveTo(X(xy[2 * pa]), Y(xy[2 * pa + 1])); c.lineTo(X(xy[2 * pb]), Y(xy[2 * pb + 1])); c.stroke();
-    }
-    c.fillStyle = "#6e7781"; c.font = "11px system-ui, sans-serif";
-    c.fillText((f + 1) + "/" + this.L, 6, H - 6);
-    this.scrub.value = String(f);
-    this.label.textContent = (f + 1) + "/" + this.L + " · " + (f / fps).toFixed(2) + " s";
-    for (var s = 0; s < this.segmentItems.length; s++) {
-      var item = this.segmentItems[s], on = f >= Number(item.dataset.start) && f < Number(item.dataset.end);
-      if (item.classList.contains("current") !== on) item.classList.toggle("current", on);
-    }
-    this.card.setAttribute("data-frame", String(f));
-    this.drawn = f;
-  };
-
-  var allButton = document.getElementById("all");
-  function updateAllButton() {
-    var any = players.some(function (p) { return p.playing; });
-    allButton.textContent = any ? "Pause all" : "Play all";
-  }
-  allButton.addEventListener("click", function () {
-    var any = players.some(function (p) { return p.playing; });
-    players.forEach(function (p) { p.setPlaying(!any); });
-    updateAllButton();
-  });
-  document.getElementById("loop").addEventListener("change", function (e) {
-    loop = e.target.checked;
-    players.forEach(function (p) { p.origin = null; });
-  });
-  document.getElementById("speed").addEventListener("change", function (e) {
-    speed = Number(e.target.value) || 1;
-    players.forEach(function (p) { p.origin = null; });
-  });
-
-  var byIndex = {};
-  DATA.motions.forEach(function (m) { byIndex[m.index] = m; });
-  document.querySelectorAll("section.card").forEach(function (card) {
-    var m = byIndex[Number(card.dataset.index)];
-    if (m && card.querySelector("canvas")) players.push(new Player(card, m));
-  });
-  if ("IntersectionObserver" in window) {  // only figures on screen are drawn
-    var observer = new IntersectionObserver(function (entries) {
-      entries.forEach(function (e) { e.target.player.visible = e.isIntersecting; if (e.isIntersecting) e.target.player.drawn = -1; });
-    });
-    players.forEach(function (p) { p.canvas.player = p; observer.observe(p.canvas); });
-  }
-  players.forEach(function (p) { p.draw(); });
-  function tick() {
-    var now = performance.now();  // the current time, not the frame's start (the same in a browser on screen)
-    for (var i = 0; i < players.length; i++) {
-      var p = players[i];
-      p.advance(now);
-      if (p.visible && p.drawn !== p.frame) p.draw();
-    }
-    window.requestAnimationFrame(tick);
-  }
-  window.requestAnimationFrame(tick);
-  document.documentElement.setAttribute("data-ready", String(players.length));
-})();
-"""
+def write_index_page(out_dir: Path) -> None:
+    """index.html to browse the written motions (:func:`write_sample_index`), written last; a failure is logged, never
+    fatal: the motions and results.json are already complete."""
+    try:
+        write_sample_index(out_dir)
+    except Exception as exc:
+        logger.warning("index.html not written: %s", exc)
 
 
 def write_sample_index(out_dir: str | Path, max_motions: int | None = MAX_MOTIONS) -> Path:
@@ -580,7 +382,7 @@ def write_sample_index(out_dir: str | Path, max_motions: int | None = MAX_MOTION
             f"{GRID_SPACING_MM / 1000:g} m, the root's path in grey. Written by pipeline/generation/browse.py; rebuild with "
             f"<code>python launch/browse.py {esc(out_dir)}</code>.</footer>")
     script = (f"<script type=\"application/json\" id=\"motion-data\">{script_json(data)}</script>\n"
-              f"<script>{PLAYER_JS}</script>")
+              f"<script>\n{page_asset('player.js')}</script>")
     title = f"{results.get('mode', 'sample')}: {out_dir.resolve().name}"
     path = write_page(out_dir / PAGE_FILE, page(title, body, script))
     logger.info("wrote %s (%d motions, %.0f kB)", path, len(data["motions"]), path.stat().st_size / 1024)

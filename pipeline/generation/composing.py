@@ -58,6 +58,7 @@ from mfm.composition import (
     segment_boundaries,
 )
 from mfm.model import ModelConfig
+from pipeline.generation.browse import write_index_page
 from pipeline.generation.inference import TrainedModel
 from pipeline.generation.integration import (
     Integrator,
@@ -71,7 +72,6 @@ from pipeline.generation.outputs import (
     SampleWriter,
     prepare_out_dir,
     results_header,
-    write_index_page,
     write_json_atomically,
 )
 from pipeline.generation.request import SampleRequest, SamplingError

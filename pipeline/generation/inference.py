@@ -9,11 +9,17 @@ The checkpoint's resolved training config says which objective trained it (``tra
 model is a velocity field (ODE solvers, mfm.solvers), a ``'diffusion'`` model a denoiser whose
 :class:`mfm.diffusion.GaussianDiffusion` is rebuilt from the saved preset (``train.diffusion``: ``'flowmdm'`` or
 ``'flame'``; DDPM/DDIM samplers, mfm.diffusion_sampling).
+
+Every way of getting one is here, at the bottom of pipeline/generation/ (tests/test_layout.py): a checkpoint, a run
+folder's newest complete checkpoint, or an exported folder (launch/export.py; :mod:`pipeline.generation.pretrained`
+writes it, :func:`load_pretrained` reads it), so the modules that sample, write and export import this one and it
+imports none of them.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 from collections.abc import Mapping, Sequence
 from functools import cached_property
@@ -21,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import safetensors
+import safetensors.torch
 import torch
 
 from mfm.compilation import compiled_for_sampling, compiles
@@ -36,6 +44,7 @@ from mfm.diffusion_sampling import (
 from mfm.layout import FeatureLayout
 from mfm.model import ModelConfig, MotionFlowTransformer
 from mfm.skeleton import Skeleton, get_skeleton
+from mfm.text import build_matching_text_encoder
 from pipeline import checkpoint as ckpt
 
 SAMPLING_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
@@ -43,6 +52,13 @@ SAMPLING_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
 type under autocast. Not float64: the model computes its time and position tables in float32 by design."""
 
 logger = logging.getLogger(__name__)
+
+# An exported folder (launch/export.py; written by pipeline.generation.pretrained, read here by load_pretrained).
+PRETRAINED_FORMAT = "mfm-pretrained"
+PRETRAINED_VERSION = 1
+CONFIG_FILE = "config.json"
+WEIGHTS_FILE = "model.safetensors"
+NORMALIZATION_FILE = "normalization.safetensors"
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
@@ -240,8 +256,6 @@ class TrainedModel:
 
     def text_encoder(self, weights: str | None = None):
         """The dataset's text encoder (verified by weights hash); CLIP needs its weights file passed again."""
-        from mfm.text import build_matching_text_encoder
-
         return build_matching_text_encoder(self.data["text_encoder"], weights=weights, device=str(self.device))
 
     def conditions(
@@ -302,17 +316,12 @@ class RunInWeightDtype(torch.nn.Module):
 
 
 def load_trained_model(path: str | Path, *, use_ema: bool = True, device: str | torch.device = "cpu") -> TrainedModel:
-    """Load a checkpoint (or a run folder's newest complete one, or an exported folder: pipeline.generation.pretrained) for
+    """Load a checkpoint (or a run folder's newest complete one, or an exported folder: :func:`load_pretrained`) for
     sampling/evaluation, EMA weights by default.
 
     The model is built with the saved (resolved) model config, output width included; a diffusion checkpoint
     also gets its GaussianDiffusion (``TrainedModel.diffusion``) from the saved ``train.diffusion`` preset.
     """
-    from pipeline.generation.pretrained import (  # imports this module
-        is_pretrained_folder,
-        load_pretrained,
-    )
-
     if is_pretrained_folder(path):  # an exported folder (launch/export.py): one set of weights, no optimizer
         return load_pretrained(path, device=device)
     folder = resolve_checkpoint(path)
@@ -329,6 +338,52 @@ def load_trained_model(path: str | Path, *, use_ema: bool = True, device: str | 
     window = int(state["config"]["data"]["window"])
     return TrainedModel(model, model_config, folder, int(state["step"]), weights, dict(state["manifest"]), device,
                         window, objective, preset, diffusion)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# exported folders (pipeline.generation.pretrained writes them)
+
+
+class PretrainedError(ValueError):
+    """An export that cannot be written or an exported folder that cannot be read; names the folder and why."""
+
+
+def is_pretrained_folder(path: str | Path) -> bool:
+    config = Path(path) / CONFIG_FILE
+    if not config.is_file():
+        return False
+    try:
+        return json.loads(config.read_text()).get("format") == PRETRAINED_FORMAT
+    except (OSError, ValueError):
+        return False
+
+
+def load_pretrained(folder: str | Path, *, device: str | torch.device = "cpu") -> TrainedModel:
+    """An exported folder as a :class:`TrainedModel` (what sampling and evaluation use)."""
+    folder = Path(folder)
+    try:
+        config = json.loads((folder / CONFIG_FILE).read_text())
+    except (OSError, ValueError) as err:
+        raise PretrainedError(f"{folder}: no readable {CONFIG_FILE} ({err}): not an exported model folder") from err
+    if config.get("format") != PRETRAINED_FORMAT or config.get("version") != PRETRAINED_VERSION:
+        raise PretrainedError(f"{folder / CONFIG_FILE}: format {config.get('format')!r} version "
+                              f"{config.get('version')!r}; this code reads {PRETRAINED_FORMAT!r} {PRETRAINED_VERSION}")
+    model_config = ModelConfig(**config["model_config"])
+    model = MotionFlowTransformer(model_config)
+    try:
+        model.load_state_dict(safetensors.torch.load_file(str(folder / WEIGHTS_FILE), device="cpu"))
+        stats = safetensors.torch.load_file(str(folder / NORMALIZATION_FILE), device="cpu")
+    except (OSError, RuntimeError, safetensors.SafetensorError) as err:
+        raise PretrainedError(f"{folder}: the weights or normalisation cannot be read ({err})") from err
+    train = {"objective": config["objective"], "diffusion": config.get("diffusion_preset") or "flowmdm"}
+    objective, preset, diffusion = training_objective({"train": train}, model_config, folder)
+    data = dict(config["data"])
+    data["normalization"] = {**data.get("normalization", {}), "mean": stats["mean"].tolist(),
+                             "std": stats["std"].tolist()}
+    device = torch.device(device)
+    model.to(device).eval()
+    return TrainedModel(model, model_config, folder, int(config["step"]), str(config["weights"]), data, device,
+                        int(config["window"]), objective, preset, diffusion)
 
 
 def training_objective(

@@ -1,6 +1,6 @@
 """What sampling, editing and composition write, shared by pipeline/generation/sampling.py and pipeline/generation/composing.py: the
 output folder's rules, each sample's files (:class:`SampleWriter`), results.json's common header, MDM's
-results.npy layout and the browsable index.html.
+results.npy layout and which index.html is ours (pipeline/generation/browse.py writes it).
 
 Per sample: sample_NNN/{features.npy, joints.npy, motion.mp4|gif, motion.bvh, keep_mask.npy (edits),
 trajectory.png (on request)}, each described in results.json (paths relative to the output folder), with the
@@ -36,6 +36,10 @@ logger = logging.getLogger(__name__)
 RESULTS_FILE = "results.json"
 
 BROWSE_PAGE = "index.html"  # pipeline/generation/browse.py's page of the outputs, written last
+# What marks a page as ours (pipeline/generation/browse.py writes it into every page; :func:`is_our_page` looks for
+# it): here, with the output folder's other rules, so the page writer sits above this module and not beside it.
+PAGE_GENERATOR = "motion-flow-matching pipeline/generation/browse.py"  # in every page's <meta name="generator">
+_EARLIER_PAGE_FOOTER = "written by pipeline/generation/browse.py"  # what pages from before the tag say (lower case)
 
 RESULTS_VERSION = 1
 
@@ -142,13 +146,22 @@ def is_our_results_file(path: Path) -> bool:
             and "mode" in results and isinstance(results.get("samples"), list))
 
 
+def is_our_page(path: Path) -> bool:
+    """Whether the file at ``path`` is a page pipeline/generation/browse.py wrote: it carries :data:`PAGE_GENERATOR`
+    in its ``<meta name="generator">`` or, for pages written before that tag existed, the footer line naming that
+    module (``written by pipeline/generation/browse.py``)."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return False
+    return f'<meta name="generator" content="{PAGE_GENERATOR}">' in text or _EARLIER_PAGE_FOOTER in text.lower()
+
+
 def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
     """Create ``out_dir``; refuse one with files unless ``overwrite``, which replaces an earlier sampling output of
     ours only (its results.json is ours: :func:`is_our_results_file`): it removes that run's results.json, MDM files,
     sample_NNN folders and index.html, the page only when it is ours. Anything else there (another tool's
     index.html included) refuses the overwrite before anything is removed."""
-    from pipeline.generation.browse import is_our_page
-
     out_dir.mkdir(parents=True, exist_ok=True)
     existing = [p for p in out_dir.iterdir()]
     if not existing:
@@ -200,15 +213,3 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
         "device": str(trained.device),
         "plausibility_thresholds": metrics.plausibility_settings(trained.skeleton),
     }
-
-
-def write_index_page(out_dir: Path) -> None:
-    """index.html to browse the written motions (pipeline/generation/browse.py), written last; a failure is logged, never
-    fatal: the motions and results.json are already complete."""
-    try:
-        from pipeline.generation.browse import (
-            write_sample_index,  # browse reads this module's file names
-        )
-        write_sample_index(out_dir)
-    except Exception as exc:
-        logger.warning("index.html not written: %s", exc)

@@ -23,8 +23,10 @@ rows for this checkpoint; written last, so a folder without it is incomplete) an
 model card (YAML metadata, intended use and limitations, training data and recipe, metrics naming their evaluator and
 protocol; no local path). Files are written with the umask's permissions (0644 under the usual 022).
 ``launch/sample.py --checkpoint`` takes an exported folder as it takes a checkpoint
-(:func:`pipeline.generation.inference.load_trained_model` recognises it); the evaluator scores checkpoints (its results
-are keyed by a checkpoint's COMPLETE marker). :class:`MotionPipeline` generates through the same functions as
+(:func:`pipeline.generation.inference.load_trained_model` recognises it; the folder's reader,
+:func:`~pipeline.generation.inference.load_pretrained`, lives there, below everything that loads a model, and is
+importable from here as well); the evaluator scores checkpoints (its results are keyed by a checkpoint's COMPLETE
+marker). :class:`MotionPipeline` generates through the same functions as
 ``launch/sample.py`` (:func:`pipeline.generation.sampling.generated_batches`), so the same seed gives the same motion.
 """
 
@@ -44,24 +46,29 @@ import torch
 import yaml
 
 from mfm.features import features_to_joints
-from mfm.model import ModelConfig, MotionFlowTransformer
+from mfm.model import ModelConfig
 from mfm.solvers import sample_lengths
 from pipeline import checkpoint as ckpt
-from pipeline.generation.inference import (
+from pipeline.generation import integration, outputs, sampling
+from pipeline.generation.inference import (  # the folder format and its reader live with the other loaders
+    CONFIG_FILE,
+    NORMALIZATION_FILE,
+    PRETRAINED_FORMAT,
+    PRETRAINED_VERSION,
     SAMPLING_DTYPES,
+    WEIGHTS_FILE,
+    PretrainedError,
     TrainedModel,
+    is_pretrained_folder,
+    load_pretrained,  # noqa: F401  (importable from here too, where it was defined before)
     load_trained_model,
-    training_objective,
 )
+from pipeline.generation.integration import resolve_device
+from pipeline.generation.request import SampleRequest
 from preprocess.shards import ManifestError, derive_dataset_id, load_manifest
 
 logger = logging.getLogger(__name__)
 
-PRETRAINED_FORMAT = "mfm-pretrained"
-PRETRAINED_VERSION = 1
-CONFIG_FILE = "config.json"
-WEIGHTS_FILE = "model.safetensors"
-NORMALIZATION_FILE = "normalization.safetensors"
 CARD_FILE = "README.md"
 CARD_METRICS = ("fid", "r_precision_top1", "r_precision_top3", "mm_dist", "diversity", "multimodality",
                 "bone_length_range", "foot_skating_ratio", "jerk_ratio")
@@ -88,20 +95,6 @@ ARGUMENT_ALIASES = {"prompt": "texts", "num_motions_per_prompt": "num_samples", 
                     "guidance_scale": "guidance", "generator": "seed"}
 """diffusers' argument name -> ours: the same argument (``generator``: see :meth:`MotionPipeline.__call__`)."""
 OUTPUT_TYPES = {"np": "numpy", "numpy": "numpy", "pt": "torch", "torch": "torch"}
-
-
-class PretrainedError(ValueError):
-    """An export that cannot be written or an exported folder that cannot be read; names the folder and why."""
-
-
-def is_pretrained_folder(path: str | Path) -> bool:
-    config = Path(path) / CONFIG_FILE
-    if not config.is_file():
-        return False
-    try:
-        return json.loads(config.read_text()).get("format") == PRETRAINED_FORMAT
-    except (OSError, ValueError):
-        return False
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -396,38 +389,6 @@ def _evaluation_lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# load
-
-
-def load_pretrained(folder: str | Path, *, device: str | torch.device = "cpu") -> TrainedModel:
-    """An exported folder as a :class:`TrainedModel` (what sampling and evaluation use)."""
-    folder = Path(folder)
-    try:
-        config = json.loads((folder / CONFIG_FILE).read_text())
-    except (OSError, ValueError) as err:
-        raise PretrainedError(f"{folder}: no readable {CONFIG_FILE} ({err}): not an exported model folder") from err
-    if config.get("format") != PRETRAINED_FORMAT or config.get("version") != PRETRAINED_VERSION:
-        raise PretrainedError(f"{folder / CONFIG_FILE}: format {config.get('format')!r} version "
-                              f"{config.get('version')!r}; this code reads {PRETRAINED_FORMAT!r} {PRETRAINED_VERSION}")
-    model_config = ModelConfig(**config["model_config"])
-    model = MotionFlowTransformer(model_config)
-    try:
-        model.load_state_dict(safetensors.torch.load_file(str(folder / WEIGHTS_FILE), device="cpu"))
-        stats = safetensors.torch.load_file(str(folder / NORMALIZATION_FILE), device="cpu")
-    except (OSError, RuntimeError, safetensors.SafetensorError) as err:
-        raise PretrainedError(f"{folder}: the weights or normalisation cannot be read ({err})") from err
-    train = {"objective": config["objective"], "diffusion": config.get("diffusion_preset") or "flowmdm"}
-    objective, preset, diffusion = training_objective({"train": train}, model_config, folder)
-    data = dict(config["data"])
-    data["normalization"] = {**data.get("normalization", {}), "mean": stats["mean"].tolist(),
-                             "std": stats["std"].tolist()}
-    device = torch.device(device)
-    model.to(device).eval()
-    return TrainedModel(model, model_config, folder, int(config["step"]), str(config["weights"]), data, device,
-                        int(config["window"]), objective, preset, diffusion)
-
-
-# ---------------------------------------------------------------------------------------------------------------
 # the few-line API
 
 
@@ -455,8 +416,6 @@ class GeneratedMotions:
              overwrite: bool = False) -> Path:
         """Write every motion (sample_NNN/ with features.npy, joints.npy, motion.mp4|gif, motion.bvh) and
         results.json into ``out_dir``; ``mdm_results`` also MDM's results.npy."""
-        from pipeline.generation import outputs
-
         out_dir = Path(out_dir)
         request = dataclasses.replace(self._request, out_dir=str(out_dir), video=video, bvh=bvh,
                                       mdm_results=mdm_results, overwrite=overwrite)
@@ -500,8 +459,6 @@ class MotionPipeline:
         stores; bfloat16 or float16, see :meth:`to`). ``text_weights``: CLIP datasets' weights file
         (checked against the recorded hash). ``compile``: auto (on CUDA only, CUDA graphs), True or False
         (:class:`MotionPipeline`)."""
-        from pipeline.generation.integration import resolve_device
-
         trained = load_trained_model(folder, use_ema=weights == "ema", device=resolve_device(str(device)))
         if torch_dtype is not None:  # before compiling: the compiled model is of the weights' dtype
             trained = trained.to(dtype=_as_dtype(torch_dtype))
@@ -514,8 +471,6 @@ class MotionPipeline:
         Sampling keeps its state (noise, ODE/diffusion steps, Mean/Std) in float32 and runs a bfloat16/float16
         model under autocast, so a half dtype changes motions by its rounding only. float64 is refused: the model
         computes its time and position tables in float32 by design."""
-        from pipeline.generation.integration import resolve_device
-
         for arg in args:
             if isinstance(arg, torch.dtype) or (isinstance(arg, str) and _dtype_named(arg) is not None):
                 if dtype is not None:
@@ -584,9 +539,6 @@ class MotionPipeline:
 
         ``output_type``: "np"/"numpy" (default) for numpy arrays, "pt"/"torch" for CPU float32 tensors.
         """
-        from pipeline.generation import integration, sampling
-        from pipeline.generation.request import SampleRequest
-
         texts = _one_of("texts", texts, "prompt", prompt)
         num_samples = _one_of("num_samples", num_samples, "num_motions_per_prompt", num_motions_per_prompt)
         steps = _one_of("steps", steps, "num_inference_steps", num_inference_steps)

@@ -56,7 +56,8 @@ class SamplingError(ValueError):
 
 def known_solvers() -> list[str]:
     """Fixed-step solvers of mfm.solvers, then the torchdiffeq methods it hands on (e.g. dopri5)."""
-    # torchdiffeq has no public list of its methods; mfm.solvers reads the same table.
+    # torchdiffeq has no public list of its methods; mfm.solvers reads the same table. Imported when asked, as
+    # mfm.solvers does: torchdiffeq brings scipy.integrate (about a second), which most imports of this module skip.
     from torchdiffeq._impl.odeint import SOLVERS
 
     return sorted(FIXED_STEP_SOLVERS) + sorted(set(SOLVERS) - set(FIXED_STEP_SOLVERS))

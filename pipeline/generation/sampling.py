@@ -85,6 +85,7 @@ from mfm.solvers import (
     solve,
     zero_padded_frames,
 )
+from pipeline.generation.browse import write_index_page
 from pipeline.generation.inference import TrainedModel
 from pipeline.generation.integration import (
     Integrator,
@@ -99,7 +100,6 @@ from pipeline.generation.outputs import (
     frame_ranges,
     prepare_out_dir,
     results_header,
-    write_index_page,
     write_json_atomically,
     write_mdm_layout,
 )
