@@ -1,47 +1,16 @@
-"""Export a training checkpoint as an inference folder (weights, normalisation, config.json, a Hub model card).
+"""Export a training checkpoint as an inference folder (weights, normalisation, config.json, model card).
 
-    python launch/export.py runs/default --out exported/default            # the run's newest checkpoint, EMA
-    python launch/export.py runs/default/checkpoints/step-00012000 --out exported/s12k --weights model
-
-Then, in Python::
-
-    import torch
-    from pipeline.generation.pretrained import MotionPipeline
-    pipe = MotionPipeline.from_pretrained("exported/default", torch_dtype=torch.float32).to("cuda")
-    out = pipe(prompt="a person walks in a circle", seconds=4.0, generator=torch.Generator().manual_seed(0))
-    out.save("samples/circle")
-
-or ``python launch/sample.py --checkpoint exported/default --text ...``. Exit code 0 done, 2 refused (one line).
+``python launch/export.py --help`` for usage, settings and exit codes; the command line is
+pipeline/cli/export.py, installed as the ``mfm-export`` console script.
 """
 
-from __future__ import annotations
-
-import argparse
-import logging
 import sys
 from pathlib import Path
 
-if __package__ in (None, ""):  # run as a script: make the project importable from a checkout
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if __name__ == "__main__":  # run as a file from a checkout: import the project, not launch/'s siblings
+    sys.path[0] = str(Path(__file__).resolve().parents[1])
 
-from pipeline.generation.pretrained import PretrainedError, export_pretrained
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("checkpoint", help="a checkpoint folder, or a run folder (its newest complete checkpoint)")
-    parser.add_argument("--out", required=True, help="a new or empty folder for the export")
-    parser.add_argument("--weights", choices=("ema", "model"), default="ema", help="EMA (default) or raw weights")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        out = export_pretrained(args.checkpoint, args.out, weights=args.weights)
-    except (PretrainedError, FileNotFoundError, ValueError) as err:
-        print(f"export: {err}", file=sys.stderr)
-        return 2
-    print(f"exported to {out}")
-    return 0
-
+from pipeline.cli.export import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -30,8 +30,17 @@ import yaml
 
 from mfm.model import ModelConfig
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-"""Where preset names resolve: ``"tiny"`` -> ``configs/tiny.yaml``."""
+def preset_dir() -> Path:
+    """The folder of the YAML presets. An install carries them inside this package (pipeline/presets/, a copy of the
+    repository's configs/ made by the wheel build: pyproject.toml's package-dir); a checkout, or an editable install
+    of one, has no such folder and reads the repository's configs/, the folder users edit."""
+    here = Path(__file__).resolve().parent
+    installed = here / "presets"
+    return installed if installed.is_dir() else here.parent / "configs"
+
+
+CONFIG_DIR = preset_dir()
+"""Where preset names resolve: ``"tiny"`` -> ``configs/tiny.yaml`` (installed: ``pipeline/presets/tiny.yaml``)."""
 
 T = TypeVar("T")
 

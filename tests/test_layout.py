@@ -1,7 +1,9 @@
 """The package layout's import rules (README "What is where"): mfm/ is the library and imports nothing of the jobs;
 inside pipeline/, the shared modules import no job package, data imports only shared modules, training and
 generation may import data and the shared modules, evaluation may also import generation, and nothing imports
-evaluation from outside it. A module that breaks a rule is named with the import."""
+evaluation from outside it; the commands (pipeline/cli/) may import every part and no part imports them. launch/
+holds one thin file per command, importing nothing of the project but its command's ``main``. A module that breaks
+a rule is named with the import."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = "shared"  # pipeline/config.py, distributed.py, checkpoint.py, claims.py
 JOB_PACKAGES = ("data", "training", "generation", "evaluation")
+COMMANDS = "cli"  # pipeline/cli/: the command lines of the jobs (console scripts, launch/ files)
 
 # What each part of pipeline/ may import from pipeline/ (besides itself).
 ALLOWED = {
@@ -21,6 +24,7 @@ ALLOWED = {
     "training": {SHARED, "data", "training"},
     "generation": {SHARED, "data", "generation"},
     "evaluation": {SHARED, "data", "generation", "evaluation"},
+    COMMANDS: {SHARED, *JOB_PACKAGES, COMMANDS},
 }
 
 
@@ -29,7 +33,7 @@ def part_of(module: str) -> str | None:
     parts = module.split(".")
     if parts[0] != "pipeline" or len(parts) == 1:
         return None
-    return parts[1] if parts[1] in JOB_PACKAGES else SHARED
+    return parts[1] if parts[1] in (*JOB_PACKAGES, COMMANDS) else SHARED
 
 
 def module_name(path: Path) -> str:
@@ -92,7 +96,8 @@ def test_the_rule_catches_an_upward_import(tmp_path):
     are both reported."""
     for part, text in (("data", "from pipeline.training.trainer import Trainer\n"),
                        ("generation", "import pipeline.evaluation.job\n"),
-                       ("training", "from pipeline import evaluation\n")):
+                       ("training", "from pipeline import evaluation\n"),
+                       ("evaluation", "from pipeline.cli.evaluate import main\n")):
         module = tmp_path / f"{part}_probe.py"
         module.write_text(text, encoding="utf-8")
         imported = [m for _, m in imported_modules(module)]
@@ -211,3 +216,18 @@ def test_the_generation_checks_catch_a_cycle_and_a_hidden_import(tmp_path):
                      "if True:\n    import pipeline.generation.browse\n"
                      "class A:\n    from pipeline.generation import composing\n", encoding="utf-8")
     assert generation_imports(probe) == ({"request", "sampling", "browse"}, [(6, "composing")])
+
+def test_launch_files_are_thin_and_mirror_the_commands():
+    """Each launch/<name>.py (run as a file from a checkout, e.g. ``accelerate launch launch/train.py``) imports its
+    command's ``main`` from pipeline/cli/<name>.py and nothing else of the project, and every command has one."""
+    launch_files = {p.stem: p for p in (ROOT / "launch").glob("*.py") if p.stem != "__init__"}
+    commands = {p.stem for p in (ROOT / "pipeline" / COMMANDS).glob("*.py") if p.stem != "__init__"}
+    assert launch_files and set(launch_files) == commands, (sorted(launch_files), sorted(commands))
+    for name, path in launch_files.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        assert ast.get_docstring(tree), f"{path.relative_to(ROOT)}: no module docstring"
+        project = [module for _, module in imported_modules(path)
+                   if module.split(".")[0] in ("mfm", "pipeline", "preprocess", "launch")]
+        assert project == [f"pipeline.cli.{name}"], f"{path.relative_to(ROOT)} imports {project}"
+        functions = [node.name for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.ClassDef))]
+        assert not functions, f"{path.relative_to(ROOT)} defines {functions}: it belongs in pipeline/cli/{name}.py"
