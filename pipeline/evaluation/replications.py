@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mfm import metrics
+from mfm import metrics, metrics_torch
 from mfm.composition import BoundInputs
 from mfm.diffusion_sampling import (
     SAMPLERS,
@@ -272,8 +272,7 @@ def ground_truth_plausibility(gt: GroundTruthSet, skeleton: Skeleton, batch_size
     parts = []
     for start in range(0, len(gt), batch_size):
         features, lengths = gt.padded(np.arange(start, min(start + batch_size, len(gt))), device)
-        joints = features_to_joints(features.double(), skeleton).cpu().numpy()
-        parts.append(metrics.plausibility(joints, skeleton, lengths.cpu().numpy()))
+        parts.append(metrics_torch.plausibility(features_to_joints(features.double(), skeleton), skeleton, lengths))
     return metrics.PlausibilityFigures.concatenate(parts)
 
 
@@ -937,32 +936,34 @@ class PointRun:
 
     def _joint_stats(self, batch: Batch, kind: str, raw: Tensor, lengths: Tensor,
                      gt_raw: Tensor | None) -> dict[str, Any]:
-        joints = features_to_joints(raw.double(), self.skeleton).cpu().numpy()
-        lens = lengths.cpu().numpy()
+        # The joints stay on the generator's device and are scored there (mfm.metrics_torch, the numpy reference's
+        # definitions, float64): only the per-clip figures and the batch's scalars come to the host.
+        joints = features_to_joints(raw.double(), self.skeleton)
         if kind == "mm":  # one batch holds every repetition of its texts
-            texts = batch.slots // self.plan.mm_repeats
-            return {"joint_variance": [
-                (int(t), metrics.joint_variance(joints[texts == t][:, : lens[texts == t][0]]))
-                for t in np.unique(texts)]}
+            texts = torch.as_tensor(batch.slots // self.plan.mm_repeats, device=joints.device)
+            ids, variances = metrics_torch.joint_variance_per_group(joints, texts, lengths)
+            return {"joint_variance": list(zip(ids, variances))}
         # Per clip, with its slot: medians need every clip of the replication, and the jerk ratio its item.
-        stats: dict[str, Any] = {"plausibility": (batch.slots, metrics.plausibility(joints, self.skeleton, lens))}
+        stats: dict[str, Any] = {"plausibility": (batch.slots,
+                                                  metrics_torch.plausibility(joints, self.skeleton, lengths))}
         if kind == "main" and not self.flame:
             return stats
         if gt_raw is None:
             gt_raw, _ = self.gt.padded(batch.items, raw.device)
-        gt_joints = features_to_joints(gt_raw.double(), self.skeleton).cpu().numpy()
+        gt_joints = features_to_joints(gt_raw.double(), self.skeleton)
         if kind == "main":
             feet = self.skeleton.foot_left + self.skeleton.foot_right
             # TEMOS's APE/AVE in metres (KIT joints are millimetres), its floor estimated in millimetres.
-            ape = metrics.ape_ave(joints, gt_joints, lens, face_joints=self.skeleton.face_joints,
-                                  floor_joints=feet if self.cfg.tasks.ape_floor == "temos" else None,
-                                  metres_per_unit=metrics.METRES_PER_UNIT[self.skeleton.unit])
-            return {**stats, "ape_ave": ape, "frames": int(lens.sum())}
-        keep = edit_mask(kind[5:], lengths.cpu(), raw.shape[1], self.layout).numpy()
-        regenerated = ~keep.all(axis=-1)  # frames with at least one generated dim
+            ape = metrics_torch.ape_ave(joints, gt_joints, lengths, face_joints=self.skeleton.face_joints,
+                                        floor_joints=feet if self.cfg.tasks.ape_floor == "temos" else None,
+                                        metres_per_unit=metrics.METRES_PER_UNIT[self.skeleton.unit])
+            return {**stats, "ape_ave": ape, "frames": int(lengths.sum())}
+        keep = edit_mask(kind[5:], lengths.cpu(), raw.shape[1], self.layout)
+        regenerated = ~keep.all(dim=-1)  # frames with at least one generated dim
         scale = metrics.METRES_PER_UNIT[self.skeleton.unit]  # ADE/FDE in metres (KIT joints are millimetres)
-        return {**stats, "ade": metrics.ade(joints, gt_joints, lens, mask_frames=regenerated, metres_per_unit=scale),
-                "fde": metrics.fde(joints, gt_joints, lens, metres_per_unit=scale)}
+        return {**stats, "ade": metrics_torch.ade(joints, gt_joints, lengths, mask_frames=regenerated.to(joints.device),
+                                                  metres_per_unit=scale),
+                "fde": metrics_torch.fde(joints, gt_joints, lengths, metres_per_unit=scale)}
 
     # -- metrics (rank 0) ----------------------------------------------------------------------------------------
 
