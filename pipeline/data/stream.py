@@ -183,6 +183,7 @@ from pipeline.data.stages import (
     shuffle_buffer_order,
 )
 from preprocess.shards import (
+    PAIRS_KEY,
     MANIFEST_NAME,
     READABLE_FORMAT_VERSIONS,
     ManifestError,
@@ -279,6 +280,7 @@ class Manifest:
             text_dim=int(text["dim"]),
             token_features=bool(text.get("token_features", False)),
             max_tokens=int(text.get("max_tokens", 0)),
+            noise_seeds=PAIRS_KEY in self.data,
         )
 
     @property
