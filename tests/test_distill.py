@@ -7,14 +7,24 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import load_launch_script
-from test_trainer import assert_runs_identical, base_overrides, build_dataset_once, kill_and_resume, train_entry
+from conftest import REPO_ROOT, load_launch_script
+from test_trainer import (
+    assert_runs_identical,
+    base_overrides,
+    build_dataset_once,
+    clean_env,
+    kill_and_resume,
+    output_of,
+    train_entry,
+)
 
 import pipeline.generation.pairs as pairs_module
 from mfm.solvers import draw_noise, guided_velocity, seeded_generators, solve, zero_padded_frames
@@ -220,3 +230,21 @@ def test_student_training_resumes_bit_exactly(student_run, teacher_run, tmp_path
              "model.cond_drop_prob=0", "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
     a_out, b_out = kill_and_resume(student_run / "pairs" / "manifest.json", tmp_path, base_overrides, extra, 5, 4)
     assert_runs_identical(a_out / "run", b_out / "run", 6)
+
+
+@pytest.mark.multirank
+def test_two_ranks_share_the_teachers_work(student_run, teacher_run, tmp_path):
+    """Under torchrun with 2 ranks each rank solves every other pair and rank 0 writes them all: the same pairs, in
+    the same order, with the same seeds and (up to the summation order of other batch mates) the same motions as
+    one rank's; then the student trains on both ranks."""
+    out = tmp_path / "two-ranks"
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           str(REPO_ROOT / "launch" / "distill.py"), "--teacher", str(teacher_run), "--out", str(out),
+                           "train.max_steps=2", "train.save_every=2", "distill.batch_size=7"],
+                          cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, output_of(proc)
+    one, two = pair_records(student_run), pair_records(out)
+    assert [(r.id, r.noise_seed, r.captions) for r in two] == [(r.id, r.noise_seed, r.captions) for r in one]
+    for a, b in zip(one, two):
+        np.testing.assert_allclose(b.features, a.features, rtol=0, atol=1e-4)
+    assert ckpt.list_complete(ckpt.checkpoints_dir(out))[-1][0] == 2
