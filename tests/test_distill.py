@@ -16,6 +16,7 @@ import pytest
 import torch
 import yaml
 from conftest import REPO_ROOT, load_launch_script
+from eval_worker import SMALL_PROTOCOL, random_contrastive_evaluator
 from test_trainer import (
     assert_runs_identical,
     base_overrides,
@@ -248,3 +249,20 @@ def test_two_ranks_share_the_teachers_work(student_run, teacher_run, tmp_path):
     for a, b in zip(one, two):
         np.testing.assert_allclose(b.features, a.features, rtol=0, atol=1e-4)
     assert ckpt.list_complete(ckpt.checkpoints_dir(out))[-1][0] == 2
+
+
+def test_the_evaluator_scores_a_student_on_its_teachers_test_split(student_run, tmp_path, tmp_path_factory):
+    """The evaluator takes the student like any checkpoint: its recorded dataset is the pair set (no test split), so
+    the default evaluation data is the teacher's dataset the pairs were made from; each row records its NFE."""
+    from launch.evaluate import main as evaluate
+
+    dataset = build_dataset_once(tmp_path_factory)
+    evaluator = random_contrastive_evaluator(dataset, tmp_path / "evaluator.safetensors")
+    out = tmp_path / "eval"
+    assert evaluate(["--checkpoint", str(student_run), "--protocol", "fast", *SMALL_PROTOCOL, "--steps", "1,2",
+                     "--guidance", "1", "protocol.replications=1", "tasks.editing=[]", "protocol.multimodality=false",
+                     f"evaluator.path={evaluator}", f"output.dir={out}"]) == 0
+    rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    generated = [r for r in rows if r.get("row_kind") == "generated"]
+    assert sorted((r["steps"], r["nfe"]) for r in generated) == [(1, 1), (2, 2)]
+    assert {r["dataset_id"] for r in generated} == {open_manifest(dataset).dataset_id}

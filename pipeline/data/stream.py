@@ -284,6 +284,14 @@ class Manifest:
         )
 
     @property
+    def pair_set_source(self) -> str | None:
+        """For a distillation pair set (pipeline/generation/pairs.py): where the teacher's dataset, whose training
+        captions the pairs are made of, was read; None for any other dataset."""
+        if PAIRS_KEY not in self.data:
+            return None
+        return (self.data.get("builder") or {}).get("options", {}).get("source_manifest")
+
+    @property
     def mean(self) -> np.ndarray:
         return np.asarray(self.data["normalization"]["mean"], np.float32)
 

@@ -246,7 +246,10 @@ def write_pair_set(folder: Path, teacher: TrainedModel, source: Manifest, pairs:
         "format_version": FORMAT_VERSION,
         "dataset_id": "",
         "builder": {"command": "python launch/distill.py", "version": source.data["builder"].get("version"),
-                    "options": {"teacher": ckpt.run_dir_of(teacher.checkpoint).name, **settings}},
+                    "options": {"teacher": ckpt.run_dir_of(teacher.checkpoint).name, **settings,
+                                # where the teacher's dataset was read (the evaluator's default test data for a
+                                # student); not part of the pairs' identity, so a moved dataset keeps its pairs
+                                "source_manifest": str(source.location)}},
         "feature_spec": spec,
         "normalization": teacher.data["normalization"],
         "text_encoder": text,
