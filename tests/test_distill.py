@@ -266,3 +266,15 @@ def test_the_evaluator_scores_a_student_on_its_teachers_test_split(student_run, 
     generated = [r for r in rows if r.get("row_kind") == "generated"]
     assert sorted((r["steps"], r["nfe"]) for r in generated) == [(1, 1), (2, 2)]
     assert {r["dataset_id"] for r in generated} == {open_manifest(dataset).dataset_id}
+
+
+def test_a_students_contact_sheet_compares_with_its_teachers_clips(student_run, tmp_path, tmp_path_factory):
+    """--captions-from-manifest of a student takes its teacher's dataset (its own is the pair set), at its 2 steps."""
+    from pipeline.generation.contact_sheet import ContactSheetRequest, first_captions, run_contact_sheet
+
+    sheet = run_contact_sheet(ContactSheetRequest(out=tmp_path / "sheet.png", checkpoint=student_run,
+                                                  captions_from_manifest="test", frames=2))
+    captions = first_captions(open_manifest(build_dataset_once(tmp_path_factory)), "test")
+    assert [row["text"] for row in sheet["rows"]] == [c.text for c in captions]
+    assert (sheet["steps"], sheet["guidance"]) == (2, 1.0)
+    assert [row["id"] for row in sheet["against_dataset_clips"]["rows"]] == [c.motion_id for c in captions]
