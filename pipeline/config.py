@@ -322,8 +322,8 @@ class TrainLoopConfig:
     data.window, checked before training)."""
     init_from: str | None = None
     """A checkpoint folder (or a run folder: its newest complete checkpoint) whose weights (EMA, else the raw ones)
-    start this run, instead of a random initialisation; the architecture must match. A resume (train.resume)
-    replaces them with the checkpoint's, so this only matters for the run's first step. null: random."""
+    start this run, and its EMA, instead of a random initialisation; the architecture must match. Read at a fresh
+    start only: a resumed run (train.resume) continues from its own checkpoint and never reads it. null: random."""
     diffusion: Literal["flowmdm", "flame", "mdm"] = "flowmdm"
     """With objective=diffusion: flowmdm = 1000-step cosine, x0-prediction (mdm: the same process, the name
     converted MDM checkpoints carry); flame = cosine, eps-prediction with

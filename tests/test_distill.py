@@ -278,3 +278,18 @@ def test_a_students_contact_sheet_compares_with_its_teachers_clips(student_run, 
     assert [row["text"] for row in sheet["rows"]] == [c.text for c in captions]
     assert (sheet["steps"], sheet["guidance"]) == (2, 1.0)
     assert [row["id"] for row in sheet["against_dataset_clips"]["rows"]] == [c.motion_id for c in captions]
+
+
+def test_init_from_starts_the_weights_and_their_ema_from_the_checkpoints_ema(teacher_run, tmp_path, tmp_path_factory):
+    """train.init_from on a fresh start: after one step at a negligible rate the weights and their EMA are the
+    teacher's EMA weights; a checkpoint of another architecture is refused in one line (exit 2)."""
+    _, teacher_ema, _ = ckpt.load_checkpoint(ckpt.resolve_checkpoint(teacher_run))
+    run = tmp_path / "run"
+    common = ["--config", "tiny", f"data.manifest={build_dataset_once(tmp_path_factory)}",
+              f"train.init_from={teacher_run}", "train.max_steps=1", "train.save_every=1", "optim.lr=1e-12"]
+    assert train_entry.main([*common, f"train.out_dir={run}"]) == 0
+    model, ema, _ = ckpt.load_checkpoint(ckpt.resolve_checkpoint(run))
+    for name, value in teacher_ema.items():
+        torch.testing.assert_close(model[name], value, rtol=0, atol=1e-6)
+        torch.testing.assert_close(ema[name], value, rtol=0, atol=1e-6)
+    assert train_entry.main([*common, f"train.out_dir={tmp_path / 'wide'}", "model.latent_dim=32"]) == 2

@@ -237,6 +237,12 @@ class EMA:
             else:
                 self.shadow[name].copy_(value)
 
+    @torch.no_grad()
+    def copy_weights(self, model: torch.nn.Module) -> None:
+        """The average becomes a copy of ``model``'s weights (train.init_from), its update count unchanged."""
+        for name, value in model.state_dict().items():
+            self.shadow[name].copy_(value)
+
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {name: t.detach().cpu() for name, t in self.shadow.items()}
 
@@ -380,7 +386,7 @@ def check_noise_source(cfg: TrainConfig, manifest: Manifest) -> None:
                           f"data.window={longest}")
 
 
-def initialise_from(model: MotionFlowTransformer, checkpoint: str) -> None:
+def load_initial_weights(model: torch.nn.Module, checkpoint: str) -> None:
     """train.init_from: ``model`` takes the weights of ``checkpoint`` (a step folder, or a run folder's newest complete
     one): its EMA, else its raw weights. A checkpoint of another architecture is a ConfigError naming it."""
     try:
@@ -454,9 +460,6 @@ class Trainer:
         model = MotionFlowTransformer(self.model_config)
         if self.model_config.null_condition == "empty_caption":
             fill_null_condition(model, self.manifest)
-        if cfg.train.init_from is not None:
-            initialise_from(model, cfg.train.init_from)
-            dist.log0("initialised the weights from %s", cfg.train.init_from)
         self.num_parameters = count_parameters(model)
         self.ema = EMA(model, cfg.optim.ema_decay, every=cfg.optim.ema_every, start=cfg.optim.ema_start,
                        warmup=cfg.optim.ema_warmup)
@@ -833,6 +836,14 @@ class Trainer:
         ckpt.prune_checkpoints(self.ckpt_root, self.cfg.train.keep_last)
         return path
 
+    def initialise_from(self, checkpoint: str) -> None:
+        """train.init_from, on a fresh start (every rank, after :meth:`resume` found nothing to resume): the weights
+        and their EMA become ``checkpoint``'s (:func:`load_initial_weights`), before the first step."""
+        model = self.dist.unwrap(self.model)
+        load_initial_weights(model, checkpoint)
+        self.ema.copy_weights(model)
+        self.dist.log0("initialised the weights (and their EMA) from %s", checkpoint)
+
     def resume(self) -> Path | None:
         """Restore the checkpoint train.resume names, chosen by rank 0 (:meth:`_open_run_folder`) and broadcast to
         all ranks; a refusal there is raised on every rank."""
@@ -950,7 +961,9 @@ class Trainer:
 
     def _fit(self) -> int:
         cfg = self.cfg
-        self.resume()  # decided (and possibly refused) before anything in the run folder is written
+        resumed = self.resume()  # decided (and possibly refused) before anything in the run folder is written
+        if resumed is None and cfg.train.init_from is not None:  # a fresh start; a resume never reads it
+            self.initialise_from(cfg.train.init_from)
         if self._validation_ahead():
             self.validate(read_only=True)  # read the val batches now: a bad val shard is refused before step 1
         self._write_run_files()
