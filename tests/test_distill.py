@@ -92,7 +92,8 @@ def solve_from_recorded_noise(trained, record, guidance: float, steps: int) -> t
 def test_pair_set_is_the_teachers_samples_made_once(student_run, teacher_run, tmp_path):
     """Pair i is launch/sample.py's sample i of its caption and length with --seed distill.seed (the teacher's
     default sampler, no smoothing); the manifest names the teacher; making the set again elsewhere gives the same
-    bytes, and running in the same folder reuses it, or refuses one made with other settings."""
+    bytes, also after an interruption left shards without a manifest; running in the same folder reuses a complete
+    set, or refuses one made with other settings."""
     manifest = json.loads((student_run / "pairs" / "manifest.json").read_text())
     teacher_folder = ckpt.resolve_checkpoint(teacher_run)
     assert manifest["pairs"]["teacher_checkpoint_id"] == ckpt.checkpoint_id(ckpt.read_marker(teacher_folder))
@@ -113,6 +114,12 @@ def test_pair_set_is_the_teachers_samples_made_once(student_run, teacher_run, tm
     with Dist() as dist:
         again = make_pairs(teacher, settings, tmp_path / "again", dist)
         assert json.loads(again.read_text())["dataset_id"] == manifest["dataset_id"]
+        again.unlink()  # an interrupted making: shards, no manifest; made again from scratch, leftovers gone
+        leftover = again.parent / "train" / "shard-00099.tar"
+        leftover.write_bytes(b"partial")
+        assert json.loads(make_pairs(teacher, settings, tmp_path / "again", dist).read_text())["dataset_id"] == \
+            manifest["dataset_id"]
+        assert not leftover.exists()
 
         def no_solving(*args, **kwargs):
             raise AssertionError("a complete pair set of the same teacher and settings was made again")

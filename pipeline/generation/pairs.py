@@ -23,7 +23,9 @@ Ranks: every rank plans the same pair list from the manifest; rank ``r`` solves 
 ``distill.batch_size`` (longest first, as the samplers batch), writes them to ``.build-tmp/rank-r.pt``; rank 0 then
 writes the shards in pair order and the manifest. Resume: a complete pair set whose ``pairs`` section is the one asked
 for is reused as it is; one made with another teacher or settings is refused; an unfinished one (no manifest) is
-removed and made again (generation itself restarts from its first pair).
+removed and made again (generation itself restarts from its first pair). Memory: every training record's captions
+and text features (token features too, for a cross-attention teacher) are held while the pairs are made, and rank 0
+holds every motion while it writes the shards: fine for the datasets here, a limit at HumanML3D scale with tokens.
 """
 
 from __future__ import annotations
