@@ -239,6 +239,10 @@ class ModelConfig:
     at 0.3 m/s in flight and "forward" overshoots 1.5 m/s (docs/generator-study.md, "Guidance overshoots what the
     caption fixes"). A diffusion baseline's authors' scale (FLAME: 8.0) still wins for such checkpoints. Not used
     in training."""
+    sampling_steps: int = 10
+    """The ODE solver steps samplers use for this flow model unless told otherwise (``launch/sample.py --steps``,
+    the contact sheet, MotionPipeline; edits keep their settings' steps, the evaluator its protocol's). 10 is MFM's
+    Euler default; a few-step student (``launch/distill.py``) records 2. Not used in training."""
     guided_features: str = "all"
     """Which output channels classifier-free guidance mixes when samplers guide this model (one of
     GUIDED_FEATURES; ``launch/sample.py``, edits, the evaluator, the contact sheet, MotionPipeline). 'all' (MFM,
@@ -355,6 +359,8 @@ class ModelConfig:
         if not (isinstance(self.sampling_guidance, (int, float)) and math.isfinite(self.sampling_guidance)
                 and self.sampling_guidance >= 0):
             raise ValueError(f"ModelConfig.sampling_guidance must be a finite scale >= 0, got {self.sampling_guidance!r}")
+        if not isinstance(self.sampling_steps, int) or isinstance(self.sampling_steps, bool) or self.sampling_steps < 1:
+            raise ValueError(f"ModelConfig.sampling_steps must be an int >= 1, got {self.sampling_steps!r}")
         if self.progress_positions and self.positional != "absolute":
             raise ValueError("ModelConfig.progress_positions needs positional='absolute'")
         if self.length_embedding not in LENGTH_EMBEDDINGS:

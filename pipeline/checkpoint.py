@@ -506,6 +506,22 @@ def find_latest_complete(ckpt_root: str | Path) -> Path | None:
     return complete[-1][1] if complete else None
 
 
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A complete checkpoint folder from ``path``: a ``step-XXXXXXXX`` folder itself, or a run folder /
+    ``checkpoints/`` folder, in which case its newest complete checkpoint."""
+    path = Path(path)
+    if (path / COMPLETE_MARKER).exists():
+        return path
+    for root in (checkpoints_dir(path), path):
+        if root.is_dir():
+            latest = find_latest_complete(root)
+            if latest is not None:
+                return latest
+    if not path.exists():
+        raise FileNotFoundError(f"no checkpoint or run folder at {path}")
+    raise FileNotFoundError(f"{path} holds no complete checkpoint (a step-XXXXXXXX folder with a COMPLETE marker)")
+
+
 def resolve_resume(resume: str | Path, ckpt_root: str | Path, *, discard_newer: bool = False) -> Path | None:
     """What ``train.resume`` means for this run (call on rank 0, broadcast the answer).
 

@@ -18,6 +18,7 @@ string ``"off"``) and ``1e-4`` is a float (PyYAML's 1.1 rules read it as a strin
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import os
 import re
@@ -313,6 +314,16 @@ class TrainLoopConfig:
     """flow_time_sampling=logit_normal: the normal's mean (< 0 toward the noise, > 0 toward the data)."""
     flow_time_scale: float = 1.0
     """flow_time_sampling=logit_normal: the normal's standard deviation (> 0)."""
+    flow_noise: Literal["independent", "recorded"] = "independent"
+    """objective=flow: where each training pair's noise x0 comes from. 'independent' (MFM): fresh N(0, I) from the
+    trainer's generator. 'recorded' (reflow, ``launch/distill.py``): the noise the teacher integrated to make the
+    record, ``mfm.solvers.draw_noise`` of the record's ``noise_seed`` and length; needs a distillation pair set
+    (its manifest's ``pairs`` section) whose clips are never cropped (data.unit_length=1 and every length <=
+    data.window, checked before training)."""
+    init_from: str | None = None
+    """A checkpoint folder (or a run folder: its newest complete checkpoint) whose weights (EMA, else the raw ones)
+    start this run, and its EMA, instead of a random initialisation; the architecture must match. Read at a fresh
+    start only: a resumed run (train.resume) continues from its own checkpoint and never reads it. null: random."""
     diffusion: Literal["flowmdm", "flame", "mdm"] = "flowmdm"
     """With objective=diffusion: flowmdm = 1000-step cosine, x0-prediction (mdm: the same process, the name
     converted MDM checkpoints carry); flame = cosine, eps-prediction with
@@ -328,6 +339,10 @@ class TrainLoopConfig:
                  f"train.flow_velocity_weight_cap must be >= 0 (0 = no cap), got {self.flow_velocity_weight_cap}")
         _require(self.flow_velocity_weight_cap == 0 or self.flow_loss == "velocity",
                  f"train.flow_velocity_weight_cap applies to train.flow_loss=velocity, not {self.flow_loss!r}")
+        _require(self.flow_noise == "independent" or self.objective == "flow",
+                 f"train.flow_noise={self.flow_noise} is a flow-matching setting; train.objective is {self.objective}")
+        _require(self.init_from is None or bool(self.init_from.strip()),
+                 "train.init_from must be a checkpoint folder, or null for a random initialisation")
         _require(self.log_every >= 1, f"train.log_every must be >= 1, got {self.log_every}")
         _require(self.save_every >= 1, f"train.save_every must be >= 1, got {self.save_every}")
         _require(self.keep_last >= 0, f"train.keep_last must be >= 0 (0 keeps all), got {self.keep_last}")
@@ -355,6 +370,50 @@ class TrainLoopConfig:
                  f"train.preview_prompts must be non-empty strings, got {list(self.preview_prompts)}")
 
 
+DISTILL_METHODS = ("reflow",)
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class DistillConfig:
+    """How a few-step student is made from its teacher (``launch/distill.py``; pipeline/training/distill.py). The
+    ``teacher*`` fields are recorded by launch/distill.py from the teacher's checkpoint (not settings: given ones
+    are refused), so the student's config.yaml, every checkpoint and an export's model card say where it came from."""
+
+    method: Literal["reflow"] = "reflow"
+    """reflow (Liu et al. 2022, rectified flow; Luhman & Luhman 2021 at one step): the teacher integrates its guided
+    ODE from recorded noise, and the student learns the straight path between that noise and the teacher's motion."""
+    pairs_per_caption: int = 1
+    """Teacher solutions per caption of the training split (each from its own noise seed)."""
+    seed: int = 0
+    """Seed of the pairs' noise: pair i's noise seed is ``SeedSequence([seed, i])`` (as launch/sample.py's)."""
+    batch_size: int = 64
+    """Motions per teacher batch while making the pairs (does not change the pairs)."""
+    student_steps: int = 2
+    """The student's default sampler steps (its model.sampling_steps): 1 or 2 function evaluations."""
+    teacher: str = ""
+    """The teacher's checkpoint folder (recorded)."""
+    teacher_checkpoint_id: str = ""
+    """The teacher checkpoint's id (sha256 of its COMPLETE marker; recorded)."""
+    teacher_step: int = 0
+    """The teacher's training step (recorded)."""
+    teacher_solver: str = "euler"
+    """The ODE solver of the pairs (recorded: the teacher's default, euler)."""
+    teacher_steps: int = 10
+    """The solver steps of the pairs (recorded: the teacher's model.sampling_steps)."""
+    teacher_guidance: float = 2.5
+    """The guidance scale of the pairs (recorded: the teacher's model.sampling_guidance)."""
+    teacher_guided_features: str = "all"
+    """The channels guidance mixed in the pairs (recorded: the teacher's model.guided_features)."""
+
+    def __post_init__(self) -> None:
+        coerce_fields(self)
+        _require(self.pairs_per_caption >= 1, f"distill.pairs_per_caption must be >= 1, got {self.pairs_per_caption}")
+        _require(self.seed >= 0, f"distill.seed must be >= 0, got {self.seed}")
+        _require(self.batch_size >= 1, f"distill.batch_size must be >= 1, got {self.batch_size}")
+        _require(self.student_steps >= 1, f"distill.student_steps must be >= 1, got {self.student_steps}")
+        _require(self.teacher_steps >= 1, f"distill.teacher_steps must be >= 1, got {self.teacher_steps}")
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class TrainConfig:
     """Everything a training run needs; saved resolved (``to_dict``) in every checkpoint and run folder."""
@@ -363,9 +422,16 @@ class TrainConfig:
     model: ModelConfig = dataclasses.field(default_factory=ModelConfig)
     optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
     train: TrainLoopConfig = dataclasses.field(default_factory=TrainLoopConfig)
+    distill: DistillConfig | None = None
+    """A few-step student's distillation (launch/distill.py writes it); null for an ordinary run."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)
+        _require(
+            self.train.flow_noise == "independent" or self.data.unit_length == 1,
+            f"train.flow_noise=recorded needs data.unit_length=1 (got {self.data.unit_length}): a crop would cut the "
+            "teacher's motion away from the noise it was integrated from",
+        )
         _require(
             self.train.objective == "flow" or self.model.prediction == "velocity",
             f"model.prediction={self.model.prediction!r} is a flow-matching parametrisation; the diffusion objective "
@@ -759,15 +825,19 @@ def _set_nested(data: dict[str, Any], keys: list[str], value: Any) -> None:
     node[keys[-1]] = value
 
 
-def load_config(cls: type[T], preset: str | Path | None = None, overrides: Iterable[str] = (),
+def load_config(cls: type[T], preset: str | Path | Mapping[str, Any] | None = None, overrides: Iterable[str] = (),
                 values: Mapping[str, Any] | None = None) -> T:
-    """Resolve a config: ``cls`` defaults, then the preset (name in configs/ or YAML path), then ``values`` (dotted
+    """Resolve a config: ``cls`` defaults, then the preset (name in configs/, YAML path, or an already-read nested
+    dict such as a checkpoint's resolved config), then ``values`` (dotted
     key -> value, already typed: what a command line's flags set), then the overrides.
 
     Raises ConfigError (a ValueError) naming the offending key, override or file, and FileNotFoundError for a
     preset that does not exist.
     """
-    data: dict[str, Any] = {} if preset is None else read_preset(preset)
+    if isinstance(preset, Mapping):
+        data: dict[str, Any] = copy.deepcopy(dict(preset))
+    else:
+        data = {} if preset is None else read_preset(preset)
     for key, value in (values or {}).items():
         keys = key.split(".")
         _check_key_path(cls, keys, f"{key}={value!r}")

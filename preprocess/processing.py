@@ -115,6 +115,9 @@ class Record:
     # the source's own, e.g. "span_not_a_number" for a caption line it could not read): counted in the skip
     # report, never silently.
     dropped_captions: dict[str, int] = field(default_factory=dict)
+    # A distillation pair's noise seed (pipeline/training/distill.py): the motion is the teacher's ODE solution from
+    # mfm.solvers.draw_noise of this seed and the record's length. None for a dataset's own clips (not written).
+    noise_seed: int | None = None
 
     @property
     def length(self) -> int:

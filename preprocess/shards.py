@@ -74,6 +74,9 @@ READABLE_FORMAT_VERSIONS = (1, 2)
 """Manifest formats this code reads. A format-1 manifest keeps its id, checked by the rule it was built with (the
 files' sha256s only): rebuilding it gives a format-2 manifest with another id."""
 MANIFEST_NAME = "manifest.json"
+PAIRS_KEY = "pairs"
+"""The manifest section of a distillation pair set (pipeline/training/distill.py: teacher, sampler, noise rule); its
+records carry a ``noise_seed``."""
 SPLIT_ORDER = ("train", "val", "test")
 SHARD_FORMATS = ("tar", "parquet")
 SKIP_REASONS = ("unreadable", "missing_file", "bad_shape", "bad_fps", "nan_frames", "too_short", "too_long",
@@ -126,8 +129,8 @@ class TextFeatures:
 
 
 def record_meta(record: Record) -> dict[str, Any]:
-    """The ``KEY.meta.json`` content of a record."""
-    return {
+    """The ``KEY.meta.json`` content of a record (``noise_seed`` only for a distillation pair)."""
+    meta = {
         "id": record.id,
         "length": record.length,
         "fps": record.fps,
@@ -140,6 +143,9 @@ def record_meta(record: Record) -> dict[str, Any]:
             for c in record.captions
         ],
     }
+    if record.noise_seed is not None:
+        meta["noise_seed"] = int(record.noise_seed)
+    return meta
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
@@ -196,7 +202,8 @@ class TarShardWriter:
         self._tar.close()
 
 
-def parquet_schema(feature_dim: int, text_dim: int, token_features: bool) -> pa.Schema:
+def parquet_schema(feature_dim: int, text_dim: int, token_features: bool, noise_seeds: bool = False) -> pa.Schema:
+    """The Parquet columns of a record; ``noise_seeds``: distillation pairs' ``noise_seed`` column too."""
     frames = pa.list_(pa.list_(pa.float32(), feature_dim))
     embeddings = pa.list_(pa.list_(pa.float32(), text_dim))
     fields = [
@@ -219,6 +226,8 @@ def parquet_schema(feature_dim: int, text_dim: int, token_features: bool) -> pa.
             pa.field("text_tokens", pa.list_(embeddings), nullable=False),
             pa.field("text_token_len", pa.list_(pa.int32()), nullable=False),
         ]
+    if noise_seeds:
+        fields.append(pa.field("noise_seed", pa.int64(), nullable=False))
     return pa.schema(fields, metadata={"mfm_format_version": str(FORMAT_VERSION)})
 
 
@@ -258,6 +267,8 @@ def records_table(batch: Sequence[tuple[Record, TextFeatures]], schema: pa.Schem
         columns["text_tokens"] = pa.ListArray.from_arrays(
             pa.array(caption_offsets, pa.int32()), _list_of_rows(per_caption, text_dim))
         columns["text_token_len"] = pa.array([t.token_lengths.tolist() for t in texts], pa.list_(pa.int32()))
+    if "noise_seed" in schema.names:
+        columns["noise_seed"] = pa.array([int(r.noise_seed) for r in records], pa.int64())
     return pa.Table.from_pydict(columns, schema=schema)
 
 

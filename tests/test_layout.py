@@ -110,10 +110,10 @@ def test_the_rule_catches_an_upward_import(tmp_path):
 GENERATION = ROOT / "pipeline" / "generation"
 # The layers, bottom first (README "What is where"): loading a model (inference: a run, a checkpoint or an exported
 # folder) under the request and the integrator, those under the files a run writes (outputs), the page writer
-# (browse) above the outputs, sampling above both, then composition, the contact sheet and the MotionPipeline API
-# (pretrained) on top. A module imports only modules of layers below its own.
+# (browse) above the outputs, sampling above both, then composition, the contact sheet, the reflow pairs and the
+# MotionPipeline API (pretrained) on top. A module imports only modules of layers below its own.
 GENERATION_LAYERS = (("inference",), ("request",), ("integration",), ("outputs",), ("browse",), ("sampling",),
-                     ("composing", "contact_sheet", "pretrained"))
+                     ("composing", "contact_sheet", "pairs", "pretrained"))
 
 
 def generation_imports(path: Path) -> tuple[set[str], list[tuple[int, str]]]:

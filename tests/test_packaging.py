@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = {"mfm-build-shards", "mfm-train", "mfm-sample", "mfm-evaluate", "mfm-train-evaluator", "mfm-contact-sheet",
-           "mfm-convert-checkpoint", "mfm-export", "mfm-browse"}
+SCRIPTS = {"mfm-build-shards", "mfm-train", "mfm-distill", "mfm-sample", "mfm-evaluate", "mfm-train-evaluator",
+           "mfm-contact-sheet", "mfm-convert-checkpoint", "mfm-export", "mfm-browse"}
 LIBRARY = ("mfm", "pipeline", "preprocess")
 """The installed top-level packages."""
 PRESETS_PACKAGE = "pipeline.presets"

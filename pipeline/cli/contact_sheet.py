@@ -9,7 +9,7 @@ pipeline/generation/contact_sheet.py, drawing in mfm/export/contact_sheet.py.
         --out ground_truth.png
 
 --captions-from-manifest SPLIT takes the first caption of every motion of that split of the checkpoint's dataset
-(--manifest for another) and generates each with its clip's length, so the generated and --ground-truth sheets
+(a few-step student's: its teacher's; --manifest for another) and generates each with its clip's length, so the generated and --ground-truth sheets
 compare row for row.
 """
 

@@ -77,6 +77,8 @@ class RecordSpec:
     text_dim: int
     token_features: bool = False
     max_tokens: int = 0
+    noise_seeds: bool = False
+    """A distillation pair set (pipeline/training/distill.py): every record carries its ``noise_seed``."""
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,7 @@ class MotionRecord:
     source: str  # the shard it came from, for error messages
     text_tokens: np.ndarray | None = None  # (C, L, E) float32
     text_token_len: np.ndarray | None = None  # (C,) int32
+    noise_seed: int | None = None  # distillation pairs: the seed of the noise the teacher integrated
 
 
 @dataclass(frozen=True)
@@ -109,6 +112,7 @@ class TrainingSample:
     start_frame: int  # where ``features`` starts in the full motion
     text_tokens: np.ndarray | None = None  # (L, E)
     text_token_len: int | None = None
+    noise_seed: int | None = None
 
 
 @dataclass(frozen=True)
@@ -163,6 +167,8 @@ def _validate_record(rec: MotionRecord, spec: RecordSpec, length: int) -> Motion
         expected = (num_captions, spec.max_tokens, spec.text_dim)
         if rec.text_tokens.shape != expected or rec.text_token_len.shape != (num_captions,):
             raise RecordError(f"{where}: text_tokens shape {rec.text_tokens.shape}, expected {expected}")
+    if spec.noise_seeds and rec.noise_seed is None:
+        raise RecordError(f"{where}: the manifest is a distillation pair set but the record has no noise_seed")
     if not np.isfinite(feats).all():
         raise RecordError(f"{where}: features contain NaN or inf")
     return rec
@@ -220,6 +226,7 @@ class DecodeTarRecord:
             source=str(raw.get("__url__", "?")),
             text_tokens=_load_npy(raw, "text_tokens.npy", where).astype(np.float32, copy=False) if has_tokens else None,
             text_token_len=_load_npy(raw, "text_token_len.npy", where) if has_tokens else None,
+            noise_seed=None if meta.get("noise_seed") is None else int(meta["noise_seed"]),
         )
         return _validate_record(rec, self.spec, int(meta["length"]))
 
@@ -266,6 +273,7 @@ class DecodeParquetRow:
             text_tokens=(_flatten_cell(row, "text_tokens", 3).astype(np.float32, copy=False)
                          .reshape(num_captions, -1, self.spec.text_dim) if has_tokens else None),
             text_token_len=(np.asarray(row.column("text_token_len")[0].as_py(), np.int32) if has_tokens else None),
+            noise_seed=(int(row.column("noise_seed")[0].as_py()) if "noise_seed" in row.column_names else None),
         )
         return _validate_record(rec, self.spec, length)
 
@@ -305,6 +313,7 @@ class PickCaption:
             start_frame=start,
             text_tokens=None if rec.text_tokens is None else rec.text_tokens[c],
             text_token_len=None if rec.text_token_len is None else int(rec.text_token_len[c]),
+            noise_seed=rec.noise_seed,
         )
 
 
@@ -384,7 +393,7 @@ class Collate:
     ``text_emb`` (B, E) float32, ``action`` (B,) int64 (index in the manifest's ``action_classes``, -1 when the
     motion has no label), ``caption_index`` (B,) int64, ``ids`` list[str], ``captions`` list[str],
     ``caption_tokens`` list[list[str]]; with token features also ``text_tokens`` (B, L, E) float32 and
-    ``text_token_len`` (B,) int64. Records skipped in tolerant mode are not in the batch (so B may be smaller
+    ``text_token_len`` (B,) int64; for a distillation pair set ``noise_seed`` (B,) int64. Records skipped in tolerant mode are not in the batch (so B may be smaller
     than the batch size): their reasons are under ``SKIPPED_RECORDS_KEY``. When every record was skipped the
     batch is EMPTY, not missing: every key is there with zero rows (``features`` (0, W, D), ``ids`` [], ...;
     the sizes come from ``record_spec``), so that the batch still takes its place in the stream and the trainer
@@ -435,6 +444,8 @@ class Collate:
         if spec.token_features:
             batch["text_tokens"] = torch.zeros((0, spec.max_tokens, spec.text_dim), dtype=torch.float32)
             batch["text_token_len"] = torch.zeros(0, dtype=torch.int64)
+        if spec.noise_seeds:
+            batch["noise_seed"] = torch.zeros(0, dtype=torch.int64)
         return batch
 
     def _collate(self, samples: Sequence[TrainingSample]) -> dict[str, Any]:
@@ -461,6 +472,8 @@ class Collate:
         if samples[0].text_tokens is not None:
             batch["text_tokens"] = torch.from_numpy(np.stack([s.text_tokens for s in samples]).astype(np.float32, copy=False))
             batch["text_token_len"] = torch.tensor([s.text_token_len for s in samples], dtype=torch.int64)
+        if samples[0].noise_seed is not None:  # distillation pairs (every record has one: checked at decode)
+            batch["noise_seed"] = torch.tensor([s.noise_seed for s in samples], dtype=torch.int64)
         return batch
 
 

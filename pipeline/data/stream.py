@@ -183,6 +183,7 @@ from pipeline.data.stages import (
     shuffle_buffer_order,
 )
 from preprocess.shards import (
+    PAIRS_KEY,
     MANIFEST_NAME,
     READABLE_FORMAT_VERSIONS,
     ManifestError,
@@ -279,7 +280,16 @@ class Manifest:
             text_dim=int(text["dim"]),
             token_features=bool(text.get("token_features", False)),
             max_tokens=int(text.get("max_tokens", 0)),
+            noise_seeds=PAIRS_KEY in self.data,
         )
+
+    @property
+    def pair_set_source(self) -> str | None:
+        """For a distillation pair set (pipeline/generation/pairs.py): where the teacher's dataset, whose training
+        captions the pairs are made of, was read; None for any other dataset."""
+        if PAIRS_KEY not in self.data:
+            return None
+        return (self.data.get("builder") or {}).get("options", {}).get("source_manifest")
 
     @property
     def mean(self) -> np.ndarray:

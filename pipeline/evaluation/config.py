@@ -444,7 +444,8 @@ class CompositionConfig:
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class EvalDataConfig:
     manifest: str = ""
-    """Dataset manifest; empty: the one the checkpoint was trained on (its recorded location)."""
+    """Dataset manifest; empty: the one the checkpoint was trained on (its recorded location; for a few-step student
+    trained on a teacher's pair set, the teacher's dataset the pair set was made from)."""
     split: str = "test"
     format: Literal["tar", "parquet"] = "tar"
     allow_external_shards: bool = False

@@ -224,6 +224,17 @@ class CheckpointScorer:
         location = self.cfg.data.manifest or trained.data.get("location", "")
         if not location:
             raise EvaluationError(f"{trained.checkpoint} records no dataset location: set data.manifest=")
+        manifest = self._open_evaluation_data(location)
+        source = manifest.pair_set_source
+        if not self.cfg.data.manifest and source:
+            # A few-step student (launch/distill.py) trained on its teacher's pair set, which has no test split: its
+            # test data is the teacher's dataset's, where the pair set says it was read.
+            logger.info("%s trained on the pair set %s: evaluating on its teacher's dataset %s", trained.checkpoint,
+                        location, source)
+            manifest = self._open_evaluation_data(source)
+        return manifest
+
+    def _open_evaluation_data(self, location: str) -> Manifest:
         try:
             return open_manifest(location, allow_external_shards=self.cfg.data.allow_external_shards)
         except FileNotFoundError as exc:

@@ -146,6 +146,14 @@ def _dataset(request: ContactSheetRequest) -> Manifest:
         location = load_trained_model(request.checkpoint).data.get("location")
         if not location:
             raise SamplingError(f"{request.checkpoint} records no dataset location: give the manifest")
+    manifest = _open_dataset(location)
+    if request.manifest is None and manifest.pair_set_source:
+        # a few-step student's recorded dataset is its teacher pair set: compare with the teacher's dataset's clips
+        manifest = _open_dataset(manifest.pair_set_source)
+    return manifest
+
+
+def _open_dataset(location: str) -> Manifest:
     try:
         return open_manifest(location)
     except (OSError, ValueError) as err:  # ManifestError is a ValueError

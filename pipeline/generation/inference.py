@@ -46,6 +46,7 @@ from mfm.model import ModelConfig, MotionFlowTransformer
 from mfm.skeleton import Skeleton, get_skeleton
 from mfm.text import build_matching_text_encoder
 from pipeline import checkpoint as ckpt
+from pipeline.checkpoint import resolve_checkpoint  # noqa: F401 - where samplers and tools have imported it from
 
 SAMPLING_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
 """The weight dtypes a model can be sampled in (:meth:`TrainedModel.to`): float32, what training saves, or a half
@@ -59,22 +60,6 @@ PRETRAINED_VERSION = 1
 CONFIG_FILE = "config.json"
 WEIGHTS_FILE = "model.safetensors"
 NORMALIZATION_FILE = "normalization.safetensors"
-
-
-def resolve_checkpoint(path: str | Path) -> Path:
-    """A complete checkpoint folder from ``path``: a ``step-XXXXXXXX`` folder itself, or a run folder /
-    ``checkpoints/`` folder, in which case its newest complete checkpoint."""
-    path = Path(path)
-    if (path / ckpt.COMPLETE_MARKER).exists():
-        return path
-    for root in (ckpt.checkpoints_dir(path), path):
-        if root.is_dir():
-            latest = ckpt.find_latest_complete(root)
-            if latest is not None:
-                return latest
-    if not path.exists():
-        raise FileNotFoundError(f"no checkpoint or run folder at {path}")
-    raise FileNotFoundError(f"{path} holds no complete checkpoint (a step-XXXXXXXX folder with a COMPLETE marker)")
 
 
 def skeleton_from_spec(feature_spec: Mapping[str, Any]) -> Skeleton:

@@ -18,7 +18,6 @@ from pipeline.generation.inference import TrainedModel, load_trained_model
 from pipeline.generation.request import (
     DEFAULT_DIFFUSION_SAMPLER,
     DEFAULT_FLOW_SOLVER,
-    DEFAULT_FLOW_STEPS,
     SampleRequest,
     SamplingError,
     known_solvers,
@@ -72,7 +71,8 @@ def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integra
         if solver in SAMPLERS:
             raise SamplingError(f"{trained.checkpoint} is a flow-matching model (train.objective=flow): {solver!r} is "
                                 f"a diffusion sampler; use an ODE solver ({', '.join(known_solvers())})")
-        default_steps = request.settings_steps if request.edit is not None else DEFAULT_FLOW_STEPS
+        # the model's own default (ModelConfig.sampling_steps: 10, a few-step student's 2); edits keep their settings'
+        default_steps = request.settings_steps if request.edit is not None else trained.model_config.sampling_steps
         return Integrator("flow", solver, request.steps or default_steps, precision=precision)
     sampler = request.solver or DEFAULT_DIFFUSION_SAMPLER
     if sampler not in SAMPLERS:

@@ -222,6 +222,7 @@ def recipe_facts(trained: TrainedModel, train_config: Mapping[str, Any]) -> dict
         "lr": optim.get("lr"), "schedule": optim.get("schedule"), "warmup_steps": optim.get("warmup_steps"),
         "weight_decay": optim.get("weight_decay"), "ema_decay": optim.get("ema_decay"),
         "mixed_precision": loop.get("mixed_precision"), "weights": trained.weights,
+        "distill": train_config.get("distill"),  # a few-step student: its method and teacher (launch/distill.py)
     }
 
 
@@ -288,7 +289,8 @@ def model_card(config: Mapping[str, Any]) -> str:
         "from pipeline.generation.pretrained import MotionPipeline",
         "",
         'pipe = MotionPipeline.from_pretrained("path/to/this/folder", torch_dtype=torch.float32).to("cpu")',
-        f"out = pipe({prompt}, seconds=4.0, num_inference_steps=10, guidance_scale={model.sampling_guidance:g}, "
+        f"out = pipe({prompt}, seconds=4.0, num_inference_steps={model.sampling_steps}, "
+        f"guidance_scale={model.sampling_guidance:g}, "
         "generator=torch.Generator().manual_seed(0))",
         "out.joints[0].shape  # (frames, joints, 3) in metres, y up",
         "```",
@@ -351,6 +353,15 @@ def _recipe_lines(config: Mapping[str, Any], model: ModelConfig, recipe: Mapping
     ]
     if not recipe:
         return lines + ["- optimisation: not recorded in this folder"]
+    distill = recipe.get("distill")
+    if distill:
+        lines.append(
+            f"- a few-step student ({distill.get('method')}, `launch/distill.py`) of the teacher "
+            f"`{'/'.join(Path(str(distill.get('teacher'))).parts[-3:])}` at step {distill.get('teacher_step')} (checkpoint id "
+            f"`{str(distill.get('teacher_checkpoint_id'))[:16]}...`), trained on the teacher's "
+            f"{distill.get('teacher_solver')} {distill.get('teacher_steps')}-step solutions at guidance "
+            f"{distill.get('teacher_guidance'):g} ({distill.get('teacher_guided_features')} channels); samples in "
+            f"{model.sampling_steps} step(s) at guidance {model.sampling_guidance:g}")
     return lines + [
         f"- {recipe.get('steps')} steps, batch {recipe.get('batch_size')} of {recipe.get('window')}-frame windows, "
         f"lr {recipe.get('lr')} ({recipe.get('schedule')}, {recipe.get('warmup_steps')} warm-up steps), weight decay "

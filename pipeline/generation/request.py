@@ -64,8 +64,6 @@ def known_solvers() -> list[str]:
 
 DEFAULT_FLOW_SOLVER = "euler"
 
-DEFAULT_FLOW_STEPS = 10
-
 
 DEFAULT_DIFFUSION_SAMPLER = "ddpm"  # FLAME's and FlowMDM's sampler; its default steps are the training steps
 
@@ -100,7 +98,8 @@ class SampleRequest:
     num_samples: int = 1
     """Samples per prompt (without prompts: in total, unconditional); composition: sequences."""
     steps: int | None = None
-    """Solver steps; null: 10 (flow), the edit settings' (flow edits: paper 30; reference-debug 100, interpolation
+    """Solver steps; null: the model's ``sampling_steps`` (flow: 10 unless its config says otherwise, e.g. a
+    few-step student's 2), the edit settings' (flow edits: paper 30; reference-debug 100, interpolation
     1), every training step (diffusion)."""
     solver: str | None = None
     """Flow: euler (default), midpoint, heun, rk4 or a torchdiffeq method such as dopri5; diffusion: ddpm

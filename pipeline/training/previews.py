@@ -14,7 +14,8 @@ What a preview leaves as it was, so a run is bit-identical with previews on or o
 * the collectives: only rank 0 previews, outside any collective; the other ranks go on to the next step's
   all-reduce, where they wait for rank 0 (a preview is a few seconds), so every rank runs the same collectives.
 
-Sampling: flow models integrate with euler, :data:`FLOW_STEPS` steps (the samplers' default); diffusion models use
+Sampling: flow models integrate with euler, the model's ``sampling_steps`` steps (the samplers' default: 10, a
+few-step student's 2); diffusion models use
 ddim with :data:`DIFFUSION_STEPS` respaced steps (the full 1,000-step chain would cost a hundred times a flow
 preview). Guidance is the model's ``sampling_guidance`` (a FLAME-preset model: its own 8.0), pose-only when the
 model guides the pose alone; the output smoothing is the model's ``output_smoothing`` (FLAME: σ = 1). The joints are
@@ -56,7 +57,7 @@ from pipeline.training.reporting import PREVIEW_PREFIX
 logger = logging.getLogger(__name__)
 
 PREVIEW_SUBDIR = "previews"
-FLOW_SOLVER, FLOW_STEPS = "euler", 10
+FLOW_SOLVER = "euler"
 DIFFUSION_SAMPLER, DIFFUSION_STEPS = "ddim", 50
 _SEED_TAG = 0x70726576  # "prev": keeps the preview noise apart from every other stream seeded from train.seed
 
@@ -141,7 +142,7 @@ class PreviewSampler:
         png.parent.mkdir(parents=True, exist_ok=True)
         tmp = png.with_name(f".{png.stem}.tmp.png")
         sampler = (f"{DIFFUSION_SAMPLER} {DIFFUSION_STEPS}" if self.diffusion is not None
-                   else f"{FLOW_SOLVER} {FLOW_STEPS}")
+                   else f"{FLOW_SOLVER} {self.model_config.sampling_steps}")
         render_contact_sheet(tmp, motions, prompts.titles, self.skeleton, fps=self.fps,
                              title=f"{self.out_dir.name} step {step}: EMA weights, {sampler} steps, guidance "
                                    f"{self.guidance:g}, seed {self.cfg.train.seed}")
@@ -169,7 +170,8 @@ class PreviewSampler:
             conditional = guided_feature_mask(config.guided_features, self.skeleton)
             velocity = guided_velocity(call, cond, scale=self.guidance, lengths=lengths.to(device),
                                        conditional_channels=None if conditional is None else conditional.to(device))
-            result = solve(zero_padded_frames(velocity, lengths.to(device)), x0, solver=FLOW_SOLVER, steps=FLOW_STEPS)
+            result = solve(zero_padded_frames(velocity, lengths.to(device)), x0, solver=FLOW_SOLVER,
+                           steps=config.sampling_steps)
         x1 = smooth_over_time(result.x1.float(), lengths.to(result.x1.device), self.smoothing).cpu()
         normalization = self.manifest.data["normalization"]
         mean = torch.as_tensor(np.asarray(normalization["mean"], dtype=np.float32))

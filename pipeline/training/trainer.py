@@ -83,8 +83,9 @@ from mfm.model import (
     draw_positional_mode,
 )
 from mfm.skeleton import get_skeleton
+from mfm.solvers import draw_noise, seeded_generators
 from pipeline import checkpoint as ckpt
-from pipeline.config import TrainConfig, to_dict
+from pipeline.config import ConfigError, TrainConfig, to_dict
 from pipeline.data.download_cache import ShardDownloadCache
 from pipeline.data.locations import RetryPolicy
 from pipeline.data.stages import DataError
@@ -109,7 +110,7 @@ from pipeline.training.run_folder import (
     write_run_marker,
 )
 from pipeline.training.validation import Validator, build_validator, has_val_split
-from preprocess.shards import ManifestError
+from preprocess.shards import PAIRS_KEY, ManifestError
 
 logger = logging.getLogger(__name__)
 
@@ -236,6 +237,12 @@ class EMA:
             else:
                 self.shadow[name].copy_(value)
 
+    @torch.no_grad()
+    def copy_weights(self, model: torch.nn.Module) -> None:
+        """The average becomes a copy of ``model``'s weights (train.init_from), its update count unchanged."""
+        for name, value in model.state_dict().items():
+            self.shadow[name].copy_(value)
+
     def state_dict(self) -> dict[str, torch.Tensor]:
         return {name: t.detach().cpu() for name, t in self.shadow.items()}
 
@@ -354,6 +361,48 @@ def draw_for_batch(batch: Mapping[str, Any], cond_drop_prob: float, generator: t
     return Draws(t, x0, cond_mask)
 
 
+def recorded_noise(seeds: torch.Tensor, lengths: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """``train.flow_noise=recorded``: each record's noise x0 as the teacher drew it, ``mfm.solvers.draw_noise`` from a
+    generator seeded with its ``noise_seed`` over its ``lengths`` valid frames (zero beyond), shaped like ``like``
+    (B, T, D). A function of the record alone, so exact resume and any world size hold as for drawn noise."""
+    return draw_noise(tuple(like.shape), seeded_generators(seeds.tolist()), lengths=lengths.cpu(),
+                      device=like.device, dtype=like.dtype)
+
+
+def check_noise_source(cfg: TrainConfig, manifest: Manifest) -> None:
+    """train.flow_noise=recorded needs a distillation pair set whose training clips are used whole: every record
+    carries its noise seed (the manifest's ``pairs`` section says so) and none is longer than data.window (a crop
+    would separate the motion from its noise; data.unit_length=1 is checked with the config)."""
+    if cfg.train.flow_noise != "recorded":
+        return
+    if PAIRS_KEY not in manifest.data:
+        raise ConfigError(f"train.flow_noise=recorded trains on the noise each record was made from, but "
+                          f"{manifest.location} is not a distillation pair set (no {PAIRS_KEY!r} section; make one "
+                          "with launch/distill.py)")
+    longest = max(manifest.split("train")["lengths"], default=0)
+    if longest > cfg.data.window:
+        raise ConfigError(f"train.flow_noise=recorded: {manifest.location} holds a {longest}-frame pair, longer than "
+                          f"data.window={cfg.data.window}: the crop would cut it away from its noise; give "
+                          f"data.window={longest}")
+
+
+def load_initial_weights(model: torch.nn.Module, checkpoint: str) -> None:
+    """train.init_from: ``model`` takes the weights of ``checkpoint`` (a step folder, or a run folder's newest complete
+    one): its EMA, else its raw weights. A checkpoint of another architecture is a ConfigError naming it."""
+    try:
+        folder = ckpt.resolve_checkpoint(checkpoint)
+    except FileNotFoundError as err:
+        raise ConfigError(f"train.init_from: {err}") from None
+    model_state, ema_state, _ = ckpt.load_checkpoint(folder)
+    try:
+        model.load_state_dict(ema_state if ema_state is not None else model_state)
+    except RuntimeError as err:
+        first = str(err).strip().splitlines()
+        raise ConfigError(f"train.init_from={folder}: its weights do not fit this run's model "
+                          f"({first[1].strip() if len(first) > 1 else first[0]}); give the teacher's model settings"
+                          ) from None
+
+
 def build_objective(cfg: TrainConfig, manifest: Manifest):
     """The training objective the config names (both have the same ``loss(...)`` call)."""
     if cfg.train.objective == "flow":
@@ -402,6 +451,7 @@ class Trainer:
         self.manifest = open_manifest(cfg.data.manifest, retry=self.retry,
                                       allow_external_shards=cfg.data.allow_external_shards)
         bad_shards, self.shard_report = self._verified_bad_shards("train")
+        check_noise_source(cfg, self.manifest)
         self.objective = build_objective(cfg, self.manifest)
         self.model_config = model_config_for(
             self.manifest, cfg.model, learned_variance=getattr(self.objective, "learn_sigma", False))
@@ -537,6 +587,8 @@ class Trainer:
                 # From this generator, not the global RNG: replayed exactly on resume like the other draws.
                 model_kwargs["block_drop_mask"] = draw_block_drop_mask(
                     config.num_layers, config.blocks_per_layer, config.layer_dropout, generator, device)
+            if self.cfg.train.flow_noise == "recorded":  # reflow: the noise the teacher integrated, from its seed
+                overrides["x0"] = recorded_noise(batch["noise_seed"], lengths, features)
         else:
             draws = draws.to(device)
             cond_mask, overrides = draws.cond_mask, {"t": draws.t, "x0": draws.x0}
@@ -560,6 +612,8 @@ class Trainer:
             "action": torch.zeros(rows, dtype=torch.int64),
             "ids": [],
         }
+        if "noise_seed" in empty:
+            batch["noise_seed"] = torch.zeros(rows, dtype=torch.int64)
         if "text_tokens" in empty:
             batch["text_tokens"] = empty["text_tokens"].new_zeros((rows, *empty["text_tokens"].shape[1:]))
             batch["text_token_len"] = torch.ones(rows, dtype=torch.int64)
@@ -782,6 +836,14 @@ class Trainer:
         ckpt.prune_checkpoints(self.ckpt_root, self.cfg.train.keep_last)
         return path
 
+    def initialise_from(self, checkpoint: str) -> None:
+        """train.init_from, on a fresh start (every rank, after :meth:`resume` found nothing to resume): the weights
+        and their EMA become ``checkpoint``'s (:func:`load_initial_weights`), before the first step."""
+        model = self.dist.unwrap(self.model)
+        load_initial_weights(model, checkpoint)
+        self.ema.copy_weights(model)
+        self.dist.log0("initialised the weights (and their EMA) from %s", checkpoint)
+
     def resume(self) -> Path | None:
         """Restore the checkpoint train.resume names, chosen by rank 0 (:meth:`_open_run_folder`) and broadcast to
         all ranks; a refusal there is raised on every rank."""
@@ -899,7 +961,9 @@ class Trainer:
 
     def _fit(self) -> int:
         cfg = self.cfg
-        self.resume()  # decided (and possibly refused) before anything in the run folder is written
+        resumed = self.resume()  # decided (and possibly refused) before anything in the run folder is written
+        if resumed is None and cfg.train.init_from is not None:  # a fresh start; a resume never reads it
+            self.initialise_from(cfg.train.init_from)
         if self._validation_ahead():
             self.validate(read_only=True)  # read the val batches now: a bad val shard is refused before step 1
         self._write_run_files()

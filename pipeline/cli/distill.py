@@ -1,0 +1,127 @@
+"""Make a few-step student of a trained flow-matching checkpoint: ``distill.method`` names the method (reflow).
+
+    python launch/distill.py --teacher runs/default --out runs/student train.max_steps=2000
+    accelerate launch launch/distill.py --teacher runs/default --out runs/student distill.pairs_per_caption=4
+
+reflow (Liu et al. 2022; Luhman & Luhman 2021 at one step): the teacher integrates its guided ODE with its own
+default sampler (euler, its model.sampling_steps, its guidance and guided_features, no output smoothing) from seeded
+noise for every caption of its training split (pipeline/generation/pairs.py: the pair set in OUT/pairs/, made once,
+shared out over the ranks); then the student, the teacher's architecture initialised from its EMA weights, trains
+with the ordinary Trainer on the straight path from THAT noise to THAT motion (train.flow_noise=recorded), so Euler
+with distill.student_steps (default 2) steps lands near the teacher's endpoint. Guidance is distilled in: the student
+samples with guidance 1 (one pass per step) and trains without condition dropout (model.sampling_guidance=1,
+model.cond_drop_prob=0 in its config).
+
+Settings: the teacher's resolved training config, with the student's settings above, then ``key.sub=value``
+overrides (train.max_steps, optim.lr, distill.pairs_per_caption, ...). The ``distill`` section (method, teacher
+checkpoint path, id and step, the teacher's sampler) is recorded in OUT/config.yaml and every checkpoint; set by this
+command, it is not an override (nor are data.manifest, train.out_dir, train.init_from, train.flow_noise and
+model.sampling_steps: use distill.student_steps). Running the same command again reuses the pair set and resumes
+training (train.resume=auto). The student is a checkpoint like any other: launch/sample.py, MotionPipeline, the
+evaluator and launch/export.py take it, sampling it in distill.student_steps steps unless --steps says otherwise.
+
+Exit codes as launch/train.py: 0 at train.max_steps, 128 + N after a clean stop on signal N, 2 for settings, a
+teacher or data refused (one line on stderr), 1 when a checkpoint could not be saved.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import shlex
+import sys
+from pathlib import Path
+from typing import Any
+
+from pipeline import checkpoint as ckpt
+from pipeline.checkpoint import CheckpointError, ResumeConflictError
+from pipeline.cli.train import fail
+from pipeline.config import ConfigError, DistillConfig, TrainConfig, describe_config, load_config, parse_override
+from pipeline.data.stages import DataError
+from pipeline.distributed import Dist, MixedPrecisionError
+from pipeline.generation.inference import TrainedModel, load_trained_model
+from pipeline.generation.pairs import PairSetError, make_pairs, pairs_dir
+from pipeline.training.run_folder import RunFolderLock, check_run_folder, write_run_marker
+from pipeline.training.trainer import CheckpointSaveError, Trainer
+from preprocess.shards import MANIFEST_NAME, ManifestError, OutputFolderError
+
+FIXED_BY_METHOD = ("data.manifest", "train.out_dir", "train.init_from", "train.flow_noise", "model.sampling_steps")
+"""Keys the method sets: refused as overrides (the message says why)."""
+
+
+def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: Path, overrides: list[str]
+                   ) -> TrainConfig:
+    """The student's resolved config: the teacher's training config, the student's settings (module docstring),
+    the overrides, then the recorded teacher fields of the ``distill`` section."""
+    for text in overrides:
+        key = ".".join(parse_override(text)[0])
+        if key in FIXED_BY_METHOD or key.startswith("distill.teacher"):
+            raise ConfigError(f"override {text!r}: {key} is set by launch/distill.py (the pair set, --out, the "
+                              "teacher; the student's steps are distill.student_steps), not a setting here")
+    base = {section: dict(values) for section, values in teacher_config.items() if section != "distill"}
+    base["data"].update(manifest=str(pairs_dir(out) / MANIFEST_NAME), unit_length=1)
+    base["model"].update(cond_drop_prob=0.0, sampling_guidance=1.0)
+    base["train"].update(out_dir=str(out), init_from=str(teacher.checkpoint), flow_noise="recorded", val_every=0,
+                         resume="auto", resume_discard_newer=False)
+    cfg = load_config(TrainConfig, base, overrides)
+    settings = cfg.distill or DistillConfig()
+    teacher_model = teacher.model_config
+    settings = dataclasses.replace(
+        settings, teacher=str(teacher.checkpoint),
+        teacher_checkpoint_id=ckpt.checkpoint_id(ckpt.read_marker(teacher.checkpoint)), teacher_step=teacher.step,
+        teacher_solver="euler", teacher_steps=teacher_model.sampling_steps,
+        teacher_guidance=float(teacher_model.sampling_guidance), teacher_guided_features=teacher_model.guided_features)
+    return dataclasses.replace(cfg, distill=settings,
+                               model=dataclasses.replace(cfg.model, sampling_steps=settings.student_steps))
+
+
+def prepare_out_dir(out: Path, dist: Dist) -> None:
+    """Rank 0: the folder is one a run may use (new, empty, or a run of ours: a student being resumed), and from now
+    on a run of ours (its marker), so the pair set may go inside it. Held under the run lock while checked."""
+    if dist.is_main:
+        check_run_folder(out)
+        lock = RunFolderLock.acquire(out)
+        try:
+            write_run_marker(out, written_by="pipeline/cli/distill.py")
+        finally:
+            lock.release()
+    dist.barrier()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--teacher", required=True, help="the teacher: a step-XXXXXXXX folder or a run folder (its "
+                        "newest complete checkpoint)")
+    parser.add_argument("--out", required=True, help="the student's run folder (pairs/ goes inside it)")
+    parser.add_argument("--print-config", action="store_true", help="print the student's every key, then exit")
+    parser.add_argument("overrides", nargs="*", metavar="key.sub=value", help="config overrides")
+    args = parser.parse_intermixed_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    out = Path(args.out)
+    try:
+        folder = ckpt.resolve_checkpoint(args.teacher)
+        _, _, state = ckpt.load_checkpoint(folder)
+        teacher = load_trained_model(folder)
+        cfg = student_config(teacher, state["config"], out, args.overrides)
+        if args.print_config:
+            print("\n".join(describe_config(cfg)))
+            return 0
+        with Dist(mixed_precision=cfg.train.mixed_precision, loss_scaling=True) as dist:
+            teacher = teacher.to(dist.device)
+            prepare_out_dir(out, dist)
+            make_pairs(teacher, cfg.distill, out, dist)
+            return Trainer(cfg, dist).fit()
+    except ResumeConflictError as exc:
+        given = sys.argv[1:] if argv is None else argv
+        again = shlex.join(["python", "launch/distill.py", *given, exc.continue_override])
+        return fail(f"{exc}. The command that continues: {again}", 2)
+    except (ConfigError, ManifestError, CheckpointError, FileNotFoundError, MixedPrecisionError, OutputFolderError,
+            DataError, PairSetError) as exc:
+        return fail(str(exc), 2)
+    except CheckpointSaveError as exc:
+        return fail(str(exc), 1)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,270 @@
+"""Reflow's teacher pairs (``launch/distill.py``, method ``reflow``): the teacher's own noise → motion map, written as
+a dataset of our format that the ordinary Trainer streams.
+
+For every caption of the teacher's training split (``distill.pairs_per_caption`` times), the teacher integrates its
+guided ODE from noise x0 at t = 0 to a motion x1 at t = 1 with its own default sampler: its solver (euler), its
+``sampling_steps`` (10), its ``sampling_guidance`` and ``guided_features``. Pair ``i``'s noise is
+``mfm.solvers.draw_noise`` of a generator seeded with ``sample_seed(distill.seed, i)`` over its length (as
+``launch/sample.py``'s sample ``i`` with ``--seed distill.seed``), so a record stores only ``(caption, length, noise
+seed, teacher x1)`` and the student's loss regenerates x0 exactly (``train.flow_noise=recorded``).
+
+No output smoothing in the target: smoothing (``model.output_smoothing``) is applied to a sampler's output after the
+ODE, and the student inherits the teacher's setting, so its samples are smoothed once anyway; a smoothed target would
+be smoothed twice, and it would no longer be the end of the teacher's ODE path from that noise, which is what makes
+the student's straight path land where the teacher's curved one does.
+
+The pair set (``<out>/pairs/``): one ``train`` split of tar and Parquet shards (``preprocess.shards`` writers), each
+record one caption with its span the whole motion, the source record's text embedding (and token features) for it,
+its features the teacher's x1 un-normalised with the teacher's Mean/Std (the loader normalises them back), and its
+``noise_seed``. ``manifest.json`` is written last and carries the ``pairs`` section (teacher checkpoint id and step,
+sampler, seeds, source dataset); the normalisation, feature spec and text encoder are the teacher's dataset's.
+
+Ranks: every rank plans the same pair list from the manifest; rank ``r`` solves pairs ``r, r + W, ...`` in batches of
+``distill.batch_size`` (longest first, as the samplers batch), writes them to ``.build-tmp/rank-r.pt``; rank 0 then
+writes the shards in pair order and the manifest. Resume: a complete pair set whose ``pairs`` section is the one asked
+for is reused as it is; one made with another teacher or settings is refused; an unfinished one (no manifest) is
+removed and made again (generation itself restarts from its first pair). Memory: every training record's captions
+and text features (token features too, for a cross-attention teacher) are held while the pairs are made, and rank 0
+holds every motion while it writes the shards: fine for the datasets here, a limit at HumanML3D scale with tokens.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mfm.guidance import guided_feature_mask
+from mfm.solvers import draw_noise, guided_velocity, seeded_generators, solve, zero_padded_frames
+from pipeline import checkpoint as ckpt
+from pipeline.config import DistillConfig
+from pipeline.data.stages import MotionRecord
+from pipeline.data.stream import Manifest, iter_motions, open_manifest
+from pipeline.distributed import Dist
+from pipeline.generation.inference import TrainedModel
+from pipeline.generation.integration import sample_seed
+from pipeline.generation.sampling import PromptConditions, conditioned_model, max_sample_length
+from preprocess.processing import Record, RecordCaption
+from preprocess.shards import (
+    FORMAT_VERSION,
+    MANIFEST_NAME,
+    PAIRS_KEY,
+    SplitShardWriter,
+    TextFeatures,
+    derive_dataset_id,
+    load_manifest,
+    parquet_schema,
+    write_manifest,
+)
+
+logger = logging.getLogger(__name__)
+
+PAIRS_FOLDER = "pairs"
+TMP_FOLDER = ".build-tmp"
+MAX_SHARD_SIZE = 500
+MIN_SHARDS = 16
+"""At least this many shards when there are enough pairs: the loader needs a shard per reader (ranks × workers)."""
+NOISE_RULE = ("x0 = mfm.solvers.draw_noise((1, length, D), seeded_generators([noise_seed]), lengths=[length]); "
+              "features = the teacher's Euler solution from x0, un-normalised")
+
+
+class PairSetError(ValueError):
+    """The pair set cannot be made or reused (another teacher's pairs in the folder, a teacher that is not a flow
+    model, a teacher whose dataset is not where it was): the message names the file and the reason."""
+
+
+@dataclass(frozen=True)
+class PlannedPair:
+    """One teacher solution to make: pair ``index`` of caption ``caption`` of ``record``, ``length`` frames."""
+
+    index: int
+    record: MotionRecord  # features dropped: only its captions and text features are needed
+    caption: int
+    repeat: int
+    length: int
+    seed: int
+
+    @property
+    def pair_id(self) -> str:
+        return f"{self.record.id}_c{self.caption}_p{self.repeat}"
+
+
+def pairs_dir(out_dir: str | Path) -> Path:
+    return Path(out_dir) / PAIRS_FOLDER
+
+
+def pair_settings(teacher: TrainedModel, settings: DistillConfig, source: Manifest) -> dict[str, Any]:
+    """The manifest's ``pairs`` section: what the pairs are a function of (a pair set is reused only when equal)."""
+    return {
+        "method": settings.method,
+        "teacher_checkpoint_id": settings.teacher_checkpoint_id,
+        "teacher_step": settings.teacher_step,
+        "solver": settings.teacher_solver,
+        "steps": settings.teacher_steps,
+        "guidance": settings.teacher_guidance,
+        "guided_features": settings.teacher_guided_features,
+        "output_smoothing": 0.0,
+        "pairs_per_caption": settings.pairs_per_caption,
+        "seed": settings.seed,
+        "max_length": max_sample_length(teacher),
+        "source_dataset_id": source.dataset_id,
+        "source_split": "train",
+        "noise": NOISE_RULE,
+    }
+
+
+def teacher_source(teacher: TrainedModel) -> Manifest:
+    """The teacher's training dataset, where its checkpoint says it was read, with the id it was trained on."""
+    location = teacher.data.get("location")
+    if not location:
+        raise PairSetError(f"{teacher.checkpoint}: the checkpoint records no dataset location to take captions from")
+    manifest = open_manifest(location)
+    if manifest.dataset_id != teacher.dataset_id:
+        raise PairSetError(f"{location}: holds dataset {manifest.dataset_id}, but the teacher {teacher.checkpoint} was "
+                           f"trained on {teacher.dataset_id}: rebuild or restore the teacher's dataset there")
+    return manifest
+
+
+def plan_pairs(source: Manifest, settings: DistillConfig, max_length: int, backend: str = "webdataset"
+               ) -> list[PlannedPair]:
+    """Every pair, in order: records in manifest order, their captions in order, ``pairs_per_caption`` each; a
+    caption's length is its span's, at most ``max_length`` (the frames the teacher samples: its window)."""
+    pairs: list[PlannedPair] = []
+    for record in iter_motions(source, "train", backend):
+        light = MotionRecord(record.id, record.features[:0], record.text_emb, record.captions, record.caption_tokens,
+                             record.spans, record.action, record.source, record.text_tokens, record.text_token_len)
+        for caption, (start, end) in enumerate(record.spans.tolist()):
+            for repeat in range(settings.pairs_per_caption):
+                index = len(pairs)
+                pairs.append(PlannedPair(index, light, caption, repeat, min(int(end - start), max_length),
+                                         sample_seed(settings.seed, index)))
+    return pairs
+
+
+@torch.no_grad()
+def solve_pairs(teacher: TrainedModel, pairs: Sequence[PlannedPair], settings: DistillConfig) -> torch.Tensor:
+    """The teacher's (B, T, D) normalised ODE solutions of ``pairs`` (one batch), zero past each length."""
+    device = teacher.device
+    lengths = torch.tensor([p.length for p in pairs], dtype=torch.long, device=device)
+    cond = torch.from_numpy(np.stack([p.record.text_emb[p.caption] for p in pairs])).to(device)
+    extras: dict[str, torch.Tensor] = {}
+    if teacher.model_config.conditioning == "cross_attention":
+        extras = {"text_tokens": torch.from_numpy(np.stack([p.record.text_tokens[p.caption] for p in pairs])).to(device),
+                  "text_token_len": torch.tensor([int(p.record.text_token_len[p.caption]) for p in pairs],
+                                                 dtype=torch.long, device=device)}
+    model = conditioned_model(teacher, PromptConditions(cond, extras))
+    velocity = guided_velocity(model, cond, scale=settings.teacher_guidance, lengths=lengths,
+                               conditional_channels=guided_feature_mask(settings.teacher_guided_features,
+                                                                        teacher.skeleton))
+    shape = (len(pairs), int(lengths.max()), teacher.model_config.feature_dim)
+    x0 = draw_noise(shape, seeded_generators([p.seed for p in pairs]), lengths=lengths, device=device)
+    result = solve(zero_padded_frames(velocity, lengths), x0, solver=settings.teacher_solver,
+                   steps=settings.teacher_steps)
+    return result.x1.float()
+
+
+def _existing(folder: Path, wanted: Mapping[str, Any]) -> bool:
+    """True when ``folder`` holds a complete pair set made as ``wanted`` says; an unfinished one is removed."""
+    if not (folder / MANIFEST_NAME).is_file():
+        if folder.exists():
+            logger.info("removing the unfinished pair set in %s (no manifest): making it again", folder)
+            shutil.rmtree(folder)
+        return False
+    manifest = load_manifest(folder, verify="size")
+    found = manifest.get(PAIRS_KEY)
+    if found != dict(wanted):
+        differing = sorted(k for k in set(wanted) | set(found or {}) if (found or {}).get(k) != wanted.get(k))
+        raise PairSetError(f"{folder / MANIFEST_NAME}: a pair set made with other settings ({', '.join(differing)} "
+                           "differ): give another --out for this teacher or these settings")
+    return True
+
+
+def make_pairs(teacher: TrainedModel, settings: DistillConfig, out_dir: str | Path, dist: Dist) -> Path:
+    """Make (or reuse) the pair set in ``<out_dir>/pairs``; returns its manifest's path. A collective: every rank
+    calls it; rank 0 decides whether to reuse and writes the shards and the manifest."""
+    if teacher.objective != "flow":
+        raise PairSetError(f"{teacher.checkpoint} is a diffusion model: reflow distils a flow-matching teacher's ODE")
+    folder = pairs_dir(out_dir)
+    source = teacher_source(teacher)
+    wanted = pair_settings(teacher, settings, source)
+    reuse = dist.broadcast_object(_existing(folder, wanted) if dist.is_main else None)
+    if reuse:
+        dist.log0("reusing the pair set in %s (same teacher and settings)", folder)
+        return folder / MANIFEST_NAME
+    pairs = plan_pairs(source, settings, wanted["max_length"])
+    mine = pairs[dist.rank::dist.world_size]
+    solved: dict[int, np.ndarray] = {}
+    ordered = sorted(mine, key=lambda p: (-p.length, p.index))
+    for start in range(0, len(ordered), settings.batch_size):
+        chunk = ordered[start:start + settings.batch_size]
+        motions = teacher.denormalize(solve_pairs(teacher, chunk, settings)).cpu().numpy()
+        for row, pair in enumerate(chunk):
+            solved[pair.index] = np.ascontiguousarray(motions[row, :pair.length], dtype=np.float32)
+        dist.log0("teacher pairs: %d of %d on rank 0", min(start + len(chunk), len(ordered)), len(ordered))
+    tmp = folder / TMP_FOLDER
+    if dist.is_main:
+        tmp.mkdir(parents=True, exist_ok=True)
+    dist.barrier()
+    torch.save(solved, tmp / f"rank-{dist.rank}.pt")
+    dist.barrier()
+    if dist.is_main:
+        for rank in range(1, dist.world_size):
+            solved.update(torch.load(tmp / f"rank-{rank}.pt", weights_only=False))
+        write_pair_set(folder, teacher, source, pairs, solved, wanted)
+        shutil.rmtree(tmp)
+    dist.barrier()
+    return folder / MANIFEST_NAME
+
+
+def write_pair_set(folder: Path, teacher: TrainedModel, source: Manifest, pairs: Sequence[PlannedPair],
+                   solved: Mapping[int, np.ndarray], settings: Mapping[str, Any]) -> dict[str, Any]:
+    """The shards (in pair order) and, last, the manifest of the pair set."""
+    text = source.data["text_encoder"]
+    tokens = bool(text.get("token_features", False))
+    spec = source.data["feature_spec"]
+    schema = parquet_schema(int(spec["dim"]), int(text["dim"]), tokens, noise_seeds=True)
+    shard_size = max(1, min(MAX_SHARD_SIZE, math.ceil(len(pairs) / MIN_SHARDS)))
+    writer = SplitShardWriter(folder, "train", shard_size=shard_size, formats=("tar", "parquet"), schema=schema)
+    for pair in pairs:
+        record = pair.record
+        motion = solved[pair.index]
+        caption = RecordCaption(record.captions[pair.caption], tuple(record.caption_tokens[pair.caption]), 0,
+                                pair.length)
+        writer.write(
+            Record(id=pair.pair_id, split="train", source="reflow", skeleton=spec["skeleton"], fps=float(spec["fps"]),
+                   features=motion, captions=[caption], action=record.action, noise_seed=pair.seed),
+            TextFeatures(record.text_emb[pair.caption:pair.caption + 1],
+                         None if not tokens else record.text_tokens[pair.caption:pair.caption + 1],
+                         None if not tokens else record.text_token_len[pair.caption:pair.caption + 1]))
+    shards = writer.close()
+    manifest = {
+        "format_version": FORMAT_VERSION,
+        "dataset_id": "",
+        "builder": {"command": "python launch/distill.py", "version": source.data["builder"].get("version"),
+                    "options": {"teacher": ckpt.run_dir_of(teacher.checkpoint).name, **settings,
+                                # where the teacher's dataset was read (the evaluator's default test data for a
+                                # student); not part of the pairs' identity, so a moved dataset keeps its pairs
+                                "source_manifest": str(source.location)}},
+        "feature_spec": spec,
+        "normalization": teacher.data["normalization"],
+        "text_encoder": text,
+        "action_classes": list(source.action_classes),
+        "splits": {"train": {
+            "num_motions": len(pairs), "num_captions": len(pairs), "num_frames": sum(p.length for p in pairs),
+            "lengths": [p.length for p in pairs],
+            "shards": [s.to_json() for s in shards["tar"]], "parquet": [s.to_json() for s in shards["parquet"]]}},
+        "skip_report": {"total": 0, "by_reason": {}, "items": [], "dropped_captions": {},
+                        "ignored_files": {"count": 0, "paths": []}},
+        PAIRS_KEY: dict(settings),
+    }
+    manifest["dataset_id"] = derive_dataset_id(manifest)
+    write_manifest(folder, manifest)
+    logger.info("wrote %d teacher pairs to %s", len(pairs), folder)
+    return manifest

@@ -1,0 +1,302 @@
+"""launch/distill.py (reflow) on CPU: a tiny teacher trained once per session on test_trainer.py's synthetic dataset,
+its pair set (the teacher's own samples, made once and reused), the recorded-noise loss, the student sampled in 1 and
+2 function evaluations by launch/sample.py and MotionPipeline, the test that the method does something (the student's
+one Euler step lands nearer the teacher's 10-step endpoint than the teacher's own one step), and exact resume."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from conftest import REPO_ROOT, load_launch_script
+from eval_worker import SMALL_PROTOCOL, random_contrastive_evaluator
+from test_trainer import (
+    assert_runs_identical,
+    base_overrides,
+    build_dataset_once,
+    clean_env,
+    kill_and_resume,
+    output_of,
+    train_entry,
+)
+
+import pipeline.generation.pairs as pairs_module
+from mfm.solvers import draw_noise, guided_velocity, seeded_generators, solve, zero_padded_frames
+from pipeline import checkpoint as ckpt
+from pipeline.cli.distill import student_config
+from pipeline.config import ConfigError, DistillConfig, TrainConfig, load_config
+from pipeline.data.stream import iter_motions, open_manifest
+from pipeline.distributed import Dist
+from pipeline.generation.inference import load_trained_model
+from pipeline.generation.integration import sample_seed
+from pipeline.generation.pairs import PairSetError, make_pairs
+from pipeline.generation.pretrained import MotionPipeline
+from pipeline.training.trainer import Trainer
+from preprocess.processing import single_threaded_torch
+
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_thread")]
+
+distill_entry = load_launch_script("distill")
+sample_entry = load_launch_script("sample")
+
+# The teacher has to have learnt something for its ODE paths to curve (150 steps of the tiny preset); the student
+# gets as many at a higher rate, without dropout.
+TEACHER_STEPS, STUDENT_STEPS = 150, 150
+STUDENT_OVERRIDES = (f"train.max_steps={STUDENT_STEPS}", f"train.save_every={STUDENT_STEPS}",
+                     f"train.log_every={STUDENT_STEPS}", "optim.lr=2e-3", "model.dropout=0")
+
+
+@pytest.fixture(scope="session")
+def teacher_run(tmp_path_factory) -> Path:
+    run = tmp_path_factory.getbasetemp() / "distill-teacher"
+    if not (run / "checkpoints").is_dir():
+        with single_threaded_torch():
+            code = train_entry.main(["--config", "tiny", f"data.manifest={build_dataset_once(tmp_path_factory)}",
+                                     f"train.out_dir={run}", f"train.max_steps={TEACHER_STEPS}",
+                                     f"train.save_every={TEACHER_STEPS}", f"train.log_every={TEACHER_STEPS}"])
+        assert code == 0
+    return run
+
+
+@pytest.fixture(scope="session")
+def student_run(tmp_path_factory, teacher_run) -> Path:
+    run = tmp_path_factory.getbasetemp() / "distill-student"
+    if not (run / "checkpoints").is_dir():
+        with single_threaded_torch():
+            assert distill_entry.main(["--teacher", str(teacher_run), "--out", str(run), *STUDENT_OVERRIDES]) == 0
+    return run
+
+
+def pair_records(run: Path):
+    return list(iter_motions(open_manifest(run / "pairs" / "manifest.json"), "train"))
+
+
+@torch.no_grad()
+def solve_from_recorded_noise(trained, record, guidance: float, steps: int) -> torch.Tensor:
+    """(L, D) normalised: ``trained``'s Euler solution from the record's own noise, for its caption and length."""
+    length = record.features.shape[0]
+    lengths = torch.tensor([length])
+    x0 = draw_noise((1, length, trained.model_config.feature_dim), seeded_generators([record.noise_seed]),
+                    lengths=lengths)
+    velocity = guided_velocity(trained.model, torch.from_numpy(record.text_emb[:1]), scale=guidance, lengths=lengths)
+    return solve(zero_padded_frames(velocity, lengths), x0, solver="euler", steps=steps).x1[0]
+
+
+def test_pair_set_is_the_teachers_samples_made_once(student_run, teacher_run, tmp_path):
+    """Pair i is launch/sample.py's sample i of its caption and length with --seed distill.seed (the teacher's
+    default sampler, no smoothing); the manifest names the teacher; making the set again elsewhere gives the same
+    bytes, also after an interruption left shards without a manifest; running in the same folder reuses a complete
+    set, or refuses one made with other settings."""
+    manifest = json.loads((student_run / "pairs" / "manifest.json").read_text())
+    teacher_folder = ckpt.resolve_checkpoint(teacher_run)
+    assert manifest["pairs"]["teacher_checkpoint_id"] == ckpt.checkpoint_id(ckpt.read_marker(teacher_folder))
+    assert (manifest["pairs"]["teacher_step"], manifest["pairs"]["steps"], manifest["pairs"]["solver"]) == \
+        (TEACHER_STEPS, 10, "euler")
+    records = pair_records(student_run)
+    assert [r.noise_seed for r in records] == [sample_seed(0, i) for i in range(len(records))]
+
+    first = records[0]
+    out = tmp_path / "sampled"
+    assert sample_entry.main(["--checkpoint", str(teacher_run), "--out", str(out), "--text", first.captions[0],
+                              "--length", str(first.features.shape[0]), "--seed", "0", "--no-video", "--no-bvh"]) == 0
+    sampled = np.load(out / "sample_000" / "features.npy")
+    np.testing.assert_allclose(sampled, first.features, rtol=0, atol=1e-4)
+
+    teacher = load_trained_model(teacher_run)
+    settings = load_config(TrainConfig, student_run / "config.yaml").distill
+    with Dist() as dist:
+        again = make_pairs(teacher, settings, tmp_path / "again", dist)
+        assert json.loads(again.read_text())["dataset_id"] == manifest["dataset_id"]
+        again.unlink()  # an interrupted making: shards, no manifest; made again from scratch, leftovers gone
+        leftover = again.parent / "train" / "shard-00099.tar"
+        leftover.write_bytes(b"partial")
+        assert json.loads(make_pairs(teacher, settings, tmp_path / "again", dist).read_text())["dataset_id"] == \
+            manifest["dataset_id"]
+        assert not leftover.exists()
+
+        def no_solving(*args, **kwargs):
+            raise AssertionError("a complete pair set of the same teacher and settings was made again")
+
+        original = pairs_module.solve_pairs
+        pairs_module.solve_pairs = no_solving
+        try:
+            make_pairs(teacher, settings, student_run, dist)  # reused
+            with pytest.raises(PairSetError, match="seed"):
+                make_pairs(teacher, dataclasses.replace(settings, seed=1), student_run, dist)
+        finally:
+            pairs_module.solve_pairs = original
+
+
+def test_recorded_noise_is_each_records_seed_and_length(student_run, teacher_run, tmp_path):
+    """train.flow_noise=recorded: the loss's x0 is draw_noise of each record's seed over its length (zero after), and
+    the teacher's Euler path from exactly that noise ends at the record's motion."""
+    teacher = load_trained_model(teacher_run)
+    cfg = load_config(TrainConfig, student_run / "config.yaml", [f"train.out_dir={tmp_path / 'run'}"])
+    with Dist() as dist:
+        trainer = Trainer(cfg, dist)
+        batch = next(trainer.loader.iter_batches())
+        captured = {}
+        real = trainer.objective
+
+        class Capture:
+            def loss(self, model, x1, cond, lengths, **kwargs):
+                captured.update(x0=kwargs.get("x0"), x1=x1, lengths=lengths)
+                return real.loss(model, x1, cond, lengths, **kwargs)
+
+        trainer.objective = Capture()
+        trainer._micro_batch_loss(batch, None)
+    x0, lengths = captured["x0"], captured["lengths"]
+    assert x0 is not None and x0.shape == batch["features"].shape
+    for row, (seed, length) in enumerate(zip(batch["noise_seed"].tolist(), lengths.tolist())):
+        expected = draw_noise((1, length, x0.shape[-1]), seeded_generators([seed]), lengths=[length])[0]
+        torch.testing.assert_close(x0[row, :length], expected, rtol=0, atol=0)
+        assert not x0[row, length:].any()
+    record = {r.id: r for r in pair_records(student_run)}[batch["ids"][0]]
+    endpoint = solve_from_recorded_noise(teacher, record, teacher.default_guidance, 10)
+    torch.testing.assert_close(endpoint, captured["x1"][0, :lengths[0]], rtol=0, atol=1e-4)
+
+
+def test_student_samples_in_one_and_two_evaluations(student_run, teacher_run, tmp_path):
+    """The student is a checkpoint like any other: launch/sample.py and MotionPipeline sample it in its 2 steps by
+    default (guidance 1: one pass per step) or 1 when asked, results.json and the records say how many evaluations
+    ran, and its config records the method and the teacher."""
+    out = tmp_path / "two"
+    assert sample_entry.main(["--checkpoint", str(student_run), "--out", str(out), "--text", "a person walks",
+                              "--length", "20", "--no-video", "--no-bvh"]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert (results["steps"], results["nfe_per_batch"], results["guidance"]) == (2, [2], 1.0)
+    assert [s["nfe"] for s in results["samples"]] == [2]
+    out = tmp_path / "one"
+    assert sample_entry.main(["--checkpoint", str(student_run), "--out", str(out), "--text", "a person walks",
+                              "--length", "20", "--steps", "1", "--no-video", "--no-bvh"]) == 0
+    assert json.loads((out / "results.json").read_text())["nfe_per_batch"] == [1]
+
+    pipe = MotionPipeline(load_trained_model(student_run))
+    assert [r["nfe"] for r in pipe("a person jumps", seconds=1.0).records] == [2]
+    motions = pipe("a person jumps", seconds=1.0, num_inference_steps=1)
+    assert [r["nfe"] for r in motions.records] == [1] and np.isfinite(motions.joints[0]).all()
+
+    config = yaml.safe_load((student_run / "config.yaml").read_text())
+    teacher_folder = ckpt.resolve_checkpoint(teacher_run)
+    assert config["distill"]["method"] == "reflow"
+    assert config["distill"]["teacher_checkpoint_id"] == ckpt.checkpoint_id(ckpt.read_marker(teacher_folder))
+    assert (config["distill"]["teacher_step"], config["distill"]["teacher_steps"]) == (TEACHER_STEPS, 10)
+    assert (config["model"]["cond_drop_prob"], config["model"]["sampling_guidance"],
+            config["model"]["sampling_steps"]) == (0.0, 1.0, 2)
+    assert config["train"]["flow_noise"] == "recorded"
+
+
+def test_student_one_step_lands_nearer_the_teachers_endpoint_than_the_teachers_one_step(student_run, teacher_run):
+    """What the method is for: from a pair's own noise, the student's single Euler step (guidance 1) ends nearer the
+    teacher's 10-step guided endpoint than the teacher's own single guided step does. A student trained on
+    independent noise (the same pairs as data) learns the average motion per caption instead and fails this."""
+    teacher, student = load_trained_model(teacher_run), load_trained_model(student_run)
+    records = pair_records(student_run)[:32]
+    student_error = teacher_error = 0.0
+    for record in records:
+        target = (torch.from_numpy(record.features) - teacher.mean) / teacher.std
+        student_error += (solve_from_recorded_noise(student, record, 1.0, 1) - target).square().mean().item()
+        teacher_error += (solve_from_recorded_noise(teacher, record, teacher.default_guidance, 1)
+                          - target).square().mean().item()
+    assert student_error < 0.9 * teacher_error, (student_error / len(records), teacher_error / len(records))
+
+
+def test_recorded_noise_needs_a_pair_set_used_whole(tmp_path_factory, tmp_path):
+    """train.flow_noise=recorded is refused on a crop that would cut a pair from its noise, and on a dataset that
+    is not a pair set; launch/distill.py refuses overrides of what the method sets (exit 2, one line)."""
+    with pytest.raises(ConfigError, match="unit_length=1"):
+        load_config(TrainConfig, "tiny", ["train.flow_noise=recorded"])
+    with pytest.raises(ConfigError, match="flow-matching"):
+        load_config(TrainConfig, "tiny", ["train.flow_noise=recorded", "data.unit_length=1", "train.objective=diffusion"])
+    cfg = load_config(TrainConfig, "tiny", ["train.flow_noise=recorded", "data.unit_length=1",
+                                             f"data.manifest={build_dataset_once(tmp_path_factory)}",
+                                             f"train.out_dir={tmp_path / 'run'}"])
+    with Dist() as dist, pytest.raises(ConfigError, match="not a distillation pair set"):
+        Trainer(cfg, dist)
+    assert DistillConfig().method == "reflow"
+
+
+def test_refused_overrides_exit_2(teacher_run, tmp_path, capsys):
+    code = distill_entry.main(["--teacher", str(teacher_run), "--out", str(tmp_path / "s"),
+                               "train.flow_noise=independent"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("error: override 'train.flow_noise=independent'")
+    assert not (tmp_path / "s").exists()
+
+
+def test_student_training_resumes_bit_exactly(student_run, teacher_run, tmp_path):
+    """The student's run (recorded noise, initialised from the teacher) SIGKILLed in the middle of step 5 and resumed
+    from checkpoint 4 ends bit-identical to an uninterrupted one."""
+    extra = ("data.unit_length=1", "train.flow_noise=recorded", f"train.init_from={teacher_run}",
+             "model.cond_drop_prob=0", "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
+    a_out, b_out = kill_and_resume(student_run / "pairs" / "manifest.json", tmp_path, base_overrides, extra, 5, 4)
+    assert_runs_identical(a_out / "run", b_out / "run", 6)
+
+
+@pytest.mark.multirank
+def test_two_ranks_share_the_teachers_work(student_run, teacher_run, tmp_path):
+    """Under torchrun with 2 ranks each rank solves every other pair and rank 0 writes them all: the same pairs, in
+    the same order, with the same seeds and (up to the summation order of other batch mates) the same motions as
+    one rank's; then the student trains on both ranks."""
+    out = tmp_path / "two-ranks"
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                           str(REPO_ROOT / "launch" / "distill.py"), "--teacher", str(teacher_run), "--out", str(out),
+                           "train.max_steps=2", "train.save_every=2", "distill.batch_size=7"],
+                          cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, output_of(proc)
+    one, two = pair_records(student_run), pair_records(out)
+    assert [(r.id, r.noise_seed, r.captions) for r in two] == [(r.id, r.noise_seed, r.captions) for r in one]
+    for a, b in zip(one, two):
+        np.testing.assert_allclose(b.features, a.features, rtol=0, atol=1e-4)
+    assert ckpt.list_complete(ckpt.checkpoints_dir(out))[-1][0] == 2
+
+
+def test_the_evaluator_scores_a_student_on_its_teachers_test_split(student_run, tmp_path, tmp_path_factory):
+    """The evaluator takes the student like any checkpoint: its recorded dataset is the pair set (no test split), so
+    the default evaluation data is the teacher's dataset the pairs were made from; each row records its NFE."""
+    from launch.evaluate import main as evaluate
+
+    dataset = build_dataset_once(tmp_path_factory)
+    evaluator = random_contrastive_evaluator(dataset, tmp_path / "evaluator.safetensors")
+    out = tmp_path / "eval"
+    assert evaluate(["--checkpoint", str(student_run), "--protocol", "fast", *SMALL_PROTOCOL, "--steps", "1,2",
+                     "--guidance", "1", "protocol.replications=1", "tasks.editing=[]", "protocol.multimodality=false",
+                     f"evaluator.path={evaluator}", f"output.dir={out}"]) == 0
+    rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    generated = [r for r in rows if r.get("row_kind") == "generated"]
+    assert sorted((r["steps"], r["nfe"]) for r in generated) == [(1, 1), (2, 2)]
+    assert {r["dataset_id"] for r in generated} == {open_manifest(dataset).dataset_id}
+
+
+def test_a_students_contact_sheet_compares_with_its_teachers_clips(student_run, tmp_path, tmp_path_factory):
+    """--captions-from-manifest of a student takes its teacher's dataset (its own is the pair set), at its 2 steps."""
+    from pipeline.generation.contact_sheet import ContactSheetRequest, first_captions, run_contact_sheet
+
+    sheet = run_contact_sheet(ContactSheetRequest(out=tmp_path / "sheet.png", checkpoint=student_run,
+                                                  captions_from_manifest="test", frames=2))
+    captions = first_captions(open_manifest(build_dataset_once(tmp_path_factory)), "test")
+    assert [row["text"] for row in sheet["rows"]] == [c.text for c in captions]
+    assert (sheet["steps"], sheet["guidance"]) == (2, 1.0)
+    assert [row["id"] for row in sheet["against_dataset_clips"]["rows"]] == [c.motion_id for c in captions]
+
+
+def test_init_from_starts_the_weights_and_their_ema_from_the_checkpoints_ema(teacher_run, tmp_path, tmp_path_factory):
+    """train.init_from on a fresh start: after one step at a negligible rate the weights and their EMA are the
+    teacher's EMA weights; a checkpoint of another architecture is refused in one line (exit 2)."""
+    _, teacher_ema, _ = ckpt.load_checkpoint(ckpt.resolve_checkpoint(teacher_run))
+    run = tmp_path / "run"
+    common = ["--config", "tiny", f"data.manifest={build_dataset_once(tmp_path_factory)}",
+              f"train.init_from={teacher_run}", "train.max_steps=1", "train.save_every=1", "optim.lr=1e-12"]
+    assert train_entry.main([*common, f"train.out_dir={run}"]) == 0
+    model, ema, _ = ckpt.load_checkpoint(ckpt.resolve_checkpoint(run))
+    for name, value in teacher_ema.items():
+        torch.testing.assert_close(model[name], value, rtol=0, atol=1e-6)
+        torch.testing.assert_close(ema[name], value, rtol=0, atol=1e-6)
+    assert train_entry.main([*common, f"train.out_dir={tmp_path / 'wide'}", "model.latent_dim=32"]) == 2
