@@ -177,6 +177,10 @@ def test_student_samples_in_one_and_two_evaluations(student_run, teacher_run, tm
     assert sample_entry.main(["--checkpoint", str(student_run), "--out", str(out), "--text", "a person walks",
                               "--length", "20", "--steps", "1", "--no-video", "--no-bvh"]) == 0
     assert json.loads((out / "results.json").read_text())["nfe_per_batch"] == [1]
+    # trained without condition dropout, it has no unconditional field: guiding it is refused, not sampled
+    assert sample_entry.main(["--checkpoint", str(student_run), "--out", str(tmp_path / "guided"), "--text",
+                              "a person walks", "--length", "20", "--guidance", "2.5", "--no-video", "--no-bvh"]) == 2
+    assert not (tmp_path / "guided" / "results.json").exists()
 
     pipe = MotionPipeline(load_trained_model(student_run))
     assert [r["nfe"] for r in pipe("a person jumps", seconds=1.0).records] == [2]
@@ -272,6 +276,10 @@ def test_the_evaluator_scores_a_student_on_its_teachers_test_split(student_run, 
     rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
     generated = [r for r in rows if r.get("row_kind") == "generated"]
     assert sorted((r["steps"], r["nfe"]) for r in generated) == [(1, 1), (2, 2)]
+    # the protocol's own guidance (2.5) would guide a model with no unconditional field: refused before any unit
+    assert evaluate(["--checkpoint", str(student_run), "--protocol", "fast", *SMALL_PROTOCOL, "--steps", "2",
+                     "protocol.replications=1", "tasks.editing=[]", "protocol.multimodality=false",
+                     f"evaluator.path={evaluator}", f"output.dir={tmp_path / 'guided'}"]) == 2
     assert {r["dataset_id"] for r in generated} == {open_manifest(dataset).dataset_id}
 
 

@@ -153,6 +153,7 @@ def test_bf16_on_a_gpu_without_it_is_a_clear_error_for_sampling_and_the_evaluato
     """launch/sample.py and launch/evaluate.py turn these errors into one line and exit 2 (their error contract)."""
     from types import SimpleNamespace
 
+    from mfm.model import ModelConfig
     from pipeline.evaluation.config import load_eval_config
     from pipeline.evaluation.replications import sampling_precision
     from pipeline.evaluation.spaces import EvaluationError
@@ -161,7 +162,7 @@ def test_bf16_on_a_gpu_without_it_is_a_clear_error_for_sampling_and_the_evaluato
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *args, **kwargs: False)
-    gpu_model = SimpleNamespace(device=torch.device("cuda"), objective="flow")
+    gpu_model = SimpleNamespace(device=torch.device("cuda"), objective="flow", model_config=ModelConfig())
     with pytest.raises(SamplingError, match="precision bf16: autocast has no bf16 on device 'cuda'"):
         resolve_integrator(SampleRequest(checkpoint="c", out_dir="o", precision="bf16"), gpu_model)
     assert resolve_integrator(SampleRequest(checkpoint="c", out_dir="o"), gpu_model).precision == "fp32"  # auto

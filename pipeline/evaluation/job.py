@@ -360,6 +360,9 @@ class CheckpointScorer:
         """The checkpoint's units: text-to-motion per sampling point, then composition per point and switch."""
         ids = {"checkpoint": ctx.checkpoint_id, "evaluator": ctx.space.evaluator_id, "gt": ctx.gt.key}
         points = ctx.points
+        for point in points:  # before any unit is claimed: a student guided at the protocol's 2.5 would score noise
+            if (reason := ctx.trained.unguidable_reason(point.guidance)) is not None:
+                raise EvaluationError(f"{reason} (--guidance 1)")
         out = []
         if self.cfg.tasks.text_to_motion:
             kind = checkpoint_settings(ctx.trained, self.cfg)

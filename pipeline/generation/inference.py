@@ -147,6 +147,17 @@ class TrainedModel:
         ours): the baseline's, else the model's ``output_smoothing``."""
         return baseline.smoothing_sigma if baseline is not None else float(self.model_config.output_smoothing)
 
+    def unguidable_reason(self, scale: float) -> str | None:
+        """Why classifier-free guidance at ``scale`` is undefined for this model, or None. A model trained without
+        condition dropout (``model.cond_drop_prob`` 0: a few-step student, whose teacher's guidance is distilled into
+        its conditional field) never learnt the unconditional field guidance extrapolates from, so any scale but 1
+        would sample from an untrained input."""
+        if float(scale) == 1.0 or self.model_config.cond_drop_prob > 0:
+            return None
+        return (f"{self.checkpoint} was trained without condition dropout (model.cond_drop_prob 0), so it has no "
+                f"unconditional field to guide from: guidance {float(scale):g} is undefined; sample it with "
+                f"guidance 1 (its default, model.sampling_guidance {self.model_config.sampling_guidance:g})")
+
     def guidance_with(self, baseline: BaselineSampling | None) -> float:
         """The guidance scale with ``baseline`` (None: ours): the baseline's, else the model's
         ``sampling_guidance``."""

@@ -308,10 +308,14 @@ class SampleRequest:
         (FLAME: 8.0, mfm.diffusion_sampling.BASELINE_SAMPLING; not with ``baseline_defaults=false``), else the
         model's ``sampling_guidance`` (MFM's 2.5 unless its preset says otherwise)."""
         if self.guidance is not None:
-            return float(self.guidance)
-        if self.edit is not None and trained.objective == "flow":
-            return self.settings.guidance
-        return trained.guidance_with(self.baseline_for(trained))
+            scale = float(self.guidance)
+        elif self.edit is not None and trained.objective == "flow":
+            scale = self.settings.guidance
+        else:
+            scale = trained.guidance_with(self.baseline_for(trained))
+        if (reason := trained.unguidable_reason(scale)) is not None:
+            raise SamplingError(reason)
+        return scale
 
     def guided_features_for(self, trained: TrainedModel) -> str:
         """Which channels guidance mixes: as given, else the model's (:meth:`TrainedModel.guided_features_with`)."""
