@@ -1,4 +1,4 @@
-"""Make a few-step student of a trained flow-matching checkpoint (reflow on the teacher's own pairs).
+"""Make a few-step student of a trained flow-matching checkpoint (reflow on the teacher's own pairs, or a shortcut model).
 
 ``python launch/distill.py --help`` for usage, settings and exit codes; the command line is
 pipeline/cli/distill.py, installed as the ``mfm-distill`` console script.

@@ -159,6 +159,8 @@ class BoundInputs:
         k times.
     switch_time: if given, ``positional_mode`` is set per evaluation: relative iff ``t >= switch_time``.
     attention_chunk: passed to the model as is.
+    step_size: a shortcut model's step size d (``mfm.shortcut.sampler_step_size``), passed to every call; None for a
+        flow model.
     """
 
     def __init__(
@@ -168,8 +170,10 @@ class BoundInputs:
         *,
         switch_time: float | None = None,
         attention_chunk: int | None = None,
+        step_size: float | None = None,
     ) -> None:
         self.model = model
+        self.step_size = step_size
         self.extras = dict(extras or {})
         batches = {value.shape[0] for value in self.extras.values()}
         if len(batches) > 1:
@@ -205,6 +209,8 @@ class BoundInputs:
             kwargs["positional_mode"] = t >= self.switch_time - SWITCH_TOLERANCE
         if self.attention_chunk is not None:
             kwargs["attention_chunk"] = self.attention_chunk
+        if self.step_size is not None:
+            kwargs["step_size"] = self.step_size
         return self.model(x, t, cond, lengths, cond_mask=cond_mask, **kwargs)
 
 
@@ -289,6 +295,7 @@ def compose(
     return_trajectory: bool = False,
     max_nfe: int = DEFAULT_MAX_NFE,
     precision: str = "fp32",
+    step_size: float | None = None,
 ) -> Composition:
     """Sample ``segments`` = [(condition, frames), ...] as one sequence (FlowMDM composition).
 
@@ -305,6 +312,8 @@ def compose(
     text_tokens (L, token_dim) / text_token_len: the text's token features, for a cross_attention model.
     attention_chunk: blockwise attention for bpe models (see MotionFlowTransformer.forward).
     precision: ``fp32`` or ``bf16`` (the model's passes under bf16 autocast; :func:`mfm.solvers.guided_velocity`).
+    step_size: a shortcut model's step size for ``solver`` and ``steps`` (:func:`mfm.shortcut.sampler_step_size`);
+        None for a flow model. The positional mode of a shortcut step is the one at its start time.
     """
     config = model.config
     if getattr(model, "training", False):
@@ -337,7 +346,7 @@ def compose(
         raise ValueError("attention_chunk needs a model with positional='bpe'")
 
     bound = BoundInputs(
-        model, extras, switch_time=switch_time if bpe else None, attention_chunk=attention_chunk
+        model, extras, switch_time=switch_time if bpe else None, attention_chunk=attention_chunk, step_size=step_size
     )
     total = sum(lengths)
     x0 = initial_noise((1, total, config.feature_dim), seed=seed, generator=generator, device=device)

@@ -233,7 +233,30 @@ def flow_matching_loss(
     model_generator = generator if cond_mask is None else None
     velocity = model(x_t, t, cond, lengths, cond_mask=cond_mask, generator=model_generator, **(model_kwargs or {}))
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
-    target = target_velocity(x0, x1, sigma_min)
+    loss = velocity_loss(velocity, target_velocity(x0, x1, sigma_min), x1, t, frame_mask, sigma_min=sigma_min,
+                         loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
+                         geometry=geometry, terms_weighting=terms_weighting, velocity_weight_cap=velocity_weight_cap)
+    return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
+
+
+def velocity_loss(
+    velocity: torch.Tensor,
+    target: torch.Tensor,
+    x1: torch.Tensor,
+    t: torch.Tensor,
+    frame_mask: torch.Tensor,
+    *,
+    sigma_min: float = SIGMA_MIN,
+    loss_space: str = "velocity",
+    temporal_weight: float = 0.0,
+    bone_weight: float = 0.0,
+    geometry: MotionGeometry | None = None,
+    terms_weighting: str = "data",
+    velocity_weight_cap: float = 0.0,
+) -> torch.Tensor:
+    """:func:`flow_matching_loss` of a velocity the model made at times ``t`` against its ``target``: the weighted
+    MSE, plus the temporal term of the implied motion's error and the bone term, whose bones are ``x1``'s (the
+    clip the path leads to)."""
     weight = loss_space_weight(t, loss_space, sigma_min, velocity_weight_cap)
     loss = masked_mse(velocity, target, frame_mask, weight)
     terms = term_weight(t, loss_space, terms_weighting, sigma_min, velocity_weight_cap)
@@ -244,7 +267,7 @@ def flow_matching_loss(
             raise ValueError("bone_weight > 0 needs the motion geometry (normalisation and skeleton)")
         x1_hat = x1.float() + implied_motion_error(velocity, target, t, sigma_min)
         loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms)
-    return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
+    return loss
 
 
 def implied_motion_error(

@@ -243,6 +243,14 @@ class ModelConfig:
     """The ODE solver steps samplers use for this flow model unless told otherwise (``launch/sample.py --steps``,
     the contact sheet, MotionPipeline; edits keep their settings' steps, the evaluator its protocol's). 10 is MFM's
     Euler default; a few-step student (``launch/distill.py``) records 2. Not used in training."""
+    shortcut_levels: int = 0
+    """0: a flow model. K > 0: a shortcut model (Frans et al. 2024, "One Step Diffusion via Shortcut Models"): the
+    network also takes the step size d of the sampler's step (``step_size``, embedded as the time is and added to
+    the time embedding; its last layer starts at zero, so a model initialised from a flow model starts as that
+    model) and returns the average velocity over [t, t + d]. Steps d = 1, 1/2, ..., 1/2^(K−1) are trained by
+    self-consistency (two steps of d/2 make one of d); d = 0 is the flow-matching field, which the finest level
+    is built from (``mfm.shortcut``). Euler at 1, 2, ..., 2^(K−1) steps uses those levels; more steps, or another
+    solver, integrate the flow field (d = 0)."""
     guided_features: str = "all"
     """Which output channels classifier-free guidance mixes when samplers guide this model (one of
     GUIDED_FEATURES; ``launch/sample.py``, edits, the evaluator, the contact sheet, MotionPipeline). 'all' (MFM,
@@ -361,6 +369,9 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.sampling_guidance must be a finite scale >= 0, got {self.sampling_guidance!r}")
         if not isinstance(self.sampling_steps, int) or isinstance(self.sampling_steps, bool) or self.sampling_steps < 1:
             raise ValueError(f"ModelConfig.sampling_steps must be an int >= 1, got {self.sampling_steps!r}")
+        if not isinstance(self.shortcut_levels, int) or isinstance(self.shortcut_levels, bool) or not (
+                0 <= self.shortcut_levels <= 10):
+            raise ValueError(f"ModelConfig.shortcut_levels must be an int in [0, 10], got {self.shortcut_levels!r}")
         if self.progress_positions and self.positional != "absolute":
             raise ValueError("ModelConfig.progress_positions needs positional='absolute'")
         if self.length_embedding not in LENGTH_EMBEDDINGS:
@@ -883,6 +894,17 @@ class TimeEmbedding(nn.Module):
         return self.mlp(sinusoidal_embedding(positions, self.latent_dim))
 
 
+class StepSizeEmbedding(TimeEmbedding):
+    """The shortcut model's step size d (ModelConfig.shortcut_levels): embedded as the time is, ``d·1000`` through
+    a sinusoid and an MLP, whose last layer starts at zero, so the model starts as the flow model it may be
+    initialised from (d = 0 is that flow field)."""
+
+    def __init__(self, latent_dim: int) -> None:
+        super().__init__(latent_dim)
+        nn.init.zeros_(self.mlp[-1].weight)
+        nn.init.zeros_(self.mlp[-1].bias)
+
+
 class MotionFlowTransformer(nn.Module):
     """Velocity field ``v(x_t, t, condition)`` over normalised motion features (B, T, D)."""
 
@@ -892,6 +914,8 @@ class MotionFlowTransformer(nn.Module):
         d = config.latent_dim
         self.input_proj = nn.Linear(config.feature_dim, d)
         self.time_embedding = TimeEmbedding(d, config.time_grid)
+        if config.shortcut_levels > 0:
+            self.step_size_embedding = StepSizeEmbedding(d)
         if config.is_action_model:
             # MDM's EmbedAction: an N(0, 1) table, zeroed (not replaced) when the condition is dropped.
             self.action_embedding = nn.Embedding(config.num_actions, d)
@@ -963,6 +987,7 @@ class MotionFlowTransformer(nn.Module):
         positional_mode: torch.Tensor | None = None,
         attention_chunk: int | None = None,
         block_drop_mask: torch.Tensor | None = None,
+        step_size: torch.Tensor | float | None = None,
     ) -> torch.Tensor:
         """Velocity at ``x`` (B, T, D) and times ``t`` (B,) in [0, 1].
 
@@ -987,6 +1012,8 @@ class MotionFlowTransformer(nn.Module):
             (memory linear in T, same result). None: one dense mask.
         block_drop_mask: (num_layers, blocks_per_layer) bool, True = that residual block is skipped (layer
             dropout, in any mode). None: drawn in training when ``layer_dropout`` > 0, no block skipped otherwise.
+        step_size: shortcut models only (``shortcut_levels`` > 0): (B,) or one step size d in [0, 1]; the output is
+            the average velocity over [t, t + d]. None = 0, the flow-matching field.
         Returns (B, T, output_size) in ``x``'s dtype (fp32 under bf16 autocast, for the ODE solver).
         """
         config = self.config
@@ -1009,6 +1036,11 @@ class MotionFlowTransformer(nn.Module):
             lengths = torch.full((batch,), num_frames, dtype=torch.long, device=x.device)
 
         time = self.time_embedding(t, self.positional_table if config.positional_table == "stored" else None)
+        if config.shortcut_levels > 0:
+            d = torch.as_tensor(0.0 if step_size is None else step_size, device=x.device, dtype=torch.float32)
+            time = time + self.step_size_embedding(d.reshape(-1).expand(batch))
+        elif step_size is not None:
+            raise ValueError("step_size is an input of shortcut models only (ModelConfig.shortcut_levels > 0)")
         aux = self._auxiliary_tokens(time, cond, cond_mask, lengths)
         if config.prediction == "preconditioned":
             path_time = t.to(x.device).float().reshape(-1).expand(batch)

@@ -30,6 +30,7 @@ from typing import Any, Literal, TypeVar, Union, get_args, get_origin, get_type_
 import yaml
 
 from mfm.model import ModelConfig
+from mfm.shortcut import level_steps
 
 def preset_dir() -> Path:
     """The folder of the YAML presets. An install carries them inside this package (pipeline/presets/, a copy of the
@@ -320,6 +321,13 @@ class TrainLoopConfig:
     record, ``mfm.solvers.draw_noise`` of the record's ``noise_seed`` and length; needs a distillation pair set
     (its manifest's ``pairs`` section) whose clips are never cropped (data.unit_length=1 and every length <=
     data.window, checked before training)."""
+    shortcut_fraction: float = 0.25
+    """model.shortcut_levels > 0 (a shortcut model, ``mfm.shortcut``): the share of every batch's rows trained by
+    self-consistency (the others by flow matching). Frans et al. 2024: 1/8 (their bootstrap_every 8)."""
+    shortcut_guidance: float = 1.0
+    """model.shortcut_levels > 0: the classifier-free guidance scale built into the shortcut levels (the finest
+    level's half steps take the flow field guided at this scale, on model.guided_features' channels; the authors'
+    bootstrap_cfg). launch/distill.py sets it to the teacher's sampling guidance. 1 = none."""
     init_from: str | None = None
     """A checkpoint folder (or a run folder: its newest complete checkpoint) whose weights (EMA, else the raw ones)
     start this run, and its EMA, instead of a random initialisation; the architecture must match. Read at a fresh
@@ -341,6 +349,8 @@ class TrainLoopConfig:
                  f"train.flow_velocity_weight_cap applies to train.flow_loss=velocity, not {self.flow_loss!r}")
         _require(self.flow_noise == "independent" or self.objective == "flow",
                  f"train.flow_noise={self.flow_noise} is a flow-matching setting; train.objective is {self.objective}")
+        _require(0 < self.shortcut_fraction < 1, f"train.shortcut_fraction must be in (0, 1), got {self.shortcut_fraction}")
+        _require(self.shortcut_guidance >= 0, f"train.shortcut_guidance must be >= 0, got {self.shortcut_guidance}")
         _require(self.init_from is None or bool(self.init_from.strip()),
                  "train.init_from must be a checkpoint folder, or null for a random initialisation")
         _require(self.log_every >= 1, f"train.log_every must be >= 1, got {self.log_every}")
@@ -379,9 +389,12 @@ class DistillConfig:
     ``teacher*`` fields are recorded by launch/distill.py from the teacher's checkpoint (not settings: given ones
     are refused), so the student's config.yaml, every checkpoint and an export's model card say where it came from."""
 
-    method: Literal["reflow"] = "reflow"
+    method: Literal["reflow", "shortcut"] = "reflow"
     """reflow (Liu et al. 2022, rectified flow; Luhman & Luhman 2021 at one step): the teacher integrates its guided
-    ODE from recorded noise, and the student learns the straight path between that noise and the teacher's motion."""
+    ODE from recorded noise, and the student learns the straight path between that noise and the teacher's motion.
+    shortcut (Frans et al. 2024): the student, the teacher's network with a step-size input
+    (model.shortcut_levels), trains on the teacher's dataset by flow matching plus self-consistency (one step of d
+    = two of d/2), with the teacher's guidance built into its levels (train.shortcut_guidance); no pair set."""
     pairs_per_caption: int = 1
     """Teacher solutions per caption of the training split (each from its own noise seed)."""
     seed: int = 0
@@ -390,6 +403,9 @@ class DistillConfig:
     """Motions per teacher batch while making the pairs (does not change the pairs)."""
     student_steps: int = 2
     """The student's default sampler steps (its model.sampling_steps): 1 or 2 function evaluations."""
+    shortcut_levels: int = 3
+    """method=shortcut: the student's model.shortcut_levels K (Euler at 1, 2, ..., 2^(K−1) steps; the flow field
+    at 2^K or more). 3: steps 1, 2 and 4, the finest built from the flow field at 8 steps."""
     teacher: str = ""
     """The teacher's checkpoint folder (recorded)."""
     teacher_checkpoint_id: str = ""
@@ -411,6 +427,10 @@ class DistillConfig:
         _require(self.seed >= 0, f"distill.seed must be >= 0, got {self.seed}")
         _require(self.batch_size >= 1, f"distill.batch_size must be >= 1, got {self.batch_size}")
         _require(self.student_steps >= 1, f"distill.student_steps must be >= 1, got {self.student_steps}")
+        _require(1 <= self.shortcut_levels <= 10, f"distill.shortcut_levels must be in [1, 10], got {self.shortcut_levels}")
+        _require(self.method != "shortcut" or self.student_steps in level_steps(self.shortcut_levels),
+                 f"distill.student_steps={self.student_steps}: a shortcut student with distill.shortcut_levels="
+                 f"{self.shortcut_levels} samples in {', '.join(map(str, level_steps(self.shortcut_levels)))} steps")
         _require(self.teacher_steps >= 1, f"distill.teacher_steps must be >= 1, got {self.teacher_steps}")
 
 
@@ -436,6 +456,10 @@ class TrainConfig:
             self.train.objective == "flow" or self.model.prediction == "velocity",
             f"model.prediction={self.model.prediction!r} is a flow-matching parametrisation; the diffusion objective "
             "sets its own target (train.diffusion): use model.prediction=velocity",
+        )
+        _require(
+            self.model.shortcut_levels == 0 or self.train.objective == "flow",
+            "model.shortcut_levels > 0 (a shortcut model) trains with train.objective=flow",
         )
         _require(
             self.train.objective == "flow" or self.model.guided_features == "all",

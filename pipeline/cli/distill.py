@@ -1,7 +1,9 @@
-"""Make a few-step student of a trained flow-matching checkpoint: ``distill.method`` names the method (reflow).
+"""Make a few-step student of a trained flow-matching checkpoint: ``distill.method`` names the method (reflow,
+shortcut).
 
     python launch/distill.py --teacher runs/default --out runs/student train.max_steps=2000
     accelerate launch launch/distill.py --teacher runs/default --out runs/student distill.pairs_per_caption=4
+    python launch/distill.py --teacher runs/default --out runs/shortcut distill.method=shortcut
 
 reflow (Liu et al. 2022; Luhman & Luhman 2021 at one step): the teacher integrates its guided ODE with its own
 default sampler (euler, its model.sampling_steps, its guidance and guided_features, no output smoothing) from seeded
@@ -12,11 +14,20 @@ with distill.student_steps (default 2) steps lands near the teacher's endpoint. 
 samples with guidance 1 (one pass per step) and trains without condition dropout (model.sampling_guidance=1,
 model.cond_drop_prob=0 in its config).
 
+shortcut (Frans et al. 2024, mfm/shortcut.py): no pair set. The student is the teacher's network with a step-size
+input (model.shortcut_levels = distill.shortcut_levels, default 3: Euler in 1, 2 or 4 steps), initialised from the
+teacher's EMA weights (the step-size embedding starts at zero, so it starts as the teacher), and trains on the
+teacher's own dataset: flow matching on most rows (the flow field, with the teacher's condition dropout), and on
+train.shortcut_fraction of them self-consistency, one step of d against two of d/2 of its own, the finest level's
+taken on its flow field guided at the teacher's scale (train.shortcut_guidance, model.guided_features), so the
+guidance is built into its few steps: it samples them with guidance 1 (model.sampling_guidance=1).
+
 Settings: the teacher's resolved training config, with the student's settings above, then ``key.sub=value``
 overrides (train.max_steps, optim.lr, distill.pairs_per_caption, ...). The ``distill`` section (method, teacher
 checkpoint path, id and step, the teacher's sampler) is recorded in OUT/config.yaml and every checkpoint; set by this
-command, it is not an override (nor are data.manifest, train.out_dir, train.init_from, train.flow_noise and
-model.sampling_steps: use distill.student_steps). Running the same command again reuses the pair set and resumes
+command, it is not an override (nor are data.manifest, train.out_dir, train.init_from, train.flow_noise,
+train.shortcut_guidance, model.shortcut_levels and model.sampling_steps: use distill.shortcut_levels and
+distill.student_steps). Running the same command again reuses the pair set and resumes
 training (train.resume=auto). The student is a checkpoint like any other: launch/sample.py, MotionPipeline, the
 evaluator and launch/export.py take it, sampling it in distill.student_steps steps unless --steps says otherwise.
 
@@ -46,8 +57,18 @@ from pipeline.training.run_folder import RunFolderLock, check_run_folder, write_
 from pipeline.training.trainer import CheckpointSaveError, Trainer
 from preprocess.shards import MANIFEST_NAME, ManifestError, OutputFolderError
 
-FIXED_BY_METHOD = ("data.manifest", "train.out_dir", "train.init_from", "train.flow_noise", "model.sampling_steps")
-"""Keys the method sets: refused as overrides (the message says why)."""
+FIXED_BY_METHOD = ("data.manifest", "train.out_dir", "train.init_from", "train.flow_noise", "model.sampling_steps",
+                   "model.shortcut_levels", "train.shortcut_guidance")
+"""Keys the methods set: refused as overrides (the message says why)."""
+
+
+def method_of(overrides: list[str]) -> str:
+    """The ``distill.method`` the overrides name (default reflow)."""
+    for text in overrides:
+        path, value = parse_override(text)
+        if ".".join(path) == "distill.method":
+            return str(value)
+    return DistillConfig.method
 
 
 def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: Path, overrides: list[str]
@@ -58,12 +79,19 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
         key = ".".join(parse_override(text)[0])
         if key in FIXED_BY_METHOD or key.startswith("distill.teacher"):
             raise ConfigError(f"override {text!r}: {key} is set by launch/distill.py (the pair set, --out, the "
-                              "teacher; the student's steps are distill.student_steps), not a setting here")
+                              "teacher and its guidance; the student's steps are distill.student_steps, its levels "
+                              "distill.shortcut_levels), not a setting here")
     base = {section: dict(values) for section, values in teacher_config.items() if section != "distill"}
-    base["data"].update(manifest=str(pairs_dir(out) / MANIFEST_NAME), unit_length=1)
-    base["model"].update(cond_drop_prob=0.0, sampling_guidance=1.0)
-    base["train"].update(out_dir=str(out), init_from=str(teacher.checkpoint), flow_noise="recorded", val_every=0,
-                         resume="auto", resume_discard_newer=False)
+    method = method_of(overrides)
+    base["model"].update(sampling_guidance=1.0)
+    base["train"].update(out_dir=str(out), init_from=str(teacher.checkpoint), resume="auto",
+                         resume_discard_newer=False)
+    if method == "reflow":
+        base["data"].update(manifest=str(pairs_dir(out) / MANIFEST_NAME), unit_length=1)
+        base["model"].update(cond_drop_prob=0.0)
+        base["train"].update(flow_noise="recorded", val_every=0)
+    else:  # shortcut: the teacher's data; condition dropout kept (the flow field's guidance builds the levels)
+        base["train"].update(shortcut_guidance=float(teacher.model_config.sampling_guidance))
     cfg = load_config(TrainConfig, base, overrides)
     settings = cfg.distill or DistillConfig()
     teacher_model = teacher.model_config
@@ -73,7 +101,9 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
         teacher_solver="euler", teacher_steps=teacher_model.sampling_steps,
         teacher_guidance=float(teacher_model.sampling_guidance), teacher_guided_features=teacher_model.guided_features)
     return dataclasses.replace(cfg, distill=settings,
-                               model=dataclasses.replace(cfg.model, sampling_steps=settings.student_steps))
+                               model=dataclasses.replace(cfg.model, sampling_steps=settings.student_steps,
+                                                         shortcut_levels=(settings.shortcut_levels
+                                                                          if settings.method == "shortcut" else 0)))
 
 
 def prepare_out_dir(out: Path, dist: Dist) -> None:
@@ -110,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
         with Dist(mixed_precision=cfg.train.mixed_precision, loss_scaling=True) as dist:
             teacher = teacher.to(dist.device)
             prepare_out_dir(out, dist)
-            make_pairs(teacher, cfg.distill, out, dist)
+            if cfg.distill.method == "reflow":
+                make_pairs(teacher, cfg.distill, out, dist)
             return Trainer(cfg, dist).fit()
     except ResumeConflictError as exc:
         given = sys.argv[1:] if argv is None else argv

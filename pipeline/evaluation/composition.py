@@ -551,6 +551,8 @@ class CompositionRun:
                 composition = compose(trained.model, list(zip(conds, lengths)), solver=self.point.solver,
                                       steps=self.point.steps, guidance=self.point.guidance, switch=self.switch,
                                       seed=seed, attention_chunk=chunk, precision=self.precision,
+                                      step_size=trained.shortcut_step_size(self.point.solver, self.point.steps,
+                                                                           self.point.guidance),
                                       conditional_channels=guided_feature_mask(
                                           guided_features(trained, self.cfg.sampling), trained.skeleton))
             except ValueError as exc:

@@ -739,7 +739,9 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
     ``extras``: per-motion model inputs (cross-attention token features), bound with ``BoundInputs``.
     """
     model = trained.sampling_model  # the module, or it compiled once per checkpoint (sampling.compile)
-    model = BoundInputs(model, dict(extras)) if extras else model
+    step_size = (trained.shortcut_step_size(point.solver, point.steps, point.guidance)
+                 if trained.objective == "flow" else None)
+    model = BoundInputs(model, dict(extras), step_size=step_size) if extras or step_size is not None else model
     num_frames, dim = int(lengths.max()), trained.model_config.feature_dim
     windowed = window is not None and keep is None
     if windowed:

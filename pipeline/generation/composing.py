@@ -218,7 +218,7 @@ def generate_composition(request: SampleRequest, trained: TrainedModel, integrat
                     switch=HUMANML3D_SWITCH if request.switch is None else request.switch, seed=seed,
                     attention_chunk=attention_chunk, return_trajectory=request.plot_trajectory,
                     conditional_channels=request.conditional_channels_for(trained), precision=integrator.precision,
-                    **encoded.tokens)
+                    step_size=integrator.step_size, **encoded.tokens)
     lengths = [length for _, length in segments]
     try:
         if len(encoded.prompts) == 1:

@@ -43,6 +43,7 @@ from mfm.diffusion_sampling import (
 )
 from mfm.layout import FeatureLayout
 from mfm.model import ModelConfig, MotionFlowTransformer
+from mfm.shortcut import sampler_step_size
 from mfm.skeleton import Skeleton, get_skeleton
 from mfm.text import build_matching_text_encoder
 from pipeline import checkpoint as ckpt
@@ -157,6 +158,20 @@ class TrainedModel:
         return (f"{self.checkpoint} was trained without condition dropout (model.cond_drop_prob 0), so it has no "
                 f"unconditional field to guide from: guidance {float(scale):g} is undefined; sample it with "
                 f"guidance 1 (its default, model.sampling_guidance {self.model_config.sampling_guidance:g})")
+
+    def shortcut_step_size(self, solver: str, steps: int, guidance: float) -> float | None:
+        """The step size d this model is given when ``solver`` takes ``steps`` steps
+        (:func:`mfm.shortcut.sampler_step_size`: None for a flow model). A ValueError for an untrained step count,
+        and for guidance other than 1 at a shortcut level: its few steps have the guidance of its training
+        (``train.shortcut_guidance``, the teacher's) built in, so guiding them again would guide twice."""
+        levels = self.model_config.shortcut_levels
+        step_size = sampler_step_size(levels, solver, steps)
+        if step_size and float(guidance) != 1.0:
+            raise ValueError(f"{self.checkpoint} is a shortcut model: its {steps}-step level has its training's "
+                             f"guidance built in, so guidance {float(guidance):g} would guide it twice; sample it "
+                             f"with guidance 1 (its default), or in {2 ** levels} or more steps (its flow field, "
+                             "which takes guidance)")
+        return step_size
 
     def guidance_with(self, baseline: BaselineSampling | None) -> float:
         """The guidance scale with ``baseline`` (None: ours): the baseline's, else the model's

@@ -35,11 +35,14 @@ class Integrator:
     diffusion: GaussianDiffusion | None = None  # diffusion: the training process respaced to ``steps``
     clip_denoised: DenoisedRange | None = None  # diffusion: the bounds of every step's x0 estimate (FLAME's clamp)
     precision: str = "fp32"  # the request's precision setting resolved on the model's device: "fp32" or "bf16"
+    step_size: float | None = None  # a shortcut model's step size d (mfm.shortcut.sampler_step_size); None: a flow model
 
     def record(self, trained: TrainedModel) -> dict[str, Any]:
         """results.json's description of the objective and sampler."""
         info: dict[str, Any] = {"objective": self.objective, "sampler": self.name, "solver": self.name,
                                 "steps": self.steps, "precision": self.precision}
+        if self.step_size is not None:
+            info["shortcut_step_size"] = self.step_size
         if self.diffusion is not None:
             process = trained.diffusion
             info["diffusion"] = {"preset": trained.diffusion_preset, "train_steps": process.num_train_steps,
@@ -73,7 +76,12 @@ def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integra
                                 f"a diffusion sampler; use an ODE solver ({', '.join(known_solvers())})")
         # the model's own default (ModelConfig.sampling_steps: 10, a few-step student's 2); edits keep their settings'
         default_steps = request.settings_steps if request.edit is not None else trained.model_config.sampling_steps
-        return Integrator("flow", solver, request.steps or default_steps, precision=precision)
+        steps = request.steps or default_steps
+        try:
+            step_size = trained.shortcut_step_size(solver, steps, request.guidance_for(trained))
+        except ValueError as err:
+            raise SamplingError(str(err)) from None
+        return Integrator("flow", solver, steps, precision=precision, step_size=step_size)
     sampler = request.solver or DEFAULT_DIFFUSION_SAMPLER
     if sampler not in SAMPLERS:
         raise SamplingError(f"{trained.checkpoint} is a diffusion model (train.objective=diffusion, preset "

@@ -278,10 +278,14 @@ def placeholder_conditions(trained: TrainedModel, batch: int) -> PromptCondition
                   "text_token_len": torch.ones(batch, dtype=torch.long, device=device)}
     return PromptConditions(torch.zeros(batch, config.cond_dim, device=device), extras)
 
-def conditioned_model(trained: TrainedModel, conditions: PromptConditions) -> torch.nn.Module | BoundInputs:
-    """The model with the conditions' extra per-sample inputs bound (the solvers' and samplers' call signature)."""
+def conditioned_model(trained: TrainedModel, conditions: PromptConditions, step_size: float | None = None
+                      ) -> torch.nn.Module | BoundInputs:
+    """The model with the conditions' extra per-sample inputs (and a shortcut model's step size) bound (the
+    solvers' and samplers' call signature)."""
     model = trained.sampling_model  # the model in its weights' dtype (TrainedModel.to)
-    return BoundInputs(model, conditions.extras) if conditions.extras else model
+    if conditions.extras or step_size is not None:
+        return BoundInputs(model, conditions.extras, step_size=step_size)
+    return model
 
 def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Tensor, num_frames: int) -> torch.Tensor:
     """(B, T, D) the source motion cropped/zero-padded to every sample's length."""
@@ -308,7 +312,7 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
     else:
         batch_conditions = conditions.select(torch.tensor([s.prompt for s in specs]))
         scale = request.guidance_for(trained)
-    model = conditioned_model(trained, batch_conditions)
+    model = conditioned_model(trained, batch_conditions, integrator.step_size)
     cond = batch_conditions.cond
     known = keep = None
     if source is not None:

@@ -74,6 +74,7 @@ from tqdm.auto import tqdm
 from mfm.compilation import compiles  # train.compile's rule, shared with sampling's compile
 from mfm.diffusion import diffusion_from_preset
 from mfm.flow import FlowMatchingObjective, MotionGeometry
+from mfm.guidance import guided_feature_mask
 from mfm.model import (
     ModelConfig,
     MotionFlowTransformer,
@@ -82,6 +83,7 @@ from mfm.model import (
     draw_cond_drop_mask,
     draw_positional_mode,
 )
+from mfm.shortcut import ShortcutObjective
 from mfm.skeleton import get_skeleton
 from mfm.solvers import draw_noise, seeded_generators
 from pipeline import checkpoint as ckpt
@@ -395,7 +397,12 @@ def load_initial_weights(model: torch.nn.Module, checkpoint: str) -> None:
         raise ConfigError(f"train.init_from: {err}") from None
     model_state, ema_state, _ = ckpt.load_checkpoint(folder)
     try:
-        model.load_state_dict(ema_state if ema_state is not None else model_state)
+        # A shortcut model may start from a flow model: its step-size embedding (zero at the start) is not there.
+        missing, unexpected = model.load_state_dict(ema_state if ema_state is not None else model_state, strict=False)
+        missing = [key for key in missing if not key.startswith("step_size_embedding.")]
+        if missing or unexpected:
+            raise RuntimeError(f"Error(s) in loading state_dict:\n\tmissing keys {missing[:3]}, unexpected keys "
+                               f"{unexpected[:3]}")
     except RuntimeError as err:
         first = str(err).strip().splitlines()
         raise ConfigError(f"train.init_from={folder}: its weights do not fit this run's model "
@@ -411,12 +418,18 @@ def build_objective(cfg: TrainConfig, manifest: Manifest):
             normalization = manifest.data["normalization"]
             geometry = MotionGeometry.from_dataset(normalization["mean"], normalization["std"],
                                                    get_skeleton(manifest.data["feature_spec"]["skeleton"]))
-        return FlowMatchingObjective(loss_space=cfg.train.flow_loss, temporal_weight=cfg.train.flow_temporal_weight,
+        flow = FlowMatchingObjective(loss_space=cfg.train.flow_loss, temporal_weight=cfg.train.flow_temporal_weight,
                                      bone_weight=cfg.train.flow_bone_weight, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
                                      terms_weighting=cfg.train.flow_terms_weighting,
                                      velocity_weight_cap=cfg.train.flow_velocity_weight_cap)
+        if cfg.model.shortcut_levels == 0:
+            return flow
+        skeleton = get_skeleton(manifest.data["feature_spec"]["skeleton"])
+        return ShortcutObjective(flow=flow, levels=cfg.model.shortcut_levels,
+                                 bootstrap_fraction=cfg.train.shortcut_fraction, guidance=cfg.train.shortcut_guidance,
+                                 conditional_channels=guided_feature_mask(cfg.model.guided_features, skeleton))
     return diffusion_from_preset(cfg.train.diffusion)
 
 
