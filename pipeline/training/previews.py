@@ -47,6 +47,7 @@ from mfm.features import features_to_joints
 from mfm.guidance import guided_feature_mask
 from mfm.metrics import padded_motions, plausibility
 from mfm.model import ModelConfig
+from mfm.shortcut import sampler_step_size
 from mfm.skeleton import Skeleton, get_skeleton
 from mfm.solvers import draw_noise, guided_velocity, sample_lengths, seeded_generators, solve, zero_padded_frames
 from pipeline import checkpoint as ckpt
@@ -158,7 +159,9 @@ class PreviewSampler:
         generators = seeded_generators([_noise_seed(self.cfg.train.seed, i) for i in range(len(prompts.titles))])
         cond = prompts.cond.to(device)
         extras = {name: value.to(device) for name, value in prompts.extras.items()}
-        call = BoundInputs(model, extras) if extras else model
+        # a shortcut model at its sampling steps' level, as launch/sample.py gives it (its guidance is 1 there)
+        step_size = sampler_step_size(config.shortcut_levels, FLOW_SOLVER, config.sampling_steps)
+        call = BoundInputs(model, extras, step_size=step_size) if extras or step_size is not None else model
         if self.diffusion is not None:
             result = sample_diffusion(call, self.diffusion, cond, lengths, num_frames=num_frames,
                                       feature_dim=config.feature_dim, sampler=DIFFUSION_SAMPLER, steps=DIFFUSION_STEPS,
