@@ -9,7 +9,8 @@ model.
 
 As in the authors' code (``targets_shortcut.py``), a share of each batch (theirs 1/8) are self-consistency rows,
 spread evenly over the levels, each at a time on its level's grid (t = i·d); the targets come from the model being
-trained, without gradients (their ``bootstrap_ema=0`` variant), and guidance is built into the levels (their
+trained, without gradients and without dropout (their ``bootstrap_ema=0`` variant; their default takes the EMA
+weights), and guidance is built into the levels (their
 ``bootstrap_cfg``): the finest level's two half steps are taken with the guided flow field, so every coarser level
 inherits the guidance, and the model samples its few steps with guidance 1. Ours, not theirs: the guidance may mix
 only the pose channels (``conditional_channels``, ``model.guided_features='pose'``), and the self-consistency rows
@@ -168,6 +169,7 @@ class ShortcutObjective:
         d/2. The finest level's half steps (d/2 = 2^-K) take the flow field (step size 0) with guidance; the
         others the level below, conditional."""
         finest = level == self.levels - 1
+        model_kwargs = {name: value for name, value in model_kwargs.items() if name != "block_drop_mask"}  # eval: none
         half = torch.where(finest, torch.zeros_like(d), d / 2)
         step = (d / 2)[:, None, None]
         was_training = bool(getattr(model, "training", False))
