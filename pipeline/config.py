@@ -403,9 +403,9 @@ class DistillConfig:
     """Motions per teacher batch while making the pairs (does not change the pairs)."""
     student_steps: int = 2
     """The student's default sampler steps (its model.sampling_steps): 1 or 2 function evaluations."""
-    shortcut_levels: int = 3
+    shortcut_levels: int = 2
     """method=shortcut: the student's model.shortcut_levels K (Euler at 1, 2, ..., 2^(K−1) steps; the flow field
-    at 2^K or more). 3: steps 1, 2 and 4, the finest built from the flow field at 8 steps."""
+    at 2^K or more). 2: steps 1 and 2, the finest built from the flow field at 4 steps (docs/few-step.md)."""
     teacher: str = ""
     """The teacher's checkpoint folder (recorded)."""
     teacher_checkpoint_id: str = ""

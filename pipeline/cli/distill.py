@@ -15,7 +15,7 @@ samples with guidance 1 (one pass per step) and trains without condition dropout
 model.cond_drop_prob=0 in its config).
 
 shortcut (Frans et al. 2024, mfm/shortcut.py): no pair set. The student is the teacher's network with a step-size
-input (model.shortcut_levels = distill.shortcut_levels, default 3: Euler in 1, 2 or 4 steps), initialised from the
+input (model.shortcut_levels = distill.shortcut_levels, default 2: Euler in 1 or 2 steps), initialised from the
 teacher's EMA weights (the step-size embedding starts at zero, so it starts as the teacher), and trains on the
 teacher's own dataset: flow matching on most rows (the flow field, with the teacher's condition dropout), and on
 train.shortcut_fraction of them self-consistency, one step of d against two of d/2 of its own, the finest level's
