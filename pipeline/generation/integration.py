@@ -77,10 +77,12 @@ def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integra
         # the model's own default (ModelConfig.sampling_steps: 10, a few-step student's 2); edits keep their settings'
         default_steps = request.settings_steps if request.edit is not None else trained.model_config.sampling_steps
         steps = request.steps or default_steps
-        try:
-            step_size = trained.shortcut_step_size(solver, steps, request.guidance_for(trained))
-        except ValueError as err:
-            raise SamplingError(str(err)) from None
+        step_size = None
+        if trained.model_config.shortcut_levels:  # a shortcut model: the step size of these steps, or why not
+            try:
+                step_size = trained.shortcut_step_size(solver, steps, request.guidance_for(trained))
+            except ValueError as err:
+                raise SamplingError(str(err)) from None
         return Integrator("flow", solver, steps, precision=precision, step_size=step_size)
     sampler = request.solver or DEFAULT_DIFFUSION_SAMPLER
     if sampler not in SAMPLERS:
