@@ -134,6 +134,23 @@ def test_pair_set_is_the_teachers_samples_made_once(student_run, teacher_run, tm
             pairs_module.solve_pairs = original
 
 
+def test_pairs_made_in_chunks_straddling_records_are_the_same_pairs(student_run, teacher_run, tmp_path, monkeypatch):
+    """A rank solves and holds one chunk of pairs at a time, streaming the records it needs: with chunks of one
+    batch of 8 (a record's captions split across chunks) the pair set holds the same pairs, in the same order, with
+    the same seeds, captions and text features, and (up to the summation order of other batch mates) motions."""
+    monkeypatch.setattr(pairs_module, "CHUNK_BATCHES", 1)
+    teacher = load_trained_model(teacher_run)
+    settings = dataclasses.replace(load_config(TrainConfig, student_run / "config.yaml").distill, batch_size=8)
+    with Dist() as dist:
+        make_pairs(teacher, settings, tmp_path / "chunked", dist)
+    one, chunked = pair_records(student_run), pair_records(tmp_path / "chunked")
+    assert len(one) > 8 and [(r.id, r.noise_seed, r.captions) for r in chunked] == \
+        [(r.id, r.noise_seed, r.captions) for r in one]
+    for a, b in zip(one, chunked):
+        np.testing.assert_array_equal(b.text_emb, a.text_emb)
+        np.testing.assert_allclose(b.features, a.features, rtol=0, atol=1e-4)
+
+
 def test_recorded_noise_is_each_records_seed_and_length(student_run, teacher_run, tmp_path):
     """train.flow_noise=recorded: the loss's x0 is draw_noise of each record's seed over its length (zero after), and
     the teacher's Euler path from exactly that noise ends at the record's motion."""

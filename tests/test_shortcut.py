@@ -224,7 +224,7 @@ def test_shortcut_training_resumes_bit_exactly(teacher_run, tmp_path, tmp_path_f
 
 
 def test_composition_gives_a_shortcut_model_its_step_size():
-    """mfm.composition.compose (and so launch/compose.py and the evaluator's composition, which pass
+    """mfm.composition.compose (and so launch/sample.py --compose and the evaluator's composition, which pass
     ``TrainedModel.shortcut_step_size``) hands every evaluation the step size it is given."""
     from mfm.composition import compose
 

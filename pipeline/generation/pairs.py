@@ -19,13 +19,15 @@ its features the teacher's x1 un-normalised with the teacher's Mean/Std (the loa
 ``noise_seed``. ``manifest.json`` is written last and carries the ``pairs`` section (teacher checkpoint id and step,
 sampler, seeds, source dataset); the normalisation, feature spec and text encoder are the teacher's dataset's.
 
-Ranks: every rank plans the same pair list from the manifest; rank ``r`` solves pairs ``r, r + W, ...`` in batches of
-``distill.batch_size`` (longest first, as the samplers batch), writes them to ``.build-tmp/rank-r.pt``; rank 0 then
-writes the shards in pair order and the manifest. Resume: a complete pair set whose ``pairs`` section is the one asked
-for is reused as it is; one made with another teacher or settings is refused; an unfinished one (no manifest) is
-removed and made again (generation itself restarts from its first pair). Memory: every training record's captions
-and text features (token features too, for a cross-attention teacher) are held while the pairs are made, and rank 0
-holds every motion while it writes the shards: fine for the datasets here, a limit at HumanML3D scale with tokens.
+Ranks: every rank plans the same pair list from the manifest (indices, lengths and seeds only); rank ``r`` solves
+pairs ``r, r + W, ...`` in chunks of :data:`CHUNK_BATCHES` batches of ``distill.batch_size`` (longest first within a
+chunk, as the samplers batch), reading the chunk's records from one forward pass over the split, and writes each
+chunk to ``.build-tmp/rank-r-chunk-k.pt``; rank 0 then streams the split once more and writes the shards in pair
+order, reading each rank's chunks one at a time, and the manifest. Memory is one chunk's records and motions per
+rank (and one chunk per rank on rank 0 while it writes), not the dataset's, so a HumanML3D-sized split with token
+features fits. Resume: a complete pair set whose ``pairs`` section is the one asked for is reused as it is; one made
+with another teacher or settings is refused; an unfinished one (no manifest) is removed and made again (generation
+itself restarts from its first pair).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -71,6 +73,8 @@ TMP_FOLDER = ".build-tmp"
 MAX_SHARD_SIZE = 500
 MIN_SHARDS = 16
 """At least this many shards when there are enough pairs: the loader needs a shard per reader (ranks × workers)."""
+CHUNK_BATCHES = 16
+"""Teacher batches per chunk: a rank holds one chunk's records and motions at a time (:func:`chunk_size`)."""
 NOISE_RULE = ("x0 = mfm.solvers.draw_noise((1, length, D), seeded_generators([noise_seed]), lengths=[length]); "
               "features = the teacher's Euler solution from x0, un-normalised")
 
@@ -82,10 +86,13 @@ class PairSetError(ValueError):
 
 @dataclass(frozen=True)
 class PlannedPair:
-    """One teacher solution to make: pair ``index`` of caption ``caption`` of ``record``, ``length`` frames."""
+    """One teacher solution to make: pair ``index`` of caption ``caption`` of the split's record number
+    ``record_index`` (id ``record_id``), ``length`` frames. No features or text: those are streamed from the
+    dataset when the pair is solved and when it is written (:func:`stream_records`)."""
 
     index: int
-    record: MotionRecord  # features dropped: only its captions and text features are needed
+    record_index: int
+    record_id: str
     caption: int
     repeat: int
     length: int
@@ -93,7 +100,7 @@ class PlannedPair:
 
     @property
     def pair_id(self) -> str:
-        return f"{self.record.id}_c{self.caption}_p{self.repeat}"
+        return f"{self.record_id}_c{self.caption}_p{self.repeat}"
 
 
 def pairs_dir(out_dir: str | Path) -> Path:
@@ -132,33 +139,99 @@ def teacher_source(teacher: TrainedModel) -> Manifest:
     return manifest
 
 
+def chunk_size(settings: DistillConfig) -> int:
+    """Pairs a rank solves (and holds) at a time: :data:`CHUNK_BATCHES` teacher batches."""
+    return settings.batch_size * CHUNK_BATCHES
+
+
+def chunk_path(tmp: Path, rank: int, chunk: int) -> Path:
+    return tmp / f"rank-{rank}-chunk-{chunk:06d}.pt"
+
+
+class SolvedChunks(Mapping[int, np.ndarray]):
+    """The ranks' solved motions by pair index, read from their chunk files as the writer asks for them in pair
+    order (pair i is rank i mod W's, in its chunk (i div W) div ``size``): one chunk per rank in memory."""
+
+    def __init__(self, tmp: Path, world_size: int, size: int) -> None:
+        self.tmp, self.world_size, self.size = tmp, world_size, size
+        self._held: dict[int, tuple[int, dict[int, np.ndarray]]] = {}
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        rank, chunk = index % self.world_size, (index // self.world_size) // self.size
+        if self._held.get(rank, (None,))[0] != chunk:
+            self._held[rank] = (chunk, torch.load(chunk_path(self.tmp, rank, chunk), weights_only=False))
+        return self._held[rank][1][index]
+
+    def __iter__(self) -> Iterator[int]:
+        raise TypeError("SolvedChunks is read by pair index only")
+
+    def __len__(self) -> int:
+        raise TypeError("SolvedChunks is read by pair index only")
+
+
 def plan_pairs(source: Manifest, settings: DistillConfig, max_length: int, backend: str = "webdataset"
                ) -> list[PlannedPair]:
     """Every pair, in order: records in manifest order, their captions in order, ``pairs_per_caption`` each; a
     caption's length is its span's, at most ``max_length`` (the frames the teacher samples: its window)."""
     pairs: list[PlannedPair] = []
-    for record in iter_motions(source, "train", backend):
-        light = MotionRecord(record.id, record.features[:0], record.text_emb, record.captions, record.caption_tokens,
-                             record.spans, record.action, record.source, record.text_tokens, record.text_token_len)
+    for record_index, record in enumerate(iter_motions(source, "train", backend)):
         for caption, (start, end) in enumerate(record.spans.tolist()):
             for repeat in range(settings.pairs_per_caption):
                 index = len(pairs)
-                pairs.append(PlannedPair(index, light, caption, repeat, min(int(end - start), max_length),
-                                         sample_seed(settings.seed, index)))
+                pairs.append(PlannedPair(index, record_index, record.id, caption, repeat,
+                                         min(int(end - start), max_length), sample_seed(settings.seed, index)))
     return pairs
 
 
+def stream_records(source: Manifest, backend: str = "webdataset") -> Iterator[tuple[int, MotionRecord]]:
+    """The training split's records with their positions, in manifest order (one pass; nothing kept)."""
+    return enumerate(iter_motions(source, "train", backend))
+
+
+class RecordWindow:
+    """The records a run of pairs needs, taken from one forward pass over the split: asked for pairs in index order,
+    it reads up to their last record and keeps only the records they use, so memory holds one chunk's records."""
+
+    def __init__(self, records: Iterator[tuple[int, MotionRecord]]) -> None:
+        self._records = records
+        self._last: tuple[int, MotionRecord] | None = None  # the newest record read: the next run may start on it
+
+    def take(self, pairs: Sequence[PlannedPair]) -> dict[int, MotionRecord]:
+        """The records of ``pairs`` (which come after every pair taken before) by position."""
+        wanted = {p.record_index for p in pairs}
+        found: dict[int, MotionRecord] = {}
+        if self._last is not None and self._last[0] in wanted:
+            found[self._last[0]] = self._last[1]
+        last = max(wanted)
+        while len(found) < len(wanted):
+            try:
+                self._last = next(self._records)
+            except StopIteration:
+                raise PairSetError(f"records {sorted(wanted - set(found))} of the pairs are not in the split (it "
+                                   "changed while the pairs were made)") from None
+            position, record = self._last
+            if position in wanted:
+                found[position] = record
+            elif position > last:
+                raise PairSetError(f"records {sorted(wanted - set(found))} of the pairs are not in the split (it "
+                                   "changed while the pairs were made)")
+        return found
+
+
 @torch.no_grad()
-def solve_pairs(teacher: TrainedModel, pairs: Sequence[PlannedPair], settings: DistillConfig) -> torch.Tensor:
-    """The teacher's (B, T, D) normalised ODE solutions of ``pairs`` (one batch), zero past each length."""
+def solve_pairs(teacher: TrainedModel, pairs: Sequence[PlannedPair], records: Mapping[int, MotionRecord],
+                settings: DistillConfig) -> torch.Tensor:
+    """The teacher's (B, T, D) normalised ODE solutions of ``pairs`` (one batch; ``records`` holds their records by
+    position), zero past each length."""
     device = teacher.device
     lengths = torch.tensor([p.length for p in pairs], dtype=torch.long, device=device)
-    cond = torch.from_numpy(np.stack([p.record.text_emb[p.caption] for p in pairs])).to(device)
+    cond = torch.from_numpy(np.stack([records[p.record_index].text_emb[p.caption] for p in pairs])).to(device)
     extras: dict[str, torch.Tensor] = {}
     if teacher.model_config.conditioning == "cross_attention":
-        extras = {"text_tokens": torch.from_numpy(np.stack([p.record.text_tokens[p.caption] for p in pairs])).to(device),
-                  "text_token_len": torch.tensor([int(p.record.text_token_len[p.caption]) for p in pairs],
-                                                 dtype=torch.long, device=device)}
+        extras = {"text_tokens": torch.from_numpy(np.stack([records[p.record_index].text_tokens[p.caption]
+                                                            for p in pairs])).to(device),
+                  "text_token_len": torch.tensor([int(records[p.record_index].text_token_len[p.caption])
+                                                  for p in pairs], dtype=torch.long, device=device)}
     model = conditioned_model(teacher, PromptConditions(cond, extras))
     velocity = guided_velocity(model, cond, scale=settings.teacher_guidance, lengths=lengths,
                                conditional_channels=guided_feature_mask(settings.teacher_guided_features,
@@ -199,25 +272,28 @@ def make_pairs(teacher: TrainedModel, settings: DistillConfig, out_dir: str | Pa
         dist.log0("reusing the pair set in %s (same teacher and settings)", folder)
         return folder / MANIFEST_NAME
     pairs = plan_pairs(source, settings, wanted["max_length"])
-    mine = pairs[dist.rank::dist.world_size]
-    solved: dict[int, np.ndarray] = {}
-    ordered = sorted(mine, key=lambda p: (-p.length, p.index))
-    for start in range(0, len(ordered), settings.batch_size):
-        chunk = ordered[start:start + settings.batch_size]
-        motions = teacher.denormalize(solve_pairs(teacher, chunk, settings)).cpu().numpy()
-        for row, pair in enumerate(chunk):
-            solved[pair.index] = np.ascontiguousarray(motions[row, :pair.length], dtype=np.float32)
-        dist.log0("teacher pairs: %d of %d on rank 0", min(start + len(chunk), len(ordered)), len(ordered))
     tmp = folder / TMP_FOLDER
     if dist.is_main:
         tmp.mkdir(parents=True, exist_ok=True)
     dist.barrier()
-    torch.save(solved, tmp / f"rank-{dist.rank}.pt")
+    mine = pairs[dist.rank::dist.world_size]
+    size = chunk_size(settings)
+    window = RecordWindow(stream_records(source))
+    for chunk_index, start in enumerate(range(0, len(mine), size)):
+        chunk = mine[start:start + size]
+        records = window.take(chunk)
+        solved: dict[int, np.ndarray] = {}
+        ordered = sorted(chunk, key=lambda p: (-p.length, p.index))  # longest first within the chunk
+        for first in range(0, len(ordered), settings.batch_size):
+            batch = ordered[first:first + settings.batch_size]
+            motions = teacher.denormalize(solve_pairs(teacher, batch, records, settings)).cpu().numpy()
+            for row, pair in enumerate(batch):
+                solved[pair.index] = np.ascontiguousarray(motions[row, :pair.length], dtype=np.float32)
+        torch.save(solved, chunk_path(tmp, dist.rank, chunk_index))
+        dist.log0("teacher pairs: %d of %d on rank 0", start + len(chunk), len(mine))
     dist.barrier()
     if dist.is_main:
-        for rank in range(1, dist.world_size):
-            solved.update(torch.load(tmp / f"rank-{rank}.pt", weights_only=False))
-        write_pair_set(folder, teacher, source, pairs, solved, wanted)
+        write_pair_set(folder, teacher, source, pairs, SolvedChunks(tmp, dist.world_size, size), wanted)
         shutil.rmtree(tmp)
     dist.barrier()
     return folder / MANIFEST_NAME
@@ -225,15 +301,17 @@ def make_pairs(teacher: TrainedModel, settings: DistillConfig, out_dir: str | Pa
 
 def write_pair_set(folder: Path, teacher: TrainedModel, source: Manifest, pairs: Sequence[PlannedPair],
                    solved: Mapping[int, np.ndarray], settings: Mapping[str, Any]) -> dict[str, Any]:
-    """The shards (in pair order) and, last, the manifest of the pair set."""
+    """The shards (in pair order) and, last, the manifest of the pair set; the records' captions and text features
+    streamed from ``source`` again, the motions read from ``solved`` one at a time."""
     text = source.data["text_encoder"]
     tokens = bool(text.get("token_features", False))
     spec = source.data["feature_spec"]
     schema = parquet_schema(int(spec["dim"]), int(text["dim"]), tokens, noise_seeds=True)
     shard_size = max(1, min(MAX_SHARD_SIZE, math.ceil(len(pairs) / MIN_SHARDS)))
     writer = SplitShardWriter(folder, "train", shard_size=shard_size, formats=("tar", "parquet"), schema=schema)
+    window = RecordWindow(stream_records(source))
     for pair in pairs:
-        record = pair.record
+        record = window.take([pair])[pair.record_index]
         motion = solved[pair.index]
         caption = RecordCaption(record.captions[pair.caption], tuple(record.caption_tokens[pair.caption]), 0,
                                 pair.length)
@@ -268,3 +346,33 @@ def write_pair_set(folder: Path, teacher: TrainedModel, source: Manifest, pairs:
     write_manifest(folder, manifest)
     logger.info("wrote %d teacher pairs to %s", len(pairs), folder)
     return manifest
+
+
+def chunk_size(settings: DistillConfig) -> int:
+    """Pairs a rank solves (and holds) at a time: :data:`CHUNK_BATCHES` teacher batches."""
+    return settings.batch_size * CHUNK_BATCHES
+
+
+def chunk_path(tmp: Path, rank: int, chunk: int) -> Path:
+    return tmp / f"rank-{rank}-chunk-{chunk:06d}.pt"
+
+
+class SolvedChunks(Mapping[int, np.ndarray]):
+    """The ranks' solved motions by pair index, read from their chunk files as the writer asks for them in pair
+    order (pair i is rank i mod W's, in its chunk (i div W) div ``size``): one chunk per rank in memory."""
+
+    def __init__(self, tmp: Path, world_size: int, size: int) -> None:
+        self.tmp, self.world_size, self.size = tmp, world_size, size
+        self._held: dict[int, tuple[int, dict[int, np.ndarray]]] = {}
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        rank, chunk = index % self.world_size, (index // self.world_size) // self.size
+        if self._held.get(rank, (None,))[0] != chunk:
+            self._held[rank] = (chunk, torch.load(chunk_path(self.tmp, rank, chunk), weights_only=False))
+        return self._held[rank][1][index]
+
+    def __iter__(self) -> Iterator[int]:
+        raise TypeError("SolvedChunks is read by pair index only")
+
+    def __len__(self) -> int:
+        raise TypeError("SolvedChunks is read by pair index only")
