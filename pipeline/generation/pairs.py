@@ -139,36 +139,6 @@ def teacher_source(teacher: TrainedModel) -> Manifest:
     return manifest
 
 
-def chunk_size(settings: DistillConfig) -> int:
-    """Pairs a rank solves (and holds) at a time: :data:`CHUNK_BATCHES` teacher batches."""
-    return settings.batch_size * CHUNK_BATCHES
-
-
-def chunk_path(tmp: Path, rank: int, chunk: int) -> Path:
-    return tmp / f"rank-{rank}-chunk-{chunk:06d}.pt"
-
-
-class SolvedChunks(Mapping[int, np.ndarray]):
-    """The ranks' solved motions by pair index, read from their chunk files as the writer asks for them in pair
-    order (pair i is rank i mod W's, in its chunk (i div W) div ``size``): one chunk per rank in memory."""
-
-    def __init__(self, tmp: Path, world_size: int, size: int) -> None:
-        self.tmp, self.world_size, self.size = tmp, world_size, size
-        self._held: dict[int, tuple[int, dict[int, np.ndarray]]] = {}
-
-    def __getitem__(self, index: int) -> np.ndarray:
-        rank, chunk = index % self.world_size, (index // self.world_size) // self.size
-        if self._held.get(rank, (None,))[0] != chunk:
-            self._held[rank] = (chunk, torch.load(chunk_path(self.tmp, rank, chunk), weights_only=False))
-        return self._held[rank][1][index]
-
-    def __iter__(self) -> Iterator[int]:
-        raise TypeError("SolvedChunks is read by pair index only")
-
-    def __len__(self) -> int:
-        raise TypeError("SolvedChunks is read by pair index only")
-
-
 def plan_pairs(source: Manifest, settings: DistillConfig, max_length: int, backend: str = "webdataset"
                ) -> list[PlannedPair]:
     """Every pair, in order: records in manifest order, their captions in order, ``pairs_per_caption`` each; a
