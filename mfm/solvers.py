@@ -424,7 +424,7 @@ def sample(
     null_cond: Tensor | None = None,
     conditional_channels: Tensor | None = None,
     seed: int = 0,
-    generator: torch.Generator | None = None,
+    generator: NoiseGenerators | None = None,
     return_trajectory: bool = False,
     rtol: float = 1e-5,
     atol: float = 1e-5,
@@ -435,7 +435,9 @@ def sample(
     ``conditional_channels``: feature channels left unguided (:func:`guided_velocity`).
 
     The initial noise comes from ``generator`` or, by default, a CPU generator seeded with ``seed``: the same seed,
-    batch (cond, lengths) and device give identical results. Frames ``>= lengths[b]`` are zero in the output.
+    batch (cond, lengths) and device give identical results. A list of generators, one per motion
+    (:func:`seeded_generators`), draws each motion's noise over its own length (:func:`draw_noise`), so a motion
+    does not depend on its batch: how launch/sample.py, reflow's pairs and training previews draw it. Frames ``>= lengths[b]`` are zero in the output.
     The model should be in eval mode (dropout on makes the field random). feature_dim defaults to
     ``model.config.feature_dim``. ``num_frames``: the batch's window; the pipeline's samplers pass its longest
     length, so no pass computes frames that no motion of the batch has. ``precision``: see :func:`guided_velocity`.
@@ -443,7 +445,8 @@ def sample(
     device, cond, lengths = sampling_inputs(model, cond, lengths, num_frames)
     shape = (lengths.shape[0], num_frames, model_feature_dim(model, feature_dim))
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)
-    x0 = initial_noise(shape, seed=seed, generator=generator, device=device) * valid
+    generator = torch.Generator().manual_seed(seed) if generator is None else generator
+    x0 = draw_noise(shape, generator, lengths=lengths, device=device) * valid
     velocity = zero_padded_frames(
         guided_velocity(model, cond, scale=guidance, lengths=lengths, null_cond=null_cond,
                         conditional_channels=conditional_channels, precision=precision),

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from mfm.guidance import guided_feature_mask
-from mfm.solvers import draw_noise, guided_velocity, seeded_generators, solve, zero_padded_frames
+from mfm.solvers import sample, seeded_generators
 from pipeline import checkpoint as ckpt
 from pipeline.config import DistillConfig
 from pipeline.data.stages import MotionRecord
@@ -203,13 +203,10 @@ def solve_pairs(teacher: TrainedModel, pairs: Sequence[PlannedPair], records: Ma
                   "text_token_len": torch.tensor([int(records[p.record_index].text_token_len[p.caption])
                                                   for p in pairs], dtype=torch.long, device=device)}
     model = conditioned_model(teacher, PromptConditions(cond, extras))
-    velocity = guided_velocity(model, cond, scale=settings.teacher_guidance, lengths=lengths,
-                               conditional_channels=guided_feature_mask(settings.teacher_guided_features,
-                                                                        teacher.skeleton))
-    shape = (len(pairs), int(lengths.max()), teacher.model_config.feature_dim)
-    x0 = draw_noise(shape, seeded_generators([p.seed for p in pairs]), lengths=lengths, device=device)
-    result = solve(zero_padded_frames(velocity, lengths), x0, solver=settings.teacher_solver,
-                   steps=settings.teacher_steps)
+    result = sample(model, cond, lengths, num_frames=int(lengths.max()), feature_dim=teacher.model_config.feature_dim,
+                    solver=settings.teacher_solver, steps=settings.teacher_steps, guidance=settings.teacher_guidance,
+                    conditional_channels=guided_feature_mask(settings.teacher_guided_features, teacher.skeleton),
+                    generator=seeded_generators([p.seed for p in pairs]))
     return result.x1.float()
 
 

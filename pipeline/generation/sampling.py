@@ -80,10 +80,9 @@ from mfm.solvers import (
     SolveResult,
     draw_noise,
     guided_velocity,
+    sample,
     sample_lengths,
     seeded_generators,
-    solve,
-    zero_padded_frames,
 )
 from pipeline.generation.browse import write_index_page
 from pipeline.generation.inference import TrainedModel
@@ -334,18 +333,20 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
             result = replacement_edit(denoise, integrator.diffusion, known, keep, sampler=integrator.name,
                                       lengths=lengths, generator=generator, return_trajectory=request.plot_trajectory,
                                       clip_denoised=integrator.clip_denoised)
+    elif source is None:
+        result = sample(model, cond, lengths, num_frames=num_frames, feature_dim=dim, solver=integrator.name,
+                        steps=integrator.steps, guidance=scale,
+                        conditional_channels=request.conditional_channels_for(trained),
+                        generator=_noise_generators(specs, noise_generators),
+                        return_trajectory=request.plot_trajectory, precision=integrator.precision)
     else:
         velocity = guided_velocity(model, cond, scale=scale, lengths=lengths,
                                    conditional_channels=request.conditional_channels_for(trained),
                                    precision=integrator.precision)
         x0 = draw_noise((len(specs), num_frames, dim), _noise_generators(specs, noise_generators), lengths=lengths,
                         device=device)
-        if source is None:
-            result = solve(zero_padded_frames(velocity, lengths), x0, solver=integrator.name, steps=integrator.steps,
-                           return_trajectory=request.plot_trajectory)
-        else:
-            result = edit(velocity, known, keep, steps=integrator.steps, rewrite_until=request.rewrite_time,
-                          solver=integrator.name, x0=x0, lengths=lengths, return_trajectory=request.plot_trajectory)
+        result = edit(velocity, known, keep, steps=integrator.steps, rewrite_until=request.rewrite_time,
+                      solver=integrator.name, x0=x0, lengths=lengths, return_trajectory=request.plot_trajectory)
     # As the evaluator: smoothed, then a diffusion edit's source root copied (FLAME's use_reference_translation)
     x1 = trained.finish_output(result.x1.float(), lengths, request.smoothing_for(trained), known=known, keep=keep,
                                reference_translation=request.edit_reference_translation)

@@ -49,7 +49,7 @@ from mfm.metrics import padded_motions, plausibility
 from mfm.model import ModelConfig
 from mfm.shortcut import sampler_step_size
 from mfm.skeleton import Skeleton, get_skeleton
-from mfm.solvers import draw_noise, guided_velocity, sample_lengths, seeded_generators, solve, zero_padded_frames
+from mfm.solvers import sample, sample_lengths, seeded_generators
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig
 from pipeline.data.stream import Manifest, backend_for_format, iter_motions
@@ -168,13 +168,11 @@ class PreviewSampler:
                                       guidance=self.guidance, generator=generators)
         else:
             # As launch/sample.py draws it: each sample's noise from its own generator, over its own frames.
-            x0 = draw_noise((len(generators), num_frames, config.feature_dim), generators, lengths=lengths,
-                            device=device)
             conditional = guided_feature_mask(config.guided_features, self.skeleton)
-            velocity = guided_velocity(call, cond, scale=self.guidance, lengths=lengths.to(device),
-                                       conditional_channels=None if conditional is None else conditional.to(device))
-            result = solve(zero_padded_frames(velocity, lengths.to(device)), x0, solver=FLOW_SOLVER,
-                           steps=config.sampling_steps)
+            result = sample(call, cond, lengths, num_frames=num_frames, feature_dim=config.feature_dim,
+                            solver=FLOW_SOLVER, steps=config.sampling_steps, guidance=self.guidance,
+                            conditional_channels=None if conditional is None else conditional.to(device),
+                            generator=generators)
         x1 = smooth_over_time(result.x1.float(), lengths.to(result.x1.device), self.smoothing).cpu()
         normalization = self.manifest.data["normalization"]
         mean = torch.as_tensor(np.asarray(normalization["mean"], dtype=np.float32))
