@@ -31,7 +31,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -212,6 +212,15 @@ class BoundInputs:
         if self.step_size is not None:
             kwargs["step_size"] = self.step_size
         return self.model(x, t, cond, lengths, cond_mask=cond_mask, **kwargs)
+
+
+def bind_inputs(model: nn.Module, extras: Mapping[str, Tensor] | None = None, *,
+                step_size: float | None = None) -> nn.Module | BoundInputs:
+    """``model`` with per-sample ``extras`` and a shortcut model's ``step_size`` bound (:class:`BoundInputs`), or
+    ``model`` itself when there is nothing to bind."""
+    if not extras and step_size is None:
+        return model
+    return BoundInputs(model, dict(extras or {}), step_size=step_size)
 
 
 @dataclass

@@ -29,6 +29,7 @@ from torch import Tensor
 
 from mfm.flow import (FlowMatchingObjective, interpolate, sample_noise, sample_time, target_velocity, velocity_loss,
                       warp_time)
+from mfm.composition import BoundInputs
 from mfm.guidance import classifier_free_guidance
 from mfm.model import ModelConfig, draw_cond_drop_mask, valid_frame_mask
 
@@ -126,14 +127,13 @@ class ShortcutObjective:
         flow_t = sample_time(n_flow, generator, device) if t is None else t[flow_rows].to(device)
         flow_t = warp_time(flow_t, flow.time_sampling, flow.time_loc, flow.time_scale)
         flow_x0 = sample_noise(x1[flow_rows], generator) if x0 is None else x0[flow_rows].to(device)
-        draw_device = generator.device if generator is not None else device
         # Spread over the levels from a random first one, so that every level is trained at any batch size.
+        draw_device = generator.device if generator is not None else device
         first = torch.randint(self.levels, (1,), generator=generator, device=draw_device).to(device)
         level = (torch.arange(n_boot, device=device) + first) % self.levels
         sections = (2 ** level).float()
         d = 1.0 / sections
-        boot_t = torch.floor(torch.rand(n_boot, generator=generator, device=draw_device).to(device) * sections
-                             ) / sections
+        boot_t = torch.floor(sample_time(n_boot, generator, device) * sections) / sections  # on the level's grid
         boot_x0 = sample_noise(x1[boot], generator) if x0 is None else x0[boot].to(device)
         keep = torch.zeros(n_boot, dtype=torch.bool, device=device)
         if cond_mask is None:
@@ -195,16 +195,10 @@ class ShortcutObjective:
             out[plain] = _conditional(model, x[plain], t[plain], step_size[plain], cond[plain], lengths[plain],
                                       rows_of(model_kwargs, plain)).to(out.dtype)
         which = guided.nonzero().squeeze(1)
-        kwargs = rows_of(model_kwargs, which)
-
-        def at_step_size(x_: Tensor, t_: Tensor, cond_: Tensor, lengths_: Tensor | None = None, *,
-                         cond_mask: Tensor | None = None) -> Tensor:
-            times = x_.shape[0] // which.numel()
-            return model(x_, t_, cond_, lengths_, cond_mask=cond_mask, step_size=step_size[which].repeat(times),
-                         **_repeated(kwargs, times))
-
-        guided_field = classifier_free_guidance(at_step_size, cond[which], scale=self.guidance,
-                                                lengths=lengths[which], conditional_channels=self.conditional_channels)
+        # the rows' inputs, their step sizes among them, repeated for guidance's two halves
+        bound = BoundInputs(model, {**rows_of(model_kwargs, which), "step_size": step_size[which]})
+        guided_field = classifier_free_guidance(bound, cond[which], scale=self.guidance, lengths=lengths[which],
+                                                conditional_channels=self.conditional_channels)
         out[which] = guided_field(x[which], t[which]).to(out.dtype)
         return out
 
@@ -213,14 +207,6 @@ def _conditional(model: Callable[..., Tensor], x: Tensor, t: Tensor, step_size: 
                  lengths: Tensor, model_kwargs: Mapping[str, Any]) -> Tensor:
     keep = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
     return model(x, t, cond, lengths, cond_mask=keep, step_size=step_size, **model_kwargs)
-
-
-def _repeated(model_kwargs: Mapping[str, Any], times: int) -> dict[str, Any]:
-    """Per-row inputs repeated ``times`` along the batch (guidance's conditional and unconditional halves)."""
-    if times == 1:
-        return dict(model_kwargs)
-    return {name: (value.repeat(times, *([1] * (value.dim() - 1))) if name in PER_ROW_KWARGS and value is not None
-                   else value) for name, value in model_kwargs.items()}
 
 
 def _config_of(model: Any) -> ModelConfig:

@@ -437,7 +437,8 @@ def sample(
     The initial noise comes from ``generator`` or, by default, a CPU generator seeded with ``seed``: the same seed,
     batch (cond, lengths) and device give identical results. A list of generators, one per motion
     (:func:`seeded_generators`), draws each motion's noise over its own length (:func:`draw_noise`), so a motion
-    does not depend on its batch: how launch/sample.py, reflow's pairs and training previews draw it. Frames ``>= lengths[b]`` are zero in the output.
+    does not depend on its batch: how launch/sample.py, reflow's pairs and training previews draw it. Frames
+    ``>= lengths[b]`` are zero in the output.
     The model should be in eval mode (dropout on makes the field random). feature_dim defaults to
     ``model.config.feature_dim``. ``num_frames``: the batch's window; the pipeline's samplers pass its longest
     length, so no pass computes frames that no motion of the batch has. ``precision``: see :func:`guided_velocity`.

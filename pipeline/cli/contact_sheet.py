@@ -9,8 +9,8 @@ pipeline/generation/contact_sheet.py, drawing in mfm/export/contact_sheet.py.
         --out ground_truth.png
 
 --captions-from-manifest SPLIT takes the first caption of every motion of that split of the checkpoint's dataset
-(a few-step student's: its teacher's; --manifest for another) and generates each with its clip's length, so the generated and --ground-truth sheets
-compare row for row.
+(a few-step student's: its teacher's; --manifest for another) and generates each with its clip's length, so the
+generated and --ground-truth sheets compare row for row.
 """
 
 from __future__ import annotations

@@ -363,11 +363,10 @@ class CheckpointScorer:
         for point in points:  # before any unit is claimed: a student guided at the protocol's 2.5 would score noise
             if (reason := ctx.trained.unguidable_reason(point.guidance)) is not None:
                 raise EvaluationError(f"{reason} (--guidance 1)")
-            if ctx.trained.objective == "flow":
-                try:  # a shortcut model: an untrained step count, or guidance over its built-in guidance
-                    ctx.trained.shortcut_step_size(point.solver, point.steps, point.guidance)
-                except ValueError as err:
-                    raise EvaluationError(f"sampling point {point.name}: {err}") from None
+            try:  # a shortcut model: an untrained step count, or guidance over its built-in guidance
+                ctx.trained.shortcut_step_size(point.solver, point.steps, point.guidance)
+            except ValueError as err:
+                raise EvaluationError(f"sampling point {point.name}: {err}") from None
         out = []
         if self.cfg.tasks.text_to_motion:
             kind = checkpoint_settings(ctx.trained, self.cfg)

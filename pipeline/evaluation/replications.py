@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from mfm import metrics, metrics_torch
-from mfm.composition import BoundInputs
+from mfm.composition import bind_inputs
 from mfm.diffusion_sampling import (
     SAMPLERS,
     BaselineSampling,
@@ -736,12 +736,10 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
     (``TrainedModel.x0_clamp``, as launch/sample.py). ``reference_translation``
     (``tasks.edit_reference_translation``): a diffusion edit gets the source's root copied into the output after the
     smoothing, as FLAME's procedure (``TrainedModel.finish_output``, as launch/sample.py); flow edits ignore it.
-    ``extras``: per-motion model inputs (cross-attention token features), bound with ``BoundInputs``.
+    ``extras``: per-motion model inputs (cross-attention token features), bound with ``mfm.composition.bind_inputs``.
     """
     model = trained.sampling_model  # the module, or it compiled once per checkpoint (sampling.compile)
-    step_size = (trained.shortcut_step_size(point.solver, point.steps, point.guidance)
-                 if trained.objective == "flow" else None)
-    model = BoundInputs(model, dict(extras), step_size=step_size) if extras or step_size is not None else model
+    model = bind_inputs(model, extras, step_size=trained.shortcut_step_size(point.solver, point.steps, point.guidance))
     num_frames, dim = int(lengths.max()), trained.model_config.feature_dim
     windowed = window is not None and keep is None
     if windowed:

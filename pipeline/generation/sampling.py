@@ -65,7 +65,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from mfm.composition import BoundInputs
+from mfm.composition import BoundInputs, bind_inputs
 from mfm.diffusion_sampling import replacement_edit, sample_diffusion
 from mfm.editing import (
     edit,
@@ -281,10 +281,7 @@ def conditioned_model(trained: TrainedModel, conditions: PromptConditions, step_
                       ) -> torch.nn.Module | BoundInputs:
     """The model with the conditions' extra per-sample inputs (and a shortcut model's step size) bound (the
     solvers' and samplers' call signature)."""
-    model = trained.sampling_model  # the model in its weights' dtype (TrainedModel.to)
-    if conditions.extras or step_size is not None:
-        return BoundInputs(model, conditions.extras, step_size=step_size)
-    return model
+    return bind_inputs(trained.sampling_model, conditions.extras, step_size=step_size)  # in its weights' dtype
 
 def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Tensor, num_frames: int) -> torch.Tensor:
     """(B, T, D) the source motion cropped/zero-padded to every sample's length."""

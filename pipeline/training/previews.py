@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mfm.composition import BoundInputs
+from mfm.composition import bind_inputs
 from mfm.diffusion import GaussianDiffusion
 from mfm.diffusion_sampling import BASELINE_SAMPLING, sample_diffusion, smooth_over_time
 from mfm.export import render_contact_sheet
@@ -161,7 +161,7 @@ class PreviewSampler:
         extras = {name: value.to(device) for name, value in prompts.extras.items()}
         # a shortcut model at its sampling steps' level, as launch/sample.py gives it (its guidance is 1 there)
         step_size = sampler_step_size(config.shortcut_levels, FLOW_SOLVER, config.sampling_steps)
-        call = BoundInputs(model, extras, step_size=step_size) if extras or step_size is not None else model
+        call = bind_inputs(model, extras, step_size=step_size)
         if self.diffusion is not None:
             result = sample_diffusion(call, self.diffusion, cond, lengths, num_frames=num_frames,
                                       feature_dim=config.feature_dim, sampler=DIFFUSION_SAMPLER, steps=DIFFUSION_STEPS,
