@@ -65,19 +65,29 @@ def sample_time(
     return torch.rand(batch, generator=generator, device=_draw_device(generator, device)).to(device)
 
 
-TIME_SAMPLINGS = ("uniform", "logit_normal")
+TIME_SAMPLINGS = ("uniform", "logit_normal", "grid")
 
 
-def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scale: float = 1.0) -> torch.Tensor:
+def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scale: float = 1.0,
+              grid_steps: int = 0) -> torch.Tensor:
     """Training times from uniform draws ``u`` in [0, 1) by the inverse CDF of the named density (so the random
     stream, and with it exact resume and any world size's draws, is the same whatever the density).
 
     'uniform': t = u (MFM). 'logit_normal': t = sigmoid(loc + scale·Φ⁻¹(u)), the density Esser et al. (2024,
     "Scaling Rectified Flow Transformers") found best for rectified flows on images: more training where the
     path is neither noise nor data; loc < 0 moves it toward the noise (t = 0), loc > 0 toward the data.
+    'grid': t = floor(u·K)/K with K = ``grid_steps``, the times 0, 1/K, ..., (K−1)/K at which Euler with K steps
+    evaluates the network, each equally often: the k-step distillation of a reflowed model (Liu et al. 2022,
+    rectified flow, section 2.3), which spends the student's training on the times its few-step sampler visits
+    (K = 2 trains t = 0 and 1/2: both the 1-step and the 2-step sampler). For a pair set (launch/distill.py), not
+    for training from data.
     """
     if sampling == "uniform":
         return u
+    if sampling == "grid":
+        if grid_steps < 1:
+            raise ValueError(f"grid time sampling needs grid_steps >= 1, got {grid_steps!r}")
+        return (torch.floor(u * grid_steps).clamp(max=grid_steps - 1) / grid_steps).to(u.dtype)
     if sampling != "logit_normal":
         raise ValueError(f"time sampling must be one of {TIME_SAMPLINGS}, got {sampling!r}")
     if scale <= 0:
@@ -197,7 +207,7 @@ def flow_matching_loss(
     temporal_weight: float = 0.0,
     bone_weight: float = 0.0,
     geometry: MotionGeometry | None = None,
-    time_sampling: tuple[str, float, float] = ("uniform", 0.0, 1.0),
+    time_sampling: tuple[str, float, float, int] = ("uniform", 0.0, 1.0, 0),
     terms_weighting: str = "data",
     velocity_weight_cap: float = 0.0,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -211,7 +221,7 @@ def flow_matching_loss(
     training step should draw ``cond_mask`` itself (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
     ``t`` (B,) and ``x0`` (B, T, D), when given, replace the draws (a data-parallel step slices them from the
     global batch's draws so that any world size computes the same thing). ``t``, drawn or given, is a uniform draw
-    that ``time_sampling`` = (name, loc, scale) turns into the training time (:func:`warp_time`; 'uniform' keeps
+    that ``time_sampling`` = (name, loc, scale, grid_steps) turns into the training time (:func:`warp_time`; 'uniform' keeps
     it); ``terms_weighting`` weighs the two terms over t (:func:`term_weight`); ``velocity_weight_cap`` caps the
     velocity loss's weight of an x̂1 error (:func:`loss_space_weight`). ``model_kwargs`` go to the model
     (per-frame conditions, token features, positional mode of the FlowMDM/FLAME variants).
@@ -358,6 +368,7 @@ class FlowMatchingObjective:
     time_sampling: str = "uniform"
     time_loc: float = 0.0
     time_scale: float = 1.0
+    time_grid_steps: int = 0
     terms_weighting: str = "data"
     velocity_weight_cap: float = 0.0
 
@@ -365,6 +376,9 @@ class FlowMatchingObjective:
         if self.time_sampling not in TIME_SAMPLINGS or self.time_scale <= 0:
             raise ValueError(f"FlowMatchingObjective.time_sampling must be one of {TIME_SAMPLINGS} with time_scale "
                              f"> 0, got {self.time_sampling!r}, {self.time_scale!r}")
+        if self.time_sampling == "grid" and self.time_grid_steps < 1:
+            raise ValueError(f"FlowMatchingObjective.time_sampling='grid' needs time_grid_steps >= 1, got "
+                             f"{self.time_grid_steps!r}")
         if self.bone_weight < 0 or (self.bone_weight > 0 and self.geometry is None):
             raise ValueError(f"FlowMatchingObjective.bone_weight must be >= 0 and needs a geometry when > 0, got "
                              f"{self.bone_weight!r}")
@@ -398,6 +412,7 @@ class FlowMatchingObjective:
             model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask,
             t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
             temporal_weight=self.temporal_weight, bone_weight=self.bone_weight, geometry=self.geometry,
-            time_sampling=(self.time_sampling, self.time_loc, self.time_scale), terms_weighting=self.terms_weighting,
+            time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
+            terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,
         )

@@ -125,7 +125,7 @@ class ShortcutObjective:
         boot, flow_rows = slice(0, n_boot), slice(n_boot, batch)
 
         flow_t = sample_time(n_flow, generator, device) if t is None else t[flow_rows].to(device)
-        flow_t = warp_time(flow_t, flow.time_sampling, flow.time_loc, flow.time_scale)
+        flow_t = warp_time(flow_t, flow.time_sampling, flow.time_loc, flow.time_scale, flow.time_grid_steps)
         flow_x0 = sample_noise(x1[flow_rows], generator) if x0 is None else x0[flow_rows].to(device)
         # Spread over the levels from a random first one, so that every level is trained at any batch size.
         draw_device = generator.device if generator is not None else device

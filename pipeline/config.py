@@ -308,13 +308,18 @@ class TrainLoopConfig:
     (``mfm.flow.loss_space_weight``): the velocity loss where that is at most the cap, the cap times the data loss
     nearer the data end (9 = from t = 2/3). 0 = no cap (MFM). Not MFM's; in the spirit of Min-SNR-γ (Hang et al.
     2023). Also caps the terms under flow_terms_weighting=loss."""
-    flow_time_sampling: Literal["uniform", "logit_normal"] = "uniform"
+    flow_time_sampling: Literal["uniform", "logit_normal", "grid"] = "uniform"
     """objective=flow: the density of the training times (``mfm.flow.warp_time``): 'uniform' = MFM; 'logit_normal' =
-    sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice)."""
+    sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice); 'grid' = the times
+    0, 1/K, ..., (K−1)/K of Euler with K = flow_time_grid_steps steps, for a reflow student's pair set
+    (launch/distill.py; rectified flow's k-step distillation, Liu et al. 2022), not for training from data."""
     flow_time_loc: float = 0.0
     """flow_time_sampling=logit_normal: the normal's mean (< 0 toward the noise, > 0 toward the data)."""
     flow_time_scale: float = 1.0
     """flow_time_sampling=logit_normal: the normal's standard deviation (> 0)."""
+    flow_time_grid_steps: int = 2
+    """flow_time_sampling=grid: K, the Euler steps whose times are trained (2: t = 0 and 1/2, which serve the 1-step
+    and the 2-step sampler)."""
     flow_noise: Literal["independent", "recorded"] = "independent"
     """objective=flow: where each training pair's noise x0 comes from. 'independent' (MFM): fresh N(0, I) from the
     trainer's generator. 'recorded' (reflow, ``launch/distill.py``): the noise the teacher integrated to make the
@@ -343,10 +348,15 @@ class TrainLoopConfig:
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
         _require(self.flow_temporal_weight >= 0, f"train.flow_temporal_weight must be >= 0, got {self.flow_temporal_weight}")
         _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
+        _require(self.flow_time_grid_steps >= 1, f"train.flow_time_grid_steps must be >= 1, got {self.flow_time_grid_steps}")
         _require(self.flow_velocity_weight_cap >= 0,
                  f"train.flow_velocity_weight_cap must be >= 0 (0 = no cap), got {self.flow_velocity_weight_cap}")
         _require(self.flow_velocity_weight_cap == 0 or self.flow_loss == "velocity",
                  f"train.flow_velocity_weight_cap applies to train.flow_loss=velocity, not {self.flow_loss!r}")
+        _require(self.flow_time_sampling != "grid" or self.flow_noise == "recorded",
+                 "train.flow_time_sampling=grid trains only the times a K-step sampler visits, so the network learns "
+                 "no flow between them: it is for a reflow student's pair set (launch/distill.py, which sets "
+                 "train.flow_noise=recorded), not for training from data")
         _require(self.flow_noise == "independent" or self.objective == "flow",
                  f"train.flow_noise={self.flow_noise} is a flow-matching setting; train.objective is {self.objective}")
         _require(0 < self.shortcut_fraction < 1, f"train.shortcut_fraction must be in (0, 1), got {self.shortcut_fraction}")

@@ -240,3 +240,9 @@ def test_compile_auto_compiles_on_cuda_only_and_booleans_still_read():
     assert compiles(True, torch.device("cpu")) and not compiles(False, torch.device("cuda"))
     with pytest.raises(ConfigError, match="train.compile"):
         load_config(TrainConfig, "tiny", ["train.compile=maybe"])
+
+
+def test_grid_times_are_for_a_pair_set_only():
+    with pytest.raises(ConfigError, match="pair set"):
+        TrainLoopConfig(flow_time_sampling="grid")
+    assert TrainLoopConfig(flow_time_sampling="grid", flow_noise="recorded").flow_time_grid_steps == 2

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -37,7 +38,8 @@ from pipeline.distributed import Dist
 from pipeline.generation.inference import load_trained_model
 from pipeline.generation.integration import sample_seed
 from pipeline.generation.pairs import PairSetError, make_pairs
-from pipeline.generation.pretrained import MotionPipeline
+from pipeline.generation.pretrained import CARD_FILE, MotionPipeline, export_pretrained
+from pipeline.training.run_folder import RUN_MARKER
 from pipeline.training.trainer import Trainer
 from preprocess.processing import single_threaded_torch
 
@@ -227,6 +229,32 @@ def test_student_one_step_lands_nearer_the_teachers_endpoint_than_the_teachers_o
         teacher_error += (solve_from_recorded_noise(teacher, record, teacher.default_guidance, 1)
                           - target).square().mean().item()
     assert student_error < 0.9 * teacher_error, (student_error / len(records), teacher_error / len(records))
+
+
+def test_grid_times_train_the_few_step_samplers_map_closer(student_run, teacher_run, tmp_path):
+    """Rectified flow's k-step distillation (train.flow_time_sampling=grid): a student trained on the same pairs, as
+    long, only at the times its 2-step sampler visits (t = 0 and 1/2) ends its 1- and 2-step solutions nearer the
+    teacher's endpoints than the student trained at uniform times. Its config records the grid."""
+    run = tmp_path / "grid-student"
+    run.mkdir()
+    (run / "pairs").symlink_to(student_run / "pairs", target_is_directory=True)  # the same pair set, not made again
+    shutil.copy(student_run / RUN_MARKER, run / RUN_MARKER)  # a run folder of ours, as the pairs' own run is
+    with single_threaded_torch():
+        assert distill_entry.main(["--teacher", str(teacher_run), "--out", str(run), *STUDENT_OVERRIDES,
+                                   "train.flow_time_sampling=grid", "train.flow_time_grid_steps=2"]) == 0
+    recorded = yaml.safe_load((run / "config.yaml").read_text())["train"]
+    assert (recorded["flow_time_sampling"], recorded["flow_time_grid_steps"]) == ("grid", 2)
+    card = (export_pretrained(run, tmp_path / "export") / CARD_FILE).read_text()
+    assert "trained only at the times its 2-step Euler sampler visits" in card
+    teacher, uniform, grid = (load_trained_model(r) for r in (teacher_run, student_run, run))
+    records = pair_records(student_run)[:32]
+    for steps in (1, 2):
+        errors = []
+        for student in (uniform, grid):
+            errors.append(sum((solve_from_recorded_noise(student, record, 1.0, steps)
+                               - (torch.from_numpy(record.features) - teacher.mean) / teacher.std).square().mean().item()
+                              for record in records))
+        assert errors[1] < 0.8 * errors[0], (steps, errors)
 
 
 def test_recorded_noise_needs_a_pair_set_used_whole(tmp_path_factory, tmp_path):

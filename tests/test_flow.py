@@ -259,6 +259,20 @@ def test_uniform_time_sampling_keeps_the_draws_and_logit_normal_is_its_inverse_c
         warp_time(u, "cosine")
 
 
+def test_grid_time_sampling_draws_the_k_step_eulers_times_equally_often():
+    u = torch.rand(20_000, generator=torch.Generator().manual_seed(0))
+    for steps in (1, 2, 4):
+        t = warp_time(u, "grid", grid_steps=steps)
+        values, counts = torch.unique(t, return_counts=True)
+        assert torch.allclose(values, torch.arange(steps) / steps)  # 0, 1/K, ..., (K-1)/K: never t = 1
+        assert (counts.float() / len(u) - 1 / steps).abs().max() < 0.02
+    assert warp_time(torch.tensor([1.0]), "grid", grid_steps=2).item() == 0.5  # u = 1 (never drawn) stays on the grid
+    with pytest.raises(ValueError, match="grid_steps"):
+        warp_time(u, "grid")
+    with pytest.raises(ValueError, match="time_grid_steps"):
+        FlowMatchingObjective(time_sampling="grid")
+
+
 def test_the_loss_trains_at_the_warped_time():
     torch.manual_seed(0)
     model = MotionFlowTransformer(ModelConfig(feature_dim=6, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,

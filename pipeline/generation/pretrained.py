@@ -218,6 +218,8 @@ def recipe_facts(trained: TrainedModel, train_config: Mapping[str, Any]) -> dict
     return {
         "objective": trained.objective, "diffusion_preset": trained.diffusion_preset,
         "flow_loss": loop.get("flow_loss") if trained.objective == "flow" else None,
+        "flow_time_sampling": loop.get("flow_time_sampling", "uniform") if trained.objective == "flow" else None,
+        "flow_time_grid_steps": loop.get("flow_time_grid_steps"),
         "steps": trained.step, "batch_size": data.get("batch_size"), "window": trained.window,
         "lr": optim.get("lr"), "schedule": optim.get("schedule"), "warmup_steps": optim.get("warmup_steps"),
         "weight_decay": optim.get("weight_decay"), "ema_decay": optim.get("ema_decay"),
@@ -362,6 +364,11 @@ def _recipe_lines(config: Mapping[str, Any], model: ModelConfig, recipe: Mapping
             f"{distill.get('teacher_solver')} {distill.get('teacher_steps')}-step solutions at guidance "
             f"{distill.get('teacher_guidance'):g} ({distill.get('teacher_guided_features')} channels); samples in "
             f"{model.sampling_steps} step(s) at guidance {model.sampling_guidance:g}")
+        if recipe.get("flow_time_sampling") == "grid":
+            grid = int(recipe.get("flow_time_grid_steps") or 0)
+            lines.append(f"- trained only at the times its {grid}-step Euler sampler visits (0, 1/{grid}, ...: "
+                         "`train.flow_time_sampling=grid`); at step counts whose times are not among them it runs "
+                         "at times it was not distilled at")
     return lines + [
         f"- {recipe.get('steps')} steps, batch {recipe.get('batch_size')} of {recipe.get('window')}-frame windows, "
         f"lr {recipe.get('lr')} ({recipe.get('schedule')}, {recipe.get('warmup_steps')} warm-up steps), weight decay "

@@ -422,6 +422,7 @@ def build_objective(cfg: TrainConfig, manifest: Manifest):
                                      bone_weight=cfg.train.flow_bone_weight, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
+                                     time_grid_steps=cfg.train.flow_time_grid_steps,
                                      terms_weighting=cfg.train.flow_terms_weighting,
                                      velocity_weight_cap=cfg.train.flow_velocity_weight_cap)
         if cfg.model.shortcut_levels == 0:
