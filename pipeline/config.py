@@ -319,7 +319,7 @@ class TrainLoopConfig:
     """flow_time_sampling=logit_normal: the normal's standard deviation (> 0)."""
     flow_time_grid_steps: int = 2
     """flow_time_sampling=grid: K, the Euler steps whose times are trained (2: t = 0 and 1/2, which serve the 1-step
-    and the 2-step sampler)."""
+    and the 2-step sampler; a student's distill.student_steps must divide it)."""
     flow_noise: Literal["independent", "recorded"] = "independent"
     """objective=flow: where each training pair's noise x0 comes from. 'independent' (MFM): fresh N(0, I) from the
     trainer's generator. 'recorded' (reflow, ``launch/distill.py``): the noise the teacher integrated to make the
@@ -470,6 +470,12 @@ class TrainConfig:
         _require(
             self.model.shortcut_levels == 0 or self.train.objective == "flow",
             "model.shortcut_levels > 0 (a shortcut model) trains with train.objective=flow",
+        )
+        steps = self.distill.student_steps if self.distill is not None else 0
+        _require(
+            not steps or self.train.flow_time_sampling != "grid" or self.train.flow_time_grid_steps % steps == 0,
+            f"train.flow_time_grid_steps={self.train.flow_time_grid_steps} does not hold the times of the student's "
+            f"{steps}-step sampler (distill.student_steps): use a multiple of {steps}",
         )
         _require(
             self.train.objective == "flow" or self.model.guided_features == "all",

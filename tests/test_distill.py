@@ -232,9 +232,10 @@ def test_student_one_step_lands_nearer_the_teachers_endpoint_than_the_teachers_o
 
 
 def test_grid_times_train_the_few_step_samplers_map_closer(student_run, teacher_run, tmp_path):
-    """Rectified flow's k-step distillation (train.flow_time_sampling=grid): a student trained on the same pairs, as
-    long, only at the times its 2-step sampler visits (t = 0 and 1/2) ends its 1- and 2-step solutions nearer the
-    teacher's endpoints than the student trained at uniform times. Its config records the grid."""
+    """Rectified flow's k-step distillation (train.flow_time_sampling=grid, K = 2): a student trained only at the
+    times its 2-step sampler visits (t = 0 and 1/2) ends its 1- and 2-step solutions from the pairs' own noise nearer
+    the teacher's endpoints than the student trained on the same pairs, as long, at uniform times (plain reflow, the
+    default). Its config and model card record the grid; a grid that lacks the student's steps is refused."""
     run = tmp_path / "grid-student"
     run.mkdir()
     (run / "pairs").symlink_to(student_run / "pairs", target_is_directory=True)  # the same pair set, not made again
@@ -255,6 +256,9 @@ def test_grid_times_train_the_few_step_samplers_map_closer(student_run, teacher_
                                - (torch.from_numpy(record.features) - teacher.mean) / teacher.std).square().mean().item()
                               for record in records))
         assert errors[1] < 0.8 * errors[0], (steps, errors)
+    with pytest.raises(ConfigError, match="student_steps"):
+        student_config(teacher, yaml.safe_load((teacher_run / "config.yaml").read_text()), tmp_path / "s3",
+                       ["train.flow_time_sampling=grid", "distill.student_steps=3"])
 
 
 def test_recorded_noise_needs_a_pair_set_used_whole(tmp_path_factory, tmp_path):

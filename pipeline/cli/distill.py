@@ -10,7 +10,10 @@ default sampler (euler, its model.sampling_steps, its guidance and guided_featur
 noise for every caption of its training split (pipeline/generation/pairs.py: the pair set in OUT/pairs/, made once,
 shared out over the ranks); then the student, the teacher's architecture initialised from its EMA weights, trains
 with the ordinary Trainer on the straight path from THAT noise to THAT motion (train.flow_noise=recorded), so Euler
-with distill.student_steps (default 2) steps lands near the teacher's endpoint. Guidance is distilled in: the student
+with distill.student_steps (default 2) steps lands near the teacher's endpoint. It trains at uniform times along
+the whole path; train.flow_time_sampling=grid (train.flow_time_grid_steps=2: t = 0 and 1/2, serving 1 and 2 steps;
+rectified flow's k-step distillation) trains only the times its sampler visits: better bones and jerk at 1 step,
+slightly lower FID and R@1 (docs/few-step.md, "Training at the sampler's times"). Guidance is distilled in: the student
 samples with guidance 1 (one pass per step) and trains without condition dropout (model.sampling_guidance=1,
 model.cond_drop_prob=0 in its config).
 
