@@ -221,9 +221,10 @@ def flow_matching_loss(
     training step should draw ``cond_mask`` itself (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
     ``t`` (B,) and ``x0`` (B, T, D), when given, replace the draws (a data-parallel step slices them from the
     global batch's draws so that any world size computes the same thing). ``t``, drawn or given, is a uniform draw
-    that ``time_sampling`` = (name, loc, scale, grid_steps) turns into the training time (:func:`warp_time`; 'uniform' keeps
-    it); ``terms_weighting`` weighs the two terms over t (:func:`term_weight`); ``velocity_weight_cap`` caps the
-    velocity loss's weight of an x̂1 error (:func:`loss_space_weight`). ``model_kwargs`` go to the model
+    that ``time_sampling`` = (name, loc, scale, grid_steps) turns into the training time (:func:`warp_time`;
+    'uniform' keeps it); ``terms_weighting`` weighs the two terms over t (:func:`term_weight`);
+    ``velocity_weight_cap`` caps the velocity loss's weight of an x̂1 error (:func:`loss_space_weight`).
+    ``model_kwargs`` go to the model
     (per-frame conditions, token features, positional mode of the FlowMDM/FLAME variants).
     Returns the scalar loss and ``{"loss": detached loss, "valid_frames": number of frames averaged}``.
     """

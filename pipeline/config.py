@@ -348,7 +348,8 @@ class TrainLoopConfig:
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
         _require(self.flow_temporal_weight >= 0, f"train.flow_temporal_weight must be >= 0, got {self.flow_temporal_weight}")
         _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
-        _require(self.flow_time_grid_steps >= 1, f"train.flow_time_grid_steps must be >= 1, got {self.flow_time_grid_steps}")
+        _require(self.flow_time_grid_steps >= 1,
+                 f"train.flow_time_grid_steps must be >= 1, got {self.flow_time_grid_steps}")
         _require(self.flow_velocity_weight_cap >= 0,
                  f"train.flow_velocity_weight_cap must be >= 0 (0 = no cap), got {self.flow_velocity_weight_cap}")
         _require(self.flow_velocity_weight_cap == 0 or self.flow_loss == "velocity",

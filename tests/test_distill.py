@@ -253,8 +253,8 @@ def test_grid_times_train_the_few_step_samplers_map_closer(student_run, teacher_
         errors = []
         for student in (uniform, grid):
             errors.append(sum((solve_from_recorded_noise(student, record, 1.0, steps)
-                               - (torch.from_numpy(record.features) - teacher.mean) / teacher.std).square().mean().item()
-                              for record in records))
+                               - (torch.from_numpy(record.features) - teacher.mean) / teacher.std
+                               ).square().mean().item() for record in records))
         assert errors[1] < 0.8 * errors[0], (steps, errors)
     with pytest.raises(ConfigError, match="student_steps"):
         student_config(teacher, yaml.safe_load((teacher_run / "config.yaml").read_text()), tmp_path / "s3",
