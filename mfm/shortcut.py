@@ -27,9 +27,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from mfm.composition import BoundInputs
 from mfm.flow import (FlowMatchingObjective, interpolate, sample_noise, sample_time, target_velocity, velocity_loss,
                       warp_time)
-from mfm.composition import BoundInputs
 from mfm.guidance import classifier_free_guidance
 from mfm.model import ModelConfig, draw_cond_drop_mask, valid_frame_mask
 

@@ -174,17 +174,13 @@ class RecordWindow:
             found[self._last[0]] = self._last[1]
         last = max(wanted)
         while len(found) < len(wanted):
-            try:
-                self._last = next(self._records)
-            except StopIteration:
+            self._last = next(self._records, None)
+            if self._last is None or self._last[0] > last:  # the split ended, or passed them: they are not in it
                 raise PairSetError(f"records {sorted(wanted - set(found))} of the pairs are not in the split (it "
-                                   "changed while the pairs were made)") from None
+                                   "changed while the pairs were made)")
             position, record = self._last
             if position in wanted:
                 found[position] = record
-            elif position > last:
-                raise PairSetError(f"records {sorted(wanted - set(found))} of the pairs are not in the split (it "
-                                   "changed while the pairs were made)")
         return found
 
 
@@ -195,13 +191,14 @@ def solve_pairs(teacher: TrainedModel, pairs: Sequence[PlannedPair], records: Ma
     position), zero past each length."""
     device = teacher.device
     lengths = torch.tensor([p.length for p in pairs], dtype=torch.long, device=device)
-    cond = torch.from_numpy(np.stack([records[p.record_index].text_emb[p.caption] for p in pairs])).to(device)
+    rows = [(records[p.record_index], p.caption) for p in pairs]
+    cond = torch.from_numpy(np.stack([record.text_emb[caption] for record, caption in rows])).to(device)
     extras: dict[str, torch.Tensor] = {}
     if teacher.model_config.conditioning == "cross_attention":
-        extras = {"text_tokens": torch.from_numpy(np.stack([records[p.record_index].text_tokens[p.caption]
-                                                            for p in pairs])).to(device),
-                  "text_token_len": torch.tensor([int(records[p.record_index].text_token_len[p.caption])
-                                                  for p in pairs], dtype=torch.long, device=device)}
+        extras = {"text_tokens": torch.from_numpy(np.stack([record.text_tokens[caption]
+                                                            for record, caption in rows])).to(device),
+                  "text_token_len": torch.tensor([int(record.text_token_len[caption]) for record, caption in rows],
+                                                 dtype=torch.long, device=device)}
     model = conditioned_model(teacher, PromptConditions(cond, extras))
     result = sample(model, cond, lengths, num_frames=int(lengths.max()), feature_dim=teacher.model_config.feature_dim,
                     solver=settings.teacher_solver, steps=settings.teacher_steps, guidance=settings.teacher_guidance,

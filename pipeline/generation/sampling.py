@@ -283,6 +283,7 @@ def conditioned_model(trained: TrainedModel, conditions: PromptConditions, step_
     solvers' and samplers' call signature)."""
     return bind_inputs(trained.sampling_model, conditions.extras, step_size=step_size)  # in its weights' dtype
 
+
 def _known_motion(trained: TrainedModel, source: SourceMotion, lengths: torch.Tensor, num_frames: int) -> torch.Tensor:
     """(B, T, D) the source motion cropped/zero-padded to every sample's length."""
     known = torch.zeros(lengths.shape[0], num_frames, trained.model_config.feature_dim, device=trained.device)
