@@ -37,7 +37,7 @@ from pipeline.data.stream import iter_motions, open_manifest
 from pipeline.distributed import Dist
 from pipeline.generation.inference import load_trained_model
 from pipeline.generation.integration import sample_seed
-from pipeline.generation.pairs import PairSetError, make_pairs
+from pipeline.generation.pairs import PairSetError, PlannedPair, RecordWindow, make_pairs
 from pipeline.generation.pretrained import CARD_FILE, MotionPipeline, export_pretrained
 from pipeline.training.run_folder import RUN_MARKER
 from pipeline.training.trainer import Trainer
@@ -151,6 +151,20 @@ def test_pairs_made_in_chunks_straddling_records_are_the_same_pairs(student_run,
     for a, b in zip(one, chunked):
         np.testing.assert_array_equal(b.text_emb, a.text_emb)
         np.testing.assert_allclose(b.features, a.features, rtol=0, atol=1e-4)
+
+
+def test_the_record_window_refuses_pairs_whose_records_the_split_lacks():
+    """A pair set's records are streamed once in order: a record the split skipped or ended before is refused with
+    the missing positions named, whichever way it is missed."""
+    def pair(position: int) -> PlannedPair:
+        return PlannedPair(position, position, f"r{position}", 0, 0, 10, 0)
+
+    window = RecordWindow(iter([(0, "a"), (1, "b"), (3, "d")]))
+    assert window.take([pair(0), pair(1)]) == {0: "a", 1: "b"}
+    with pytest.raises(PairSetError, match=r"records \[2\] of the pairs are not in the split"):
+        window.take([pair(2)])  # the split passed it
+    with pytest.raises(PairSetError, match=r"records \[1\] of the pairs are not in the split"):
+        RecordWindow(iter([(0, "a")])).take([pair(0), pair(1)])  # the split ended before it
 
 
 def test_recorded_noise_is_each_records_seed_and_length(student_run, teacher_run, tmp_path):
