@@ -16,11 +16,14 @@ Padding, from the batch plan (what the loader computes before reading a record),
   read. Also for several sort windows (1 = each batch cut to its own longest clip, no regrouping).
 
 Speed (``train_speed``): ``Trainer.train_step`` of the humanml3d preset's model (8 layers, 512 wide; the text
-condition's width comes from ``--manifest``) on this machine's CPU: one sort window of clips of the HumanML3D-like
-lengths (``--batch-size`` × ``--sort-window`` clips, random features), trained once as fixed-window batches in their
-shuffled order and once as the length-aware batches of the same clips, steps of the two interleaved (so that a
-shared machine's load falls on both alike), after one untimed step of each. ``useful_frames_per_s``: real frames
-over the summed step times.
+condition's width comes from ``--manifest``) with the preset's precision and compile setting (``auto``: bf16 and
+torch.compile on a CUDA GPU, fp32 eager on a CPU): one sort window of clips of the HumanML3D-like lengths
+(``--batch-size`` × ``--sort-window`` clips, random features), trained as fixed-window batches in their shuffled
+order and as the length-aware batches of the same clips, steps of the two interleaved (so that a shared machine's
+load falls on both alike), after one untimed step of each; ``--passes`` N repeats that N times and times the last.
+``useful_frames_per_s``: real frames over the summed step times (each step timed to its end on a GPU).
+
+    python benchmarks/bench_padding.py --only train_speed --manifest M --batch-size 128 --passes 2   # on a GPU
 """
 
 from __future__ import annotations
@@ -134,9 +137,12 @@ def train_speed(args: argparse.Namespace) -> dict[str, Any]:
     aware_order = length_grouped_order(timed, lengths, batch, sort_window, np.random.default_rng(args.seed))
     aware_batches = [aware_order[i:i + batch] for i in range(0, len(aware_order), batch)]
     with tempfile.TemporaryDirectory() as tmp:
+        # data.batching=length_aware: the trainer compiles (on CUDA) as a length-aware run does, one graph per width;
+        # the fixed windows' 196 is one of those widths
         cfg = load_config(TrainConfig, "humanml3d", [f"data.manifest={args.manifest}", f"train.out_dir={tmp}/run",
                                                     "train.wandb=disabled", "data.verify=off", "data.num_workers=0",
-                                                    f"data.batch_size={batch}"])
+                                                    f"data.batch_size={batch}", "data.batching=length_aware",
+                                                    f"data.pad_multiple={args.pad_multiple}"])
         with Dist(mixed_precision=cfg.train.mixed_precision) as dist:
             trainer = Trainer(cfg, dist)
             model_config = trainer.model_config
@@ -150,26 +156,36 @@ def train_speed(args: argparse.Namespace) -> dict[str, Any]:
                         "action": torch.zeros(len(items), dtype=torch.int64), "ids": [str(i) for i in items]}
 
             def step(b: dict[str, Any]) -> float:
+                if dist.device.type == "cuda":  # the optimizer and EMA launches of the step before end first
+                    torch.cuda.synchronize(dist.device)
                 start = time.perf_counter()
                 trainer.train_step([b])
                 trainer.step += 1
+                if dist.device.type == "cuda":
+                    torch.cuda.synchronize(dist.device)
                 return time.perf_counter() - start
 
             step(make(warmup[:batch], None))
             step(make(warmup[batch:], args.pad_multiple))
-            times = {"fixed": [], "length_aware": []}
-            widths = {"fixed": [], "length_aware": []}
-            for fixed_items, aware_items in zip(fixed_batches, aware_batches):
-                for name, items, multiple in (("fixed", fixed_items, None),
-                                              ("length_aware", aware_items, args.pad_multiple)):
-                    b = make(items, multiple)
-                    widths[name].append(b["features"].shape[1])
-                    times[name].append(step(b))
+            # Every pass trains the same batches; only the last is timed. On a GPU under torch.compile, each new
+            # batch width compiles (after the second, a dynamic-width graph), and --passes 2 keeps that out.
+            for timed_pass in [False] * (args.passes - 1) + [True]:
+                times = {"fixed": [], "length_aware": []}
+                widths = {"fixed": [], "length_aware": []}
+                for fixed_items, aware_items in zip(fixed_batches, aware_batches):
+                    for name, items, multiple in (("fixed", fixed_items, None),
+                                                  ("length_aware", aware_items, args.pad_multiple)):
+                        b = make(items, multiple)
+                        widths[name].append(b["features"].shape[1])
+                        times[name].append(step(b))
             useful = int(crops[timed].sum())
             result: dict[str, Any] = {
                 "bench": "train_speed", "config": "humanml3d", "params_m": round(trainer.num_parameters / 1e6, 3),
-                "cond_dim": model_config.cond_dim, "device": "cpu", "threads": torch.get_num_threads(),
-                "batch_size": batch, "steps_each": len(fixed_batches), "pad_multiple": args.pad_multiple,
+                "cond_dim": model_config.cond_dim,
+                "device": torch.cuda.get_device_name(dist.device) if dist.device.type == "cuda" else "cpu",
+                "precision": dist.mixed_precision, "compile": cfg.train.compile, "threads": torch.get_num_threads(),
+                "batch_size": batch, "steps_each": len(fixed_batches), "passes": args.passes,
+                "pad_multiple": args.pad_multiple,
                 "useful_frames": useful}
             for name in times:
                 total = sum(times[name])
@@ -192,6 +208,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sort-window", type=int, default=8, help="data.sort_window_batches")
     parser.add_argument("--batch-size", type=int, default=16, help="batch of the speed figures")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--passes", type=int, default=1,
+                        help="train_speed: passes over the same batches, the last one timed (2 on a GPU with compile)")
     parser.add_argument("--only", default="padding_humanml3d,padding_synthetic,train_speed",
                         help="comma-separated subset of the measurements")
     args = parser.parse_args(argv)

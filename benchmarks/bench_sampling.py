@@ -39,7 +39,7 @@ if __package__ in (None, ""):  # run as a script: make the project importable fr
 from mfm.compilation import compiled_for_sampling  # benchmarks/gpu_suite.py takes it from here too
 from mfm.guidance import SAMPLING_PRECISIONS
 from mfm.model import ModelConfig, MotionFlowTransformer, count_parameters
-from mfm.solvers import sample
+from mfm.solvers import NOISE_DEVICES, sample
 
 PRESETS = {
     "humanml3d": ModelConfig(),  # MFM's HumanML3D text model: 263-D, 8 layers x 512, 4 heads, CLIP 512
@@ -62,12 +62,14 @@ class SamplingSettings:
     compile: bool = False
     precision: str = "fp32"
     """The model passes' arithmetic (mfm.guidance.SAMPLING_PRECISIONS)."""
+    noise_device: str = "cpu"
+    """Where the initial noise is drawn (mfm.solvers.NOISE_DEVICES): cpu, as by default, or the model's device."""
 
     @classmethod
     def from_args(cls, args: argparse.Namespace, precision: str = "fp32") -> SamplingSettings:
         return cls(device=args.device, frames=args.frames, steps=args.steps, solver=args.solver,
                    guidance=args.guidance, repeats=args.repeats, warmup=args.warmup, compile=args.compile,
-                   precision=precision)
+                   precision=precision, noise_device=args.noise_device)
 
 
 def preset_model(config: ModelConfig, device: str) -> MotionFlowTransformer:
@@ -122,7 +124,7 @@ def measure_sampling(model, config: ModelConfig, batch: int, settings: SamplingS
         "median_batch_s": round(median, 4), "min_batch_s": round(min(times), 4), "repeats": settings.repeats,
         "warmup": settings.warmup, "nfe": nfe[-1], "model_passes_of_2B": nfe[-1] if guided else 0,
         "steps": settings.steps, "solver": settings.solver, "guidance": settings.guidance, "frames": settings.frames,
-        "precision": settings.precision,
+        "precision": settings.precision, "noise_device": settings.noise_device,
     }
     if settings.compile and warmups:
         record["compile_s"] = round(warmups[0], 3)
@@ -135,7 +137,7 @@ def sample_batch(model, config: ModelConfig, batch: int, settings: SamplingSetti
     lengths = torch.full((batch,), settings.frames, dtype=torch.long)
     return sample(model, cond, lengths, num_frames=settings.frames, feature_dim=config.feature_dim,
                   solver=settings.solver, steps=settings.steps, guidance=settings.guidance, seed=0,
-                  precision=settings.precision)
+                  precision=settings.precision, noise_device=settings.noise_device)
 
 
 def precision_difference(model, config: ModelConfig, batch: int, settings: SamplingSettings) -> dict:
@@ -169,6 +171,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compile", action="store_true", help="torch.compile the model (CUDA graphs on GPU)")
     parser.add_argument("--precision", default="fp32", help="comma list of fp32, bf16 (default fp32); with both, "
                                                            "also their difference")
+    parser.add_argument("--noise-device", choices=NOISE_DEVICES, default="cpu",
+                        help="draw the initial noise on the CPU (default, as the sampler does) or the model's device")
     args = parser.parse_args(argv)
     precisions = [p.strip() for p in args.precision.split(",") if p.strip()]
     if not precisions or any(p not in SAMPLING_PRECISIONS for p in precisions):

@@ -22,6 +22,33 @@ def compiles(setting: bool | str, device: torch.device | str) -> bool:
     return torch.device(device).type == "cuda" if setting == "auto" else bool(setting)
 
 
+TRAINING_COMPILE_MODES = ("default", "reduce-overhead", "max-autotune-no-cudagraphs")
+"""torch.compile modes a training run may ask for (``train.compile_mode``)."""
+
+
+def compiled_for_training(model: torch.nn.Module, mode: str = "default", *,
+                          batch_widths: int | None = None) -> torch.nn.Module:
+    """``torch.compile`` of the training model in ``mode``.
+
+    ``batch_widths``: how many distinct batch widths the run feeds (length-aware batches: one per multiple of
+    ``data.pad_multiple`` up to the window), or None for one width (fixed windows). With several, each width gets
+    its own static graph (``dynamic=False``) and dynamo's recompile limit is raised to hold them, in training and in
+    eval mode (validation), plus the stand-in's: left to itself, torch.compile turns the width symbolic at the
+    second width, and that graph's backward failed on an H200 (PyTorch 2.11: "shape '[1544, 512]' is invalid for
+    input of size 8" in inductor's reduction over a symbolic size). Each width then compiles once, on first sight.
+    """
+    if mode not in TRAINING_COMPILE_MODES:
+        raise ValueError(f"training compile mode must be one of {TRAINING_COMPILE_MODES}, got {mode!r}")
+    if batch_widths is None:
+        return torch.compile(model, mode=mode)
+    if batch_widths < 1:
+        raise ValueError(f"batch_widths must be >= 1, got {batch_widths!r}")
+    import torch._dynamo.config as dynamo_config  # torch's own knob; there is no public API for the limit
+
+    dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, 2 * batch_widths + 4)
+    return torch.compile(model, mode=mode, dynamic=False)
+
+
 def sampling_compile_mode(device: torch.device | str) -> str:
     """``torch.compile``'s mode for sampling on ``device``: reduce-overhead (CUDA graphs) on CUDA, else default."""
     return "reduce-overhead" if torch.device(device).type == "cuda" else "default"

@@ -288,6 +288,11 @@ class TrainLoopConfig:
     """torch.compile the model. auto: on a CUDA device, off elsewhere (on an H100 it took the HumanML3D preset's
     optimised step from 3.6x to 4.8x the reference's samples/s, docs/performance.md; on CPU it costs minutes of
     compilation for little). true / false: always / never."""
+    compile_mode: Literal["default", "reduce-overhead", "max-autotune-no-cudagraphs"] = "default"
+    """torch.compile's mode for training (with ``compile``): default; reduce-overhead (CUDA graphs of the forward and
+    backward: less host time per step, where a small model's step waits on the host, docs/performance.md); or
+    max-autotune-no-cudagraphs (longer compilation, tuned kernels). Length-aware batches compile one graph per batch
+    width whatever the mode (``mfm.compilation.compiled_for_training``)."""
     objective: Literal["flow", "diffusion"] = "flow"
     """flow: MFM's conditional flow matching; diffusion: the DDPM baseline on the same backbone (FLAME/FlowMDM)."""
     flow_loss: Literal["velocity", "data"] = "velocity"

@@ -40,9 +40,10 @@ def single_thread():
 class RecordedCompile(torch.nn.Module):
     """What the ``compile_calls`` fixture's ``torch.compile`` returns: the model itself, counting its calls."""
 
-    def __init__(self, model: torch.nn.Module, mode: str | None) -> None:
+    def __init__(self, model: torch.nn.Module, mode: str | None, options: dict | None = None) -> None:
         super().__init__()
         self.inner, self.mode, self.calls = model, mode, 0
+        self.options = options or {}  # torch.compile's other keywords (dynamic=...)
         self.train(model.training)  # as torch.compile's OptimizedModule, which is in its model's mode
 
     def forward(self, *args, **kwargs):
@@ -56,8 +57,8 @@ def compile_calls(monkeypatch) -> list[RecordedCompile]:
     of the wrappers it made, one per compile."""
     made: list[RecordedCompile] = []
 
-    def recording_compile(model, *, mode=None, **_options):
-        made.append(RecordedCompile(model, mode))
+    def recording_compile(model, *, mode=None, **options):
+        made.append(RecordedCompile(model, mode, options))
         return made[-1]
 
     monkeypatch.setattr(torch, "compile", recording_compile)

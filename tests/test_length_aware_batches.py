@@ -26,7 +26,8 @@ from test_data import (
 from mfm.flow import FlowMatchingObjective
 from mfm.model import ModelConfig, MotionFlowTransformer
 from pipeline.config import ConfigError, TrainConfig, load_config
-from pipeline.data.stages import Collate, TrainingSample, length_grouped_order, padded_width
+from mfm.compilation import compiled_for_training
+from pipeline.data.stages import Collate, TrainingSample, batch_widths, length_grouped_order, padded_width
 from pipeline.data.stream import DataResumeError, MotionLoader, split_shards
 from pipeline.training.trainer import resume_setting_error
 from preprocess.shards import ManifestError, derive_dataset_id
@@ -288,3 +289,66 @@ def test_the_padding_benchmark_plans_batches_as_the_loader_does(capsys):
     bench.main(["--only", "padding_humanml3d", "--clips", "2000"])
     record = json.loads(capsys.readouterr().out)
     assert record["computed_frames_ratio_fixed_to_length_aware"] > 1.1
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Compiled training: one static graph per batch width (a dynamic-width graph failed on an H200)
+# ----------------------------------------------------------------------------------------------------------
+
+
+def test_batch_widths_counts_every_width_a_length_aware_batch_can_have():
+    for window, multiple in ((196, 16), (192, 16), (48, 8), (196, 1), (20, 32)):
+        widths = {padded_width([n], window, multiple) for n in range(1, window + 1)}
+        assert batch_widths(window, multiple) == len(widths), (window, multiple)
+
+
+@pytest.fixture
+def dynamo_config():
+    """torch._dynamo's config with the recompile limit at torch's default, restored afterwards (its own patch: a
+    monkeypatch undo deletes the key from torch's config module)."""
+    import torch._dynamo.config as config
+
+    with config.patch(recompile_limit=8):
+        yield config
+
+
+def test_compiled_for_training_gives_length_aware_runs_static_graphs_and_room_for_every_width(compile_calls,
+                                                                                            dynamo_config):
+    model = torch.nn.Linear(2, 2)
+    compiled_for_training(model)
+    assert (compile_calls[-1].mode, compile_calls[-1].options) == ("default", {})  # fixed windows: as before
+    assert dynamo_config.recompile_limit == 8
+    compiled_for_training(model, "reduce-overhead", batch_widths=13)
+    assert compile_calls[-1].mode == "reduce-overhead" and compile_calls[-1].options == {"dynamic": False}
+    assert dynamo_config.recompile_limit == 2 * 13 + 4  # each width in train and eval mode, and the stand-in
+    compiled_for_training(model, batch_widths=2)
+    assert dynamo_config.recompile_limit == 30  # raised, never lowered
+    with pytest.raises(ValueError, match="compile mode"):
+        compiled_for_training(model, "max-autotune")
+    with pytest.raises(ValueError, match="batch_widths"):
+        compiled_for_training(model, batch_widths=0)
+
+
+@pytest.mark.parametrize("batching", ["fixed", "length_aware"])
+def test_the_trainer_compiles_in_the_configured_mode_one_graph_per_width_when_length_aware(
+        batching, compile_calls, tmp_path_factory, dynamo_config):
+    from test_trainer import build_dataset_once
+
+    from pipeline.distributed import Dist
+    from pipeline.training.trainer import Trainer
+
+    manifest = build_dataset_once(tmp_path_factory)
+    cfg = load_config(TrainConfig, "tiny", [
+        f"data.manifest={manifest}", f"train.out_dir={tmp_path_factory.mktemp('run')}", "train.wandb=disabled",
+        "train.compile=true", "train.compile_mode=max-autotune-no-cudagraphs", f"data.batching={batching}",
+        "data.window=40", "data.pad_multiple=8"])
+    with Dist(cpu=True) as dist:
+        Trainer(cfg, dist)
+    (compiled,) = compile_calls
+    assert compiled.mode == "max-autotune-no-cudagraphs"
+    if batching == "fixed":
+        assert compiled.options == {} and dynamo_config.recompile_limit == 8
+    else:
+        assert compiled.options == {"dynamic": False} and dynamo_config.recompile_limit == 2 * 5 + 4  # 8, ..., 40
+    with pytest.raises(ConfigError, match="train.compile_mode"):
+        load_config(TrainConfig, "tiny", ["train.compile_mode=fast"])

@@ -11,6 +11,7 @@ from mfm.solvers import (
     draw_noise,
     guided_velocity,
     initial_noise,
+    noise_generator_device,
     sample,
     sample_lengths,
     seeded_generators,
@@ -363,6 +364,34 @@ def test_draw_noise_per_motion_depends_on_seed_and_length_only():
                                initial_noise((2, 5, 4), seed=9), rtol=0, atol=0)
     # No lengths: every frame of every row.
     assert draw_noise((2, 5, 4), seeded_generators([1, 2]))[1, 3:].abs().min().item() > 0.0
+
+
+def test_noise_device_draws_on_the_cpu_by_default_or_on_the_models_device():
+    assert noise_generator_device("cpu", "cuda:1") == torch.device("cpu")
+    assert noise_generator_device("model", "cuda:1") == torch.device("cuda:1")
+    assert noise_generator_device("model", torch.device("cpu")) == torch.device("cpu")
+    with pytest.raises(ValueError, match="noise_device"):
+        noise_generator_device("gpu", "cpu")
+    assert all(g.device == torch.device("cpu") for g in seeded_generators([1, 2]))
+    model = MotionFlowTransformer(ModelConfig(feature_dim=4, cond_dim=3, latent_dim=16, num_layers=1, num_heads=2,
+                                              ff_dim=16, dropout=0.0)).eval()
+    cond, lengths = torch.randn(2, 3), torch.tensor([6, 4])
+    run = dict(num_frames=6, steps=2, guidance=1.5, seed=4)
+    # on a CPU model both draw from a CPU generator: the same motions
+    torch.testing.assert_close(sample(model, cond, lengths, noise_device="model", **run).x1,
+                               sample(model, cond, lengths, **run).x1, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="noise_device"):
+        sample(model, cond, lengths, noise_device="gpu", **run)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (the CPU case is tested above)")
+def test_noise_on_a_cuda_model_is_drawn_there_and_keeps_the_per_motion_contract():
+    generators = seeded_generators([1, 2], device="cuda")
+    noise = draw_noise((2, 5, 4), generators, lengths=torch.tensor([5, 3]), device="cuda")
+    assert noise.device.type == "cuda" and noise[1, 3:].abs().max().item() == 0.0
+    again = draw_noise((1, 3, 4), seeded_generators([2], device="cuda"), lengths=[3], device="cuda")
+    torch.testing.assert_close(noise[1:, :3], again, rtol=0, atol=0)  # a motion's noise: its seed and length only
+    assert not torch.equal(noise.cpu(), draw_noise((2, 5, 4), seeded_generators([1, 2]), lengths=torch.tensor([5, 3])))
 
 
 def test_is_adaptive_names_torchdiffeqs_adaptive_methods_only():

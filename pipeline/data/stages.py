@@ -384,6 +384,12 @@ def padded_width(lengths: Sequence[int], window: int, pad_multiple: int | None) 
     return min(window, -(-longest // pad_multiple) * pad_multiple)
 
 
+def batch_widths(window: int, pad_multiple: int) -> int:
+    """How many distinct widths :func:`padded_width` gives length-aware batches: the multiples of ``pad_multiple``
+    below ``window``, and ``window`` itself (196 with 16: 13)."""
+    return -(-window // pad_multiple)
+
+
 class Collate:
     """Samples → the batch dict the trainer consumes; motions zero-padded to ``W`` frames: ``window`` with
     ``pad_multiple`` None (fixed windows), else the batch's longest clip rounded up to a multiple of ``pad_multiple``
