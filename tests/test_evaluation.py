@@ -696,7 +696,7 @@ def test_editing_passes_and_precision_are_validated_and_keyed(monkeypatch):
     assert hashed[3]["sampling"]["precision"] == "bf16"
 
 
-def test_sampling_compile_is_validated_and_keyed_only_when_it_compiles(monkeypatch):
+def test_sampling_compile_and_noise_device_are_validated_and_keyed_only_when_they_change_the_motions(monkeypatch):
     """sampling.compile: false (default) and auto on a CPU (which does not compile) keep the keys results had before
     the setting existed; compiling (true, or auto on a CUDA device) has a key of its own."""
     from types import SimpleNamespace
@@ -721,6 +721,13 @@ def test_sampling_compile_is_validated_and_keyed_only_when_it_compiles(monkeypat
     assert key("cuda", "sampling.compile=false") == default
     with pytest.raises(ConfigError, match="sampling.compile"):
         load_eval_config("fast", overrides=["sampling.compile=maybe"])
+    # sampling.noise_device: cpu (default) and model on a CPU draw the same noise and keep the key; model on a GPU
+    # draws other noise for the same seeds, so its unit has a key of its own
+    assert load_eval_config("fast").sampling.noise_device == "cpu" and "noise_device" not in default["sampling"]
+    assert key("cpu", "sampling.noise_device=model") == key("cuda", "sampling.noise_device=cpu") == default
+    assert key("cuda", "sampling.noise_device=model")["sampling"]["noise_device"] == "cuda"
+    with pytest.raises(ConfigError, match="sampling.noise_device"):
+        load_eval_config("fast", overrides=["sampling.noise_device=gpu"])
 
 
 def test_compiled_generation_compiles_once_per_checkpoint_and_is_recorded(text_run, manifest, tmp_path,
@@ -764,7 +771,7 @@ def test_single_editing_pass_and_bf16_are_recorded_in_results_json_and_the_table
     assert evaluate("--checkpoint", str(text_run / "checkpoints" / "step-00000001"), "--protocol", "fast",
                     *SMALL_PROTOCOL, "sampling.steps=[1]", "protocol.multimodality=false", f"evaluator.path={evaluator}",
                     f"output.dir={out}", "tasks.editing_passes=single", "tasks.editing_samples=5",
-                    "sampling.precision=bf16") == 0
+                    "sampling.precision=bf16", "sampling.noise_device=model") == 0
     (path,) = (out / "results" / "step-00000001").glob("*.json")
     result = json.loads(path.read_text())
     assert (result["tasks"]["editing_passes"], result["tasks"]["editing_samples"]) == ("single", 5)
@@ -773,6 +780,7 @@ def test_single_editing_pass_and_bf16_are_recorded_in_results_json_and_the_table
     # fewer edits than the protocol's Diversity pairs (9 on 10 test items): Diversity over the 5, noted
     assert "editing Diversity over 5 pairs (the single pass's edits), not 9" in result["protocol"]["notes"]
     assert (result["sampling"]["precision"], result["sampling"]["precision_setting"]) == ("bf16", "bf16")
+    assert (result["sampling"]["noise_device"], result["sampling"]["noise_drawn_on"]) == ("model", "cpu")
     (generated, truth) = ResultsStore(out).table_rows()
     assert (generated["edit_passes"], generated["edit_edits_per_preset"], generated["precision"]) == ("single", 5,
                                                                                                      "bf16")

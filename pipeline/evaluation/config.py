@@ -213,6 +213,13 @@ class SamplingConfig:
     auto: on a CUDA device only, with CUDA graphs (``mode="reduce-overhead"``); true: always (inductor's default
     mode off CUDA: minutes of compilation on a CPU). Results record what ran (``sampling.compiled``) and the setting
     (``sampling.compile_setting``); a compiled unit has a key of its own (compiled kernels may round differently)."""
+    noise_device: Literal["cpu", "model"] = "cpu"
+    """Where generation's, editing's and MultiModality's seeded noise is drawn (mfm.solvers.NOISE_DEVICES): cpu
+    (default: every earlier result's, which keeps their keys; a seed gives the same motion on every device) or the
+    model's device (on a GPU the CPU's draw is the sampler's largest fixed cost: 124 ms per 256 motions on an H200
+    machine, docs/performance.md; on the GPU the motions differ from the CPU's for the same seeds, so such a unit has
+    a key of its own). Results record it (``sampling.noise_device``). Composition keeps the CPU noise (one sequence
+    per call: a small draw)."""
     rtol: float = 1e-5
     atol: float = 1e-5
 

@@ -68,6 +68,7 @@ from typing import Any
 import numpy as np
 
 from mfm.compilation import compiles
+from mfm.solvers import noise_generator_device
 from pipeline import checkpoint as ckpt
 from pipeline.config import ConfigError, parse_yaml, to_dict, wandb_mode
 from pipeline.data.stream import (
@@ -337,6 +338,10 @@ class CheckpointScorer:
         # uncompiled, every earlier result's way, adds nothing; compiling (true, or auto on CUDA) adds it
         if cfg.sampling.compile is not False and compiles(cfg.sampling.compile, self.dist.device):
             settings["sampling"]["compile"] = True
+        # CPU noise, every earlier result's, adds nothing; noise drawn on a device other than the CPU adds it
+        if (cfg.sampling.noise_device != "cpu"
+                and noise_generator_device(cfg.sampling.noise_device, self.dist.device).type != "cpu"):
+            settings["sampling"]["noise_device"] = str(self.dist.device.type)
         setup = cfg.tasks.edit_setup()
         own_steps = {p: setup["steps_per_preset"][p] for p in cfg.tasks.editing
                      if setup["steps_per_preset"][p] != setup["steps"]}
@@ -794,6 +799,9 @@ class EvaluationJob:
                          "precision": sampling_precision(self.cfg.sampling, self.dist.device),
                          "precision_setting": self.cfg.sampling.precision,
                          "compiled": trained.is_compiled, "compile_setting": self.cfg.sampling.compile,
+                         # the seeded noise's setting, and where it was drawn (the CPU, or the model's device)
+                         "noise_device": self.cfg.sampling.noise_device, "noise_drawn_on": noise_generator_device(
+                             self.cfg.sampling.noise_device, self.dist.device).type,
                          **baseline_record(trained, self.cfg.sampling),
                          **sampling_point_record(self.cfg)},
             "tasks": to_dict(self.cfg.tasks),

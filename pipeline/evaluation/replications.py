@@ -57,6 +57,7 @@ from mfm.solvers import (
     FIXED_STEP_SOLVERS,
     draw_noise,
     guided_velocity,
+    noise_generator_device,
     seeded_generators,
     solve,
     zero_padded_frames,
@@ -746,7 +747,7 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
         num_frames = max(int(window), num_frames)
     if trained.objective == "diffusion":
         schedule = trained.diffusion.respaced(point.steps)
-        generator = seeded_generators(seeds)
+        generator = seeded_generators(seeds, noise_generator_device(sampling.noise_device, trained.device))
         clamp = trained.x0_clamp(baseline_sampling(trained, sampling))  # FLAME's clip_denoised on our features
         if keep is None:
             result = sample_diffusion(model, schedule, cond, lengths, num_frames=num_frames, feature_dim=dim,
@@ -761,7 +762,8 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
         velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths, precision=precision,
                                    conditional_channels=guided_feature_mask(guided_features(trained, sampling),
                                                                             trained.skeleton))
-        x0 = draw_noise((len(seeds), num_frames, dim), seeded_generators(seeds),
+        x0 = draw_noise((len(seeds), num_frames, dim),
+                        seeded_generators(seeds, noise_generator_device(sampling.noise_device, trained.device)),
                         lengths=None if windowed else lengths, device=trained.device)
         if keep is None:
             result = solve(velocity if windowed else zero_padded_frames(velocity, lengths), x0, solver=point.solver,
