@@ -452,7 +452,8 @@ def sample(
 
     The initial noise comes from ``generator`` or, by default, a generator seeded with ``seed`` on the CPU
     (``noise_device='cpu'``: the same seed, batch (cond, lengths) and device give identical results, and the noise
-    is the same on every device) or on the model's device (``'model'``: faster on a GPU; :data:`NOISE_DEVICES`). A list of generators, one per motion
+    is the same on every device) or on the model's device (``'model'``: faster on a GPU; :data:`NOISE_DEVICES`).
+    A list of generators, one per motion
     (:func:`seeded_generators`), draws each motion's noise over its own length (:func:`draw_noise`), so a motion
     does not depend on its batch: how launch/sample.py, reflow's pairs and training previews draw it. Frames
     ``>= lengths[b]`` are zero in the output.
