@@ -16,6 +16,7 @@ generated motion. ``--no-multimodality`` skips MultiModality's extra generations
 ``run_evaluation_bench(EvalBenchSettings(...))`` is the same measurement for other scripts (benchmarks/gpu_suite.py).
 
 ``--precision bf16`` samples and edits with the model's passes under bf16 autocast (``sampling.precision``);
+``--noise-device model`` draws their seeded noise on the model's device (``sampling.noise_device``);
 ``--editing-passes single`` edits once, in the first replication, ``--editing-samples`` edits per preset
 (``tasks.editing_passes``; default: the share of the test set MFM's 5,000 edits are of HumanML3D's 4,384 motions).
 Per replication the record gives its wall time, phases and model passes (forward calls of the generator and the
@@ -92,6 +93,8 @@ class EvalBenchSettings:
     """``tasks.editing_passes``: per_replication or single."""
     editing_samples: int | None = None
     """Single mode's edits per preset; None: :func:`single_pass_edits_for` the test set."""
+    noise_device: str = "cpu"
+    """``sampling.noise_device``: cpu or model."""
 
 
 class PassCountingTimer(PhaseTimer):
@@ -193,7 +196,8 @@ def run_evaluation_bench(settings: EvalBenchSettings) -> dict[str, Any] | None:
     overrides = [f"protocol.replications={settings.replications}", f"sampling.batch_size={settings.batch_size}",
                  f"tasks.editing={json.dumps(list(settings.editing))}", f"tasks.flame={str(settings.flame).lower()}",
                  f"protocol.multimodality={str(settings.multimodality).lower()}",
-                 f"sampling.precision={settings.precision}", f"tasks.editing_passes={settings.editing_passes}"]
+                 f"sampling.precision={settings.precision}", f"tasks.editing_passes={settings.editing_passes}",
+                 f"sampling.noise_device={settings.noise_device}"]
     if settings.editing_passes == "single":
         edits = settings.editing_samples or single_pass_edits_for(settings.items)
         overrides += ["tasks.editing_replications=1", f"tasks.editing_samples={edits}"]
@@ -244,7 +248,8 @@ def run_evaluation_bench(settings: EvalBenchSettings) -> dict[str, Any] | None:
         result = run.result()
         estimate = protocol_estimate(replications, protocol_replications, editing_replications, ground_truth_s)
         return {"bench": "evaluation", "device": str(dist.device), "world_size": dist.world_size,
-                "precision": run.precision, "editing_passes": plan.editing_passes,
+                "precision": run.precision, "noise_device": settings.noise_device,
+                "editing_passes": plan.editing_passes,
                 "single_pass_edits": plan.single_pass_edits, "per_replication": replications,
                 "protocol_estimate": estimate,
                 "items": settings.items, "protocol": settings.protocol, "replications": plan.replications,
@@ -277,6 +282,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="tasks.editing_passes")
     parser.add_argument("--editing-samples", type=int, help="single mode's edits per preset (default: "
                         f"items x {EDITS_PER_SINGLE_PASS} / {HUMANML3D_TEST_ITEMS})")
+    parser.add_argument("--noise-device", choices=("cpu", "model"), default="cpu",
+                        help="sampling.noise_device: seeded noise drawn on the CPU or on the model's device")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -285,7 +292,8 @@ def main(argv: list[str] | None = None) -> int:
         batch_size=args.batch_size, model_preset=args.model_preset,
         editing=() if args.editing == "none" else tuple(args.editing.split(",")), flame=not args.no_flame,
         multimodality=not args.no_multimodality, device=args.device, text_dim=args.text_dim,
-        precision=args.precision, editing_passes=args.editing_passes, editing_samples=args.editing_samples)
+        precision=args.precision, editing_passes=args.editing_passes, editing_samples=args.editing_samples,
+        noise_device=args.noise_device)
     record = run_evaluation_bench(settings)
     if record is not None:
         print(json.dumps(record), flush=True)

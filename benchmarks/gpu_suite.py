@@ -31,7 +31,8 @@ Full size is the HumanML3D preset (configs/humanml3d.yaml: 8 layers, width 512, 
   ``--eval-items`` motions (HumanML3D's 4,384); value = test motions per second of one replication, with the
   estimated wall time of the whole protocol (ground truth once + every replication) and the generator's passes per
   replication. fp32, editing in every replication. ``evaluator_optimised``: the same at the sampler's optimised
-  precision with one single editing pass (``tasks.editing_passes=single``), averaged over the protocol.
+  precision with one single editing pass (``tasks.editing_passes=single``) and the seeded noise drawn on the model's
+  device (``sampling.noise_device=model``; the CPU's own on a CPU), averaged over the protocol.
 * ``suite_wall``: the suite's own wall time.
 
 FLOPs per training sample (fwd + bwd = 3 x forward; :func:`training_flops_per_sample`)::
@@ -450,7 +451,8 @@ def evaluator_figures(options: SuiteOptions) -> list[dict[str, Any]]:
         editing=bench_eval.EDITING_TASKS if editing else (), flame=editing, multimodality=size.eval_tasks == "all",
         device=options.device, text_dim=TEXT_DIM)
     runs = (("evaluator", base),
-            ("evaluator_optimised", dataclasses.replace(base, precision=sampler_precision(options), **(
+            ("evaluator_optimised", dataclasses.replace(base, precision=sampler_precision(options),
+                                                        noise_device="model", **(
                 {"replications": 2, "editing_passes": "single"} if editing else {}))))
     figures = []
     for name, settings in runs:
