@@ -11,6 +11,7 @@ import subprocess
 import sys
 from concurrent.futures import Future
 from functools import partial
+from pathlib import Path
 
 import pytest
 import torch
@@ -151,7 +152,7 @@ SHORTCUT = ("distill.method=shortcut", "distill.shortcut_levels=2")
 
 
 @pytest.fixture(scope="module")
-def shortcut_run(tmp_path_factory, teacher_run) -> "Path":  # noqa: F811
+def shortcut_run(tmp_path_factory, teacher_run) -> Path:  # noqa: F811
     run = tmp_path_factory.mktemp("shortcut") / "student"
     with single_threaded_torch():
         assert distill_entry.main(["--teacher", str(teacher_run), "--out", str(run), *SHORTCUT, "train.max_steps=6",
@@ -216,7 +217,7 @@ def test_the_shortcut_student_samples_in_its_levels_and_refuses_what_it_cannot(s
 
 
 @pytest.fixture(scope="module")
-def shortcut_launches(teacher_run, tmp_path_factory, request) -> dict[str, tuple["Path", Future]]:  # noqa: F811
+def shortcut_launches(teacher_run, tmp_path_factory, request) -> dict[str, tuple[Path, Future]]:  # noqa: F811
     """The launches of the two slow training tests below, started together (start_two_at_a_time), each when its
     test runs: a shortcut run killed and resumed beside an uninterrupted one (kill_and_resume), and a shortcut
     student under torchrun. Per launch its folder and its result; kill_and_resume's checks fail where it is read."""
