@@ -1,6 +1,9 @@
 import os
 import tempfile
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import TypeVar
 
 import pytest
 import torch
@@ -25,6 +28,8 @@ torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DIR = Path(os.environ.get("MFM_SHARED_DIR", REPO_ROOT.parent / "shared"))
 REFERENCE_DATA = SHARED_DIR / "reference-data"
+
+K, T = TypeVar("K"), TypeVar("T")
 
 
 @pytest.fixture
@@ -81,6 +86,26 @@ def embedded_dataset_once(tmp_path_factory) -> Path:
     if not (data / "manifest.json").exists():
         build_dataset(BuildConfig(out=data, progress=False))  # the defaults: deepmimic + minilm
     return data
+
+
+def start_two_at_a_time(launches: Mapping[K, Callable[[], T]]) -> dict[K, Future[T]]:
+    """Start independent launches (each a call that runs subprocesses and returns their outcome) in the background,
+    in this order, two at a time, and return their futures. A launch is mostly single-threaded Python starts (torch,
+    the text encoder, a launcher and its ranks) that leave the second core idle, so two side by side take little
+    longer than one. Only for launches whose results do not depend on timing: every process computes with one
+    intra-op thread whatever runs beside it, and faults strike at steps, not at times. A launch's exception is
+    raised where its result is read, failing only the tests that read it."""
+    pool = ThreadPoolExecutor(max_workers=2)
+    futures = {name: pool.submit(launch) for name, launch in launches.items()}
+    pool.shutdown(wait=False)  # the pool's threads finish the launches; nothing waits here
+    return futures
+
+
+def selected_tests(request: pytest.FixtureRequest) -> set[str]:
+    """The names (parameters left out) of the requesting module's tests that this session runs, after -k and -m: a
+    fixture that starts the launches of several tests at once starts those of the tests that run, so a test
+    deselected by its marker (``slow``, ``multirank``) costs nothing."""
+    return {item.originalname for item in request.session.items if item.module is request.module}
 
 
 def load_launch_script(name: str):

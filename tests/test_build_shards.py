@@ -8,6 +8,8 @@ import json
 import os
 import subprocess
 import sys
+from concurrent.futures import Future
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +17,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 import webdataset as wds
+from conftest import start_two_at_a_time
 
 from mfm.features import FeatureStats
 from mfm.layout import FeatureLayout
@@ -46,19 +49,40 @@ SYNTHETIC = ["--source", "synthetic", "--num-clips", "40", "--seed", "3", "--sha
              "--source-option", "corrupt=nan,bad_shape,short,long,no_captions"]
 
 
+# The CLI launches of this file: arguments and run_cli options. Each runs in a current folder of its own.
+LAUNCHES = {
+    "synthetic": ([*SYNTHETIC, "--out", "syn", "--workers", "2"], {}),
+    "wandb_offline": (["--source", "synthetic", "--num-clips", "6", "--shard-size", "8", "--quiet", "--out", "syn"],
+                      {"env": {"WANDB_MODE": "offline"}}),
+    "module_help": (["--help"], {"module": True}),
+    "no_arguments": ([], {}),  # the embedded default: DeepMimic + MiniLM into data/deepmimic-minilm
+}
+
+
 @pytest.fixture(scope="module")
-def synthetic_build(tmp_path_factory):
-    cwd = tmp_path_factory.mktemp("cli")
-    result = run_cli([*SYNTHETIC, "--out", "syn", "--workers", "2"], cwd)
+def launches(tmp_path_factory) -> dict[str, tuple[Path, Future]]:
+    """Every launch of LAUNCHES, started together (start_two_at_a_time: most of a launch is a single-threaded Python
+    start, torch and the text encoder). Per launch its current folder and its result."""
+    root = tmp_path_factory.mktemp("cli")
+    for name in LAUNCHES:
+        (root / name).mkdir()
+    started = start_two_at_a_time({name: partial(run_cli, args, root / name, **options)
+                                   for name, (args, options) in LAUNCHES.items()})
+    return {name: (root / name, started[name]) for name in LAUNCHES}
+
+
+@pytest.fixture(scope="module")
+def synthetic_build(launches):
+    cwd, launch = launches["synthetic"]
+    result = launch.result()
     assert result.returncode == 0, result.stderr
     return cwd / "syn", result
 
 
-def test_stdout_starts_with_the_summary_under_wandb_offline(tmp_path):
+def test_stdout_starts_with_the_summary_under_wandb_offline(launches):
     """WANDB_MODE=offline (common among W&B users) makes transformers print "[INFO] Running in WANDB offline mode"
     to stdout when the text encoder loads: that chatter goes to stderr, stdout's first line is the summary."""
-    result = run_cli(["--source", "synthetic", "--num-clips", "6", "--shard-size", "8", "--quiet", "--out", "syn"],
-                     tmp_path, env={"WANDB_MODE": "offline"})
+    result = launches["wandb_offline"][1].result()
     assert result.returncode == 0, result.stderr
     assert result.stdout.startswith("syn: train"), result.stdout[:500]
     assert "Running in WANDB offline mode" not in result.stdout
@@ -127,8 +151,8 @@ def test_strict_names_the_first_bad_file(tmp_path, capsys):
     assert not (tmp_path / "strict" / "manifest.json").exists()
 
 
-def test_module_entry_point(tmp_path):
-    result = run_cli(["--help"], tmp_path, module=True)
+def test_module_entry_point(launches):
+    result = launches["module_help"][1].result()
     assert result.returncode == 0 and "--source-option" in result.stdout, result.stderr
 
 
@@ -144,10 +168,11 @@ def test_help_explains_every_option(capsys):
         assert option in text
 
 
-def test_default_build_without_arguments(tmp_path, monkeypatch, capsys):
-    result = run_cli([], tmp_path)
+def test_default_build_without_arguments(launches, monkeypatch, capsys):
+    cwd, launch = launches["no_arguments"]
+    result = launch.result()
     assert result.returncode == 0, result.stderr
-    out = tmp_path / "data" / "deepmimic-minilm"
+    out = cwd / "data" / "deepmimic-minilm"
     manifest = load_manifest(out, verify="sha256")
     assert manifest["builder"]["options"]["source"] == "deepmimic"
     assert manifest["builder"]["options"]["min_frames"] == 24  # DeepMimic's floor: keeps the 1.5 s kick take
@@ -162,7 +187,7 @@ def test_default_build_without_arguments(tmp_path, monkeypatch, capsys):
     assert all(np.isfinite(manifest["normalization"]["std"])) and min(manifest["normalization"]["std"]) > 0
 
     before = files_of(out)
-    monkeypatch.chdir(tmp_path)
+    monkeypatch.chdir(cwd)
     assert main([]) != 0  # a complete dataset is never overwritten silently
     assert "--overwrite" in capsys.readouterr().err
     assert files_of(out) == before

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from concurrent.futures import Future
+from functools import partial
 from pathlib import Path
 
 import pytest
-from conftest import load_launch_script
+from conftest import load_launch_script, start_two_at_a_time
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -20,8 +22,7 @@ def run(script: str, *args: str, cwd: Path | None = None) -> subprocess.Complete
                           timeout=300)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("script, args, says", [
+REFUSALS = [
     ("launch/train.py", ["train.nope=1"], "unknown config key 'train.nope'"),
     ("launch/train.py", ["data.manifest=/nonexistent/manifest.json", "--out", "{tmp}/run"], "no manifest"),
     ("launch/evaluate.py", ["--checkpoint", "/nonexistent", "--protocol", "fast"], "no checkpoint or run folder"),
@@ -35,9 +36,23 @@ def run(script: str, *args: str, cwd: Path | None = None) -> subprocess.Complete
     ("launch/export.py", ["/nonexistent", "--out", "{tmp}/e"], "no checkpoint or run folder"),
     ("launch/convert_checkpoint.py", ["--from", "mfm", "/nonexistent.pt", "--dataset", "humanml3d", "--out",
                                       "{tmp}/m"], "no such checkpoint file"),
-])
-def test_refused_settings_are_one_line_and_exit_2(script, args, says, tmp_path):
-    result = run(script, *[a.replace("{tmp}", str(tmp_path)) for a in args])
+]
+
+
+@pytest.fixture(scope="module")
+def refused_launches(tmp_path_factory) -> dict[tuple[str, ...], Future]:
+    """Every case of REFUSALS launched at the first case's test (start_two_at_a_time: each is a single-threaded
+    Python start of a few seconds). Keyed by script and arguments; each case's folder ({tmp}) is its own."""
+    root = tmp_path_factory.mktemp("refusals")
+    return start_two_at_a_time({(script, *args): partial(run, script, *[a.replace("{tmp}", str(root / f"case{i}"))
+                                                                       for a in args])
+                                for i, (script, args, _) in enumerate(REFUSALS)})
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("script, args, says", REFUSALS)
+def test_refused_settings_are_one_line_and_exit_2(script, args, says, refused_launches):
+    result = refused_launches[(script, *args)].result()
     err = [line for line in result.stderr.splitlines() if " INFO " not in line and not line.startswith("INFO")]
     assert result.returncode == 2, result.stderr
     assert len(err) == 1 and says in err[0] and "Traceback" not in result.stderr, result.stderr

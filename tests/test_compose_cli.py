@@ -7,14 +7,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import REPO_ROOT
 from PIL import Image
 from test_sample_cli import (
     _train_once,
@@ -24,7 +21,7 @@ from test_sample_cli import (
     sample_entry,
     text_run,
 )
-from test_trainer import build_dataset_once, clean_env
+from test_trainer import build_dataset_once
 
 import pipeline.generation.outputs as outputs_module
 from mfm.composition import HUMANML3D_SWITCH, BoundInputs, compose, read_prompt_file
@@ -32,6 +29,7 @@ from mfm.diffusion_sampling import sample_diffusion, smooth_over_time
 from mfm.export import read_bvh
 from pipeline.generation.inference import load_trained_model
 from pipeline.generation.integration import sample_seed
+from preprocess.build_shards import main as build_shards
 
 pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("single_thread")]
 
@@ -66,9 +64,9 @@ def flame_layout_run(tmp_path_factory) -> Path:
     if not (root / "manifest.json").exists():
         building = root.with_name("token-dataset.building")
         shutil.rmtree(building, ignore_errors=True)
-        subprocess.run([sys.executable, str(REPO_ROOT / "preprocess" / "build_shards.py"), "--source", "synthetic",
-                        "--num-clips", "30", "--shard-size", "10", "--token-features", "--out", str(building),
-                        "--quiet"], cwd=REPO_ROOT, env=clean_env(), check=True, capture_output=True, timeout=300)
+        # in this process, as build_dataset_once (tests/test_trainer.py) builds its dataset
+        assert build_shards(["--source", "synthetic", "--num-clips", "30", "--shard-size", "10", "--token-features",
+                             "--out", str(building), "--quiet"]) == 0
         os.rename(building, root)
     return _train_once(tmp_path_factory, "diffusion-flame-layout-run", root / "manifest.json",
                        "train.objective=diffusion", "train.diffusion=flame", "model.conditioning=cross_attention",

@@ -10,13 +10,15 @@ import json
 import shutil
 import subprocess
 import sys
+from concurrent.futures import Future
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import REPO_ROOT, load_launch_script
+from conftest import REPO_ROOT, load_launch_script, selected_tests, start_two_at_a_time
 from eval_worker import SMALL_PROTOCOL, random_contrastive_evaluator
 from test_trainer import (
     assert_runs_identical,
@@ -298,25 +300,44 @@ def test_refused_overrides_exit_2(teacher_run, tmp_path, capsys):
     assert not (tmp_path / "s").exists()
 
 
-def test_student_training_resumes_bit_exactly(student_run, teacher_run, tmp_path):
+@pytest.fixture(scope="module")
+def student_launches(student_run, teacher_run, tmp_path_factory, request) -> dict[str, Future]:
+    """The launches of the two tests below, started together (start_two_at_a_time), each when its test runs: the
+    student's run killed and resumed beside an uninterrupted one (kill_and_resume), and the distillation under
+    torchrun. Per launch its result; kill_and_resume's checks fail where its result is read."""
+    root = tmp_path_factory.mktemp("student-launches")
+    wanted = selected_tests(request)
+    launches = {}
+    if "test_student_training_resumes_bit_exactly" in wanted:
+        extra = ("data.unit_length=1", "train.flow_noise=recorded", f"train.init_from={teacher_run}",
+                 "model.cond_drop_prob=0", "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
+        launches["resume"] = partial(kill_and_resume, student_run / "pairs" / "manifest.json", root / "resume",
+                                     base_overrides, extra, 5, 4)
+    if "test_two_ranks_share_the_teachers_work" in wanted:
+        launches["two_ranks"] = partial(
+            subprocess.run, [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                             str(REPO_ROOT / "launch" / "distill.py"), "--teacher", str(teacher_run), "--out",
+                             str(root / "two_ranks"), "train.max_steps=2", "train.save_every=2",
+                             "distill.batch_size=7"],
+            cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=300)
+    started = start_two_at_a_time(launches)
+    return {name: (root / name, future) for name, future in started.items()}
+
+
+def test_student_training_resumes_bit_exactly(student_launches):
     """The student's run (recorded noise, initialised from the teacher) SIGKILLed in the middle of step 5 and resumed
     from checkpoint 4 ends bit-identical to an uninterrupted one."""
-    extra = ("data.unit_length=1", "train.flow_noise=recorded", f"train.init_from={teacher_run}",
-             "model.cond_drop_prob=0", "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
-    a_out, b_out = kill_and_resume(student_run / "pairs" / "manifest.json", tmp_path, base_overrides, extra, 5, 4)
+    a_out, b_out = student_launches["resume"][1].result()
     assert_runs_identical(a_out / "run", b_out / "run", 6)
 
 
 @pytest.mark.multirank
-def test_two_ranks_share_the_teachers_work(student_run, teacher_run, tmp_path):
+def test_two_ranks_share_the_teachers_work(student_run, student_launches):
     """Under torchrun with 2 ranks each rank solves every other pair and rank 0 writes them all: the same pairs, in
     the same order, with the same seeds and (up to the summation order of other batch mates) the same motions as
     one rank's; then the student trains on both ranks."""
-    out = tmp_path / "two-ranks"
-    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                           str(REPO_ROOT / "launch" / "distill.py"), "--teacher", str(teacher_run), "--out", str(out),
-                           "train.max_steps=2", "train.save_every=2", "distill.batch_size=7"],
-                          cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=300)
+    out, started = student_launches["two_ranks"]
+    proc = started.result()
     assert proc.returncode == 0, output_of(proc)
     one, two = pair_records(student_run), pair_records(out)
     assert [(r.id, r.noise_seed, r.captions) for r in two] == [(r.id, r.noise_seed, r.captions) for r in one]

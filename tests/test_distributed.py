@@ -2,11 +2,13 @@ import json
 import os
 import subprocess
 import sys
+from concurrent.futures import Future
+from functools import partial
 from pathlib import Path
 
 import pytest
 import torch
-from conftest import load_launch_script
+from conftest import load_launch_script, start_two_at_a_time
 from torch import nn
 
 from pipeline.distributed import (
@@ -145,13 +147,18 @@ def _launch_env() -> dict[str, str]:
     return env
 
 
-def _run_two_ranks(command: list[str], out_dir, env=None) -> list[dict]:
-    proc = subprocess.run(
-        command + [str(WORKER), str(out_dir)],
-        cwd=REPO_ROOT, env=env or _launch_env(), capture_output=True, text=True, timeout=180,
-    )
+def _launch(command: list[str], out_dir: Path, env=None) -> subprocess.CompletedProcess:
+    return subprocess.run(command + [str(WORKER), str(out_dir)], cwd=REPO_ROOT, env=env or _launch_env(),
+                          capture_output=True, text=True, timeout=180)
+
+
+def _two_rank_results(proc: subprocess.CompletedProcess, out_dir: Path) -> list[dict]:
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return [json.loads((out_dir / f"rank{r}.json").read_text()) for r in (0, 1)]
+
+
+def _run_two_ranks(command: list[str], out_dir, env=None) -> list[dict]:
+    return _two_rank_results(_launch(command, out_dir, env), out_dir)
 
 
 def _check_two_rank_results(results: list[dict]) -> None:
@@ -182,35 +189,45 @@ def test_two_gloo_ranks_under_torchrun(tmp_path):
 
 
 ACCELERATE_LAUNCH = [sys.executable, "-m", "accelerate.commands.launch"]
+# The accelerate launches of the slow tests below: launch arguments and whether ACCELERATE_USE_CPU=1 is set.
+ACCELERATE_LAUNCHES = {
+    "cli-recipe": (["--multi_gpu", "--num_processes", "2", "--num_machines", "1", "--mixed_precision", "no",
+                    "--dynamo_backend", "no", "--main_process_port", "0"], True),
+    "cpu_2ranks.yaml": (["--config_file", str(ACCELERATE_CONFIGS / "cpu_2ranks.yaml")], True),
+    "cpu-num-processes-2": (["--cpu", "--num_processes", "2"], False),  # refused: one process would run
+}
+
+
+@pytest.fixture(scope="module")
+def accelerate_launches(tmp_path_factory) -> dict[str, tuple[Path, Future]]:
+    """Every launch of ACCELERATE_LAUNCHES, started together (start_two_at_a_time); per launch its output folder
+    (empty when the launch starts) and its result."""
+    root = tmp_path_factory.mktemp("accelerate")
+    launches = {}
+    for name, (args, use_cpu) in ACCELERATE_LAUNCHES.items():
+        (root / name).mkdir()
+        env = {**_launch_env(), "ACCELERATE_USE_CPU": "1"} if use_cpu else _launch_env()
+        launches[name] = partial(_launch, ACCELERATE_LAUNCH + args, root / name, env)
+    started = start_two_at_a_time(launches)
+    return {name: (root / name, started[name]) for name in launches}
 
 
 @pytest.mark.multirank
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "launch_args",
-    [
-        ["--multi_gpu", "--num_processes", "2", "--num_machines", "1", "--mixed_precision", "no",
-         "--dynamo_backend", "no", "--main_process_port", "0"],
-        ["--config_file", str(ACCELERATE_CONFIGS / "cpu_2ranks.yaml")],
-    ],
-    ids=["cli-recipe", "cpu_2ranks.yaml"],
-)
-def test_two_gloo_ranks_under_accelerate_launch(tmp_path, launch_args):
-    env = _launch_env()
-    env["ACCELERATE_USE_CPU"] = "1"
-    _check_two_rank_results(_run_two_ranks(ACCELERATE_LAUNCH + launch_args, tmp_path, env))
+@pytest.mark.parametrize("launch", ["cli-recipe", "cpu_2ranks.yaml"])
+def test_two_gloo_ranks_under_accelerate_launch(accelerate_launches, launch):
+    out_dir, started = accelerate_launches[launch]
+    _check_two_rank_results(_two_rank_results(started.result(), out_dir))
 
 
 @pytest.mark.multirank
 @pytest.mark.slow
-def test_accelerate_cpu_num_processes_2_is_refused_not_run_once(tmp_path):
-    proc = subprocess.run(
-        ACCELERATE_LAUNCH + ["--cpu", "--num_processes", "2", str(WORKER), str(tmp_path)],
-        cwd=REPO_ROOT, env=_launch_env(), capture_output=True, text=True, timeout=180,
-    )
+def test_accelerate_cpu_num_processes_2_is_refused_not_run_once(accelerate_launches):
+    out_dir, started = accelerate_launches["cpu-num-processes-2"]
+    proc = started.result()
     assert proc.returncode != 0
     assert "LaunchError" in proc.stderr and "--multi_gpu" in proc.stderr
-    assert list(tmp_path.iterdir()) == []  # the lone process did no work
+    assert list(out_dir.iterdir()) == []  # the lone process did no work
 
 
 @pytest.mark.parametrize("name", ["cpu_2ranks", "single_gpu", "multi_gpu", "multi_node"])

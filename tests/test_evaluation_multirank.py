@@ -9,9 +9,11 @@ import json
 import os
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import pytest
+from conftest import start_two_at_a_time
 from eval_worker import (
     build_synthetic_dataset,
     random_contrastive_evaluator,
@@ -38,8 +40,10 @@ def test_metrics_are_identical_on_one_and_two_ranks(tmp_path_factory):
     evaluator = random_contrastive_evaluator(manifest, tmp_path_factory.mktemp("ev") / "contrastive.safetensors")
     checkpoint = run / "checkpoints" / "step-00000001"
     root = tmp_path_factory.mktemp("multirank-eval")
-    one = run_ranks(1, checkpoint, evaluator, root / "one")
-    two = run_ranks(2, checkpoint, evaluator, root / "two")
+    # Both launches at once (mostly Python starts of the launchers and ranks; one intra-op thread in every rank)
+    launches = start_two_at_a_time({nproc: partial(run_ranks, nproc, checkpoint, evaluator, root / str(nproc))
+                                    for nproc in (1, 2)})
+    one, two = launches[1].result(), launches[2].result()
 
     assert (one["world_size"], two["world_size"]) == (1, 2)
     assert one["data"]["num_items"] == 10 and one["sampling"]["batch_size"] == 4

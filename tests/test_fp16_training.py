@@ -18,12 +18,14 @@ import logging
 import math
 import subprocess
 import sys
+from concurrent.futures import Future
+from functools import partial
 from pathlib import Path
 
 import pytest
 import torch
 import yaml
-from conftest import load_launch_script
+from conftest import load_launch_script, selected_tests, start_two_at_a_time
 from test_trainer import (
     REPO_ROOT,
     NaNAtSteps,
@@ -121,18 +123,41 @@ def test_fp16_resolves_from_the_config_and_from_accelerate_launch(monkeypatch, t
 # ---------------------------------------------------------------------------------------------------------------
 
 
+# The launcher run of the next test: steps, and the clean steps after which the loss scale doubles.
+LAUNCHED_STEPS, LAUNCHED_GROWTH = 16, 5
+
+
+@pytest.fixture(scope="module")
+def launches(dataset, tmp_path_factory, request) -> dict[str, tuple[Path, Future]]:
+    """The launches of this file's two slow tests, started together (start_two_at_a_time), each when its test runs:
+    accelerate launch of launch/train.py in fp16 (one process), and the torchrun overflow run (run_overflow). Per
+    launch its folder and its result."""
+    root = tmp_path_factory.mktemp("fp16-launches")
+    wanted = selected_tests(request)
+    launches = {}
+    if "test_accelerate_launch_fp16_trains_on_cpu_and_records_the_loss_scale" in wanted:
+        steps, growth = LAUNCHED_STEPS, LAUNCHED_GROWTH
+        command = [sys.executable, "-m", "accelerate.commands.launch", "--num_processes", "1", "--num_machines", "1",
+                   "--mixed_precision", "fp16", "--dynamo_backend", "no", "--cpu",
+                   str(REPO_ROOT / "launch" / "train.py"), "--config", "tiny",
+                   *base_overrides(dataset, root / "accelerate" / "run", "train.mixed_precision=auto",
+                                   "train.tensorboard=false", f"train.max_steps={steps}", f"train.save_every={steps}",
+                                   "data.batch_size=8", "optim.lr=2e-3", "model.dropout=0.0",
+                                   f"train.fp16_growth_interval={growth}")]
+        launches["accelerate"] = partial(subprocess.run, command, cwd=REPO_ROOT, env=clean_env(), capture_output=True,
+                                         text=True, timeout=240)
+    if "test_an_overflow_on_one_rank_skips_the_step_on_both" in wanted:
+        launches["overflow"] = partial(run_overflow, dataset, root / "overflow")
+    started = start_two_at_a_time(launches)
+    return {name: (root / name, future) for name, future in started.items()}
+
+
 @pytest.mark.slow
-def test_accelerate_launch_fp16_trains_on_cpu_and_records_the_loss_scale(dataset, tmp_path):
+def test_accelerate_launch_fp16_trains_on_cpu_and_records_the_loss_scale(launches):
     """The real launcher (one CPU process): train.mixed_precision=auto follows its --mixed_precision fp16."""
-    run = tmp_path / "run"
-    steps, growth = 16, 5
-    command = [sys.executable, "-m", "accelerate.commands.launch", "--num_processes", "1", "--num_machines", "1",
-               "--mixed_precision", "fp16", "--dynamo_backend", "no", "--cpu",
-               str(REPO_ROOT / "launch" / "train.py"), "--config", "tiny",
-               *base_overrides(dataset, run, "train.mixed_precision=auto", "train.tensorboard=false",
-                               f"train.max_steps={steps}", f"train.save_every={steps}", "data.batch_size=8",
-                               "optim.lr=2e-3", "model.dropout=0.0", f"train.fp16_growth_interval={growth}")]
-    proc = subprocess.run(command, cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=240)
+    out, started = launches["accelerate"]
+    run, steps, growth = out / "run", LAUNCHED_STEPS, LAUNCHED_GROWTH
+    proc = started.result()
     assert proc.returncode == 0, output_of(proc)
     assert "precision fp16" in proc.stderr and f"loss scale {INIT_SCALE * 2 ** (steps // growth):g}" in proc.stderr
 
@@ -263,15 +288,19 @@ def test_an_fp32_checkpoint_resumes_in_fp16_from_the_initial_scale(dataset, tmp_
 OVERFLOW_STEP = 2
 
 
-@pytest.mark.slow
-@pytest.mark.multirank
-def test_an_overflow_on_one_rank_skips_the_step_on_both(dataset, tmp_path):
-    """Rank 1's gradient becomes inf after DDP's all-reduce: rank 0's own gradients are finite, so only the shared
-    overflow flag makes it skip; both keep identical weights and scalers."""
-    out = tmp_path / "out"
+def run_overflow(dataset: Path, out: Path) -> subprocess.CompletedProcess:
     scenario = fit_scenario(out, fp16_overrides(dataset, out / "run", "train.max_steps=4", "train.save_every=4"),
                             overflow_at=[1, [OVERFLOW_STEP]], snapshot_at=[OVERFLOW_STEP, 4], mixed_precision="fp16")
-    proc = run_worker(TORCHRUN, [scenario], out, timeout=240)
+    return run_worker(TORCHRUN, [scenario], out, timeout=240)
+
+
+@pytest.mark.slow
+@pytest.mark.multirank
+def test_an_overflow_on_one_rank_skips_the_step_on_both(launches):
+    """Rank 1's gradient becomes inf after DDP's all-reduce: rank 0's own gradients are finite, so only the shared
+    overflow flag makes it skip; both keep identical weights and scalers."""
+    out, started = launches["overflow"]
+    proc = started.result()
     assert proc.returncode == 0 and results(out, 2) == [{"exit_code": 0}] * 2, output_of(proc)
     snaps = {(r, s): torch.load(out / f"snap-rank{r}-step{s}.pt")
              for r in (0, 1) for s in (OVERFLOW_STEP - 1, OVERFLOW_STEP, 4)}

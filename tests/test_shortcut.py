@@ -9,11 +9,14 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from concurrent.futures import Future
+from functools import partial
+from pathlib import Path
 
 import pytest
 import torch
 import yaml
-from conftest import REPO_ROOT, load_launch_script
+from conftest import REPO_ROOT, load_launch_script, selected_tests, start_two_at_a_time
 from eval_worker import SMALL_PROTOCOL, random_contrastive_evaluator
 from test_distill import teacher_run  # noqa: F401  (the session's tiny teacher, shared with test_distill.py)
 from test_trainer import (
@@ -149,7 +152,7 @@ SHORTCUT = ("distill.method=shortcut", "distill.shortcut_levels=2")
 
 
 @pytest.fixture(scope="module")
-def shortcut_run(tmp_path_factory, teacher_run) -> "Path":  # noqa: F811
+def shortcut_run(tmp_path_factory, teacher_run) -> Path:  # noqa: F811
     run = tmp_path_factory.mktemp("shortcut") / "student"
     with single_threaded_torch():
         assert distill_entry.main(["--teacher", str(teacher_run), "--out", str(run), *SHORTCUT, "train.max_steps=6",
@@ -213,13 +216,34 @@ def test_the_shortcut_student_samples_in_its_levels_and_refuses_what_it_cannot(s
                      f"evaluator.path={evaluator}", f"output.dir={tmp_path / 'guided-eval'}"]) == 2
 
 
+@pytest.fixture(scope="module")
+def shortcut_launches(teacher_run, tmp_path_factory, request) -> dict[str, tuple[Path, Future]]:  # noqa: F811
+    """The launches of the two slow training tests below, started together (start_two_at_a_time), each when its
+    test runs: a shortcut run killed and resumed beside an uninterrupted one (kill_and_resume), and a shortcut
+    student under torchrun. Per launch its folder and its result; kill_and_resume's checks fail where it is read."""
+    root = tmp_path_factory.mktemp("shortcut-launches")
+    wanted = selected_tests(request)
+    launches = {}
+    if "test_shortcut_training_resumes_bit_exactly" in wanted:
+        extra = (f"train.init_from={teacher_run}", "model.shortcut_levels=2", "train.shortcut_guidance=2.5",
+                 "train.shortcut_fraction=0.5", "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
+        launches["resume"] = partial(kill_and_resume, build_dataset_once(tmp_path_factory), root / "resume",
+                                     base_overrides, extra, 5, 4)
+    if "test_a_shortcut_student_trains_on_two_ranks" in wanted:
+        launches["two_ranks"] = partial(
+            subprocess.run, [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+                             str(REPO_ROOT / "launch" / "distill.py"), "--teacher", str(teacher_run), "--out",
+                             str(root / "two_ranks"), *SHORTCUT, "train.max_steps=2", "train.save_every=2"],
+            cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=300)
+    started = start_two_at_a_time(launches)
+    return {name: (root / name, future) for name, future in started.items()}
+
+
 @pytest.mark.slow
-def test_shortcut_training_resumes_bit_exactly(teacher_run, tmp_path, tmp_path_factory):  # noqa: F811
+def test_shortcut_training_resumes_bit_exactly(shortcut_launches):
     """A shortcut run (initialised from the teacher, self-consistency rows with guided targets) SIGKILLed in the
     middle of step 5 and resumed from checkpoint 4 ends bit-identical to an uninterrupted one."""
-    extra = (f"train.init_from={teacher_run}", "model.shortcut_levels=2", "train.shortcut_guidance=2.5",
-             "train.shortcut_fraction=0.5", "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
-    a_out, b_out = kill_and_resume(build_dataset_once(tmp_path_factory), tmp_path, base_overrides, extra, 5, 4)
+    a_out, b_out = shortcut_launches["resume"][1].result()
     assert_runs_identical(a_out / "run", b_out / "run", 6)
 
 
@@ -244,13 +268,10 @@ def test_composition_gives_a_shortcut_model_its_step_size():
 
 @pytest.mark.slow
 @pytest.mark.multirank
-def test_a_shortcut_student_trains_on_two_ranks(teacher_run, tmp_path):  # noqa: F811
+def test_a_shortcut_student_trains_on_two_ranks(shortcut_launches):
     """The objective's one pass with gradients (after the targets' passes without) is what DDP expects: under
     torchrun with 2 gloo ranks the student trains and saves."""
-    out = tmp_path / "two-ranks"
-    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                           str(REPO_ROOT / "launch" / "distill.py"), "--teacher", str(teacher_run), "--out", str(out),
-                           *SHORTCUT, "train.max_steps=2", "train.save_every=2"],
-                          cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=300)
+    out, started = shortcut_launches["two_ranks"]
+    proc = started.result()
     assert proc.returncode == 0, output_of(proc)
     assert ckpt.list_complete(ckpt.checkpoints_dir(out))[-1][0] == 2

@@ -3,12 +3,15 @@ run resumes bit-exactly (weights, EMA, optimizer, RNG, data order, per-step loss
 128 + N, non-finite losses are skipped within a budget, and bad shards are refused or skipped as configured.
 
 Runs that are compared bit for bit run as separate processes through tests/trainer_worker.py (same thread count
-in every run); the rest run in this process through launch/train.py's ``main``.
+in every run; the uninterrupted reference runs of several tests may share one, each fit seeding itself afresh, while
+every killed run and every resume is a fresh process); the rest run in this process through launch/train.py's
+``main``.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import errno
 import hashlib
 import json
@@ -21,13 +24,15 @@ import subprocess
 import sys
 import tarfile
 import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import pytest
 import torch
 import yaml
-from conftest import REPO_ROOT, flip_byte, load_launch_script
+from conftest import REPO_ROOT, flip_byte, load_launch_script, start_two_at_a_time
 
 import pipeline.training.run_folder as run_folder_module
 import pipeline.training.trainer as trainer_module
@@ -65,17 +70,19 @@ MAX_STEPS, SAVE_EVERY, KILL_STEP = 16, 5, 12
 
 
 def build_dataset_once(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """60 synthetic clips (53 train in 6 shards of <= 10), MiniLM captions; built once per test session."""
+    """60 synthetic clips (53 train in 6 shards of <= 10), MiniLM captions; built once per test session.
+
+    Built by build_shards' ``main`` in this process, whose output is byte for byte the command line's
+    (tests/test_build_shards.py): a launch would spend seconds importing what this process has imported anyway."""
+    from preprocess.build_shards import main as build_shards
+
     root = tmp_path_factory.getbasetemp() / "trainer-dataset"
     manifest = root / "manifest.json"
     if not manifest.exists():
         building = root.with_name("trainer-dataset.building")
         shutil.rmtree(building, ignore_errors=True)
-        subprocess.run(
-            [sys.executable, str(REPO_ROOT / "preprocess" / "build_shards.py"), "--source", "synthetic",
-             "--num-clips", "60", "--shard-size", "10", "--out", str(building), "--quiet"],
-            cwd=REPO_ROOT, env=clean_env(), check=True, capture_output=True, timeout=300,
-        )
+        assert build_shards(["--source", "synthetic", "--num-clips", "60", "--shard-size", "10", "--out",
+                             str(building), "--quiet"]) == 0
         os.rename(building, root)
     return manifest
 
@@ -225,33 +232,94 @@ def kill_and_resume(dataset, tmp_path, overrides, extra, kill_step: int, resumed
                     checkpoints_left: list[int] | None = None):
     """Run A uninterrupted; run B SIGKILLed in the middle of ``kill_step`` (``checkpoints_left`` then complete, when
     given), then resumed (resume=auto) from checkpoint ``resumed_step`` to the end. Returns both output folders."""
-    python = [sys.executable]
     a_out, b_out = tmp_path / "a", tmp_path / "b"
-    b_scenario = fit_scenario(b_out, overrides(dataset, b_out / "run", *extra))
-    # A and B's first part are independent single-threaded processes: run side by side on the two cores (the worker
-    # kills B at a step, not at a time, so the overlap changes nothing they compute)
-    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
-        run_a = pool.submit(run_worker, python, [fit_scenario(a_out, overrides(dataset, a_out / "run", *extra))],
-                            a_out)
-        proc = run_worker(python, [{**b_scenario, "kill_at": [0, kill_step]}], b_out)
-        assert proc.returncode == -signal.SIGKILL, output_of(proc)
-        proc = run_a.result()
-        assert proc.returncode == 0, output_of(proc)
-    if checkpoints_left is not None:
-        assert complete_steps(b_out / "run") == checkpoints_left
-    proc = run_worker(python, [b_scenario], b_out)
+    # A and B are independent single-threaded processes: run side by side on the two cores (the worker kills B at a
+    # step, not at a time, so the overlap changes nothing they compute)
+    started = start_two_at_a_time({
+        "a": partial(run_worker, [sys.executable], [fit_scenario(a_out, overrides(dataset, a_out / "run", *extra))],
+                     a_out),
+        "b": partial(kill_then_resume, fit_scenario(b_out, overrides(dataset, b_out / "run", *extra)), kill_step),
+    })
+    proc = started["a"].result()
     assert proc.returncode == 0, output_of(proc)
-    assert "resumed from" in proc.stderr and ckpt.step_dir_name(resumed_step) in proc.stderr
+    assert_killed_and_resumed(started["b"].result(), resumed_step, checkpoints_left)
     return a_out, b_out
+
+
+@dataclasses.dataclass(frozen=True)
+class KilledAndResumed:
+    killed: subprocess.CompletedProcess  # the run SIGKILLed at its kill step
+    checkpoints_after_kill: list[int]  # the complete checkpoints it left
+    resumed: subprocess.CompletedProcess  # the same run started again (resume=auto), to the end
+
+
+def kill_then_resume(scenario: dict[str, Any], kill_step: int) -> KilledAndResumed:
+    """Run ``scenario`` in a process SIGKILLed in the middle of ``kill_step``, then again in a fresh process."""
+    out = Path(scenario["out"])
+    killed = run_worker([sys.executable], [{**scenario, "kill_at": [0, kill_step]}], out)
+    left = complete_steps(out / "run")
+    return KilledAndResumed(killed, left, run_worker([sys.executable], [scenario], out))
+
+
+def assert_killed_and_resumed(run: KilledAndResumed, resumed_step: int, checkpoints_left: list[int] | None) -> None:
+    assert run.killed.returncode == -signal.SIGKILL, output_of(run.killed)
+    if checkpoints_left is not None:
+        assert run.checkpoints_after_kill == checkpoints_left
+    assert run.resumed.returncode == 0, output_of(run.resumed)
+    assert "resumed from" in run.resumed.stderr and ckpt.step_dir_name(resumed_step) in run.resumed.stderr
+
+
+LENGTH_AWARE_RUN = ("data.batching=length_aware", "data.window=196", "data.pad_multiple=16",
+                    "data.sort_window_batches=4", "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
+FLAME_EMA_RUN = ("optim.ema_every=2", "optim.ema_start=4", "optim.ema_warmup=false", "optim.ema_decay=0.5",
+                 "train.max_steps=8", "train.save_every=2", "train.keep_last=0")
+# The kill-and-resume cases of this file: overrides, extra overrides, kill step, the checkpoint the resume starts
+# from, the complete checkpoints the kill leaves (None: not checked).
+KILL_RESUME_CASES = {
+    "workers-0": (resume_overrides, ("data.num_workers=0",), KILL_STEP, 10, [5, 10]),
+    "workers-2": (resume_overrides, ("data.num_workers=2",), KILL_STEP, 10, [5, 10]),
+    "length-aware": (base_overrides, LENGTH_AWARE_RUN, 5, 4, None),
+    "flame-ema": (base_overrides, FLAME_EMA_RUN, 3, 2, [2]),
+}
+UNINTERRUPTED = "uninterrupted"  # killed_and_resumed's launch of every case's run A
+
+
+@pytest.fixture(scope="module")
+def killed_and_resumed(dataset, tmp_path_factory) -> Callable[[str], tuple[Path, Path]]:
+    """kill_and_resume for every case of KILL_RESUME_CASES, launched together (start_two_at_a_time): the
+    uninterrupted runs (A) one after the other in one process (each fit seeds itself afresh; starting torch is most
+    of a run's cost), each killed run (B) and its resume in processes of their own. Returns a function that checks
+    one case's launches (a failed case fails its own test) and returns its A and B output folders."""
+    root = tmp_path_factory.mktemp("kill-resume")
+
+    def scenario(name: str, run: str) -> dict[str, Any]:
+        overrides, extra = KILL_RESUME_CASES[name][:2]
+        return fit_scenario(root / name / run, overrides(dataset, root / name / run / "run", *extra))
+
+    started = start_two_at_a_time({
+        UNINTERRUPTED: partial(run_worker, [sys.executable], [scenario(name, "a") for name in KILL_RESUME_CASES],
+                               root / "a"),
+        **{name: partial(kill_then_resume, scenario(name, "b"), case[2]) for name, case in KILL_RESUME_CASES.items()},
+    })
+    concurrent.futures.wait(started.values())  # nothing runs beside the tests below (they patch the library)
+
+    def outcome(name: str) -> tuple[Path, Path]:
+        a_out, b_out = root / name / "a", root / name / "b"
+        proc = started[UNINTERRUPTED].result()
+        assert results(a_out, 1) == [{"exit_code": 0}], output_of(proc)
+        *_, resumed_step, checkpoints_left = KILL_RESUME_CASES[name]
+        assert_killed_and_resumed(started[name].result(), resumed_step, checkpoints_left)
+        return a_out, b_out
+
+    return outcome
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("num_workers", [0, 2])
-def test_resume_after_sigkill_is_bit_exact(dataset, tmp_path, num_workers):
+def test_resume_after_sigkill_is_bit_exact(killed_and_resumed, num_workers):
     """Run A: 16 steps. Run B: SIGKILLed in the middle of step 12, resume=auto from checkpoint 10, on to 16.
     Dropout is on, so equal weights also prove the global RNG was restored."""
-    a_out, b_out = kill_and_resume(dataset, tmp_path, resume_overrides, (f"data.num_workers={num_workers}",),
-                                   KILL_STEP, 10, checkpoints_left=[5, 10])
+    a_out, b_out = killed_and_resumed(f"workers-{num_workers}")
 
     assert_runs_identical(a_out / "run", b_out / "run", MAX_STEPS)
     ids_a, ids_b = ids_by_step(a_out, 0), ids_by_step(b_out, 0)
@@ -259,13 +327,11 @@ def test_resume_after_sigkill_is_bit_exact(dataset, tmp_path, num_workers):
 
 
 @pytest.mark.slow
-def test_length_aware_batches_of_varying_width_train_and_resume_bit_exactly(dataset, tmp_path):
+def test_length_aware_batches_of_varying_width_train_and_resume_bit_exactly(killed_and_resumed):
     """data.batching=length_aware: the trainer steps through batches whose width changes from step to step (each
     the longest clip rounded up to 16, below the 196-frame window), and a run SIGKILLed in the middle of step 5 and
     resumed from checkpoint 4 ends bit-identical to an uninterrupted one, with the same samples and widths per step."""
-    extra = ("data.batching=length_aware", "data.window=196", "data.pad_multiple=16", "data.sort_window_batches=4",
-             "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
-    a_out, b_out = kill_and_resume(dataset, tmp_path, base_overrides, extra, 5, 4)
+    a_out, b_out = killed_and_resumed("length-aware")
 
     assert_runs_identical(a_out / "run", b_out / "run", 6)
     assert ids_by_step(a_out, 0) == ids_by_step(b_out, 0)
@@ -452,13 +518,11 @@ def test_ema_reproduces_flames_schedule_copy_until_ema_start_then_average_every_
 
 
 @pytest.mark.slow
-def test_flame_ema_schedule_in_training_and_exact_resume_across_ema_start(dataset, tmp_path):
+def test_flame_ema_schedule_in_training_and_exact_resume_across_ema_start(killed_and_resumed):
     """optim.ema_every=2 ema_start=4 ema_warmup=false: checkpoints 2 and 4 hold EMA = the weights, 6 the average of
     4's and 6's (decay 0.5); a run SIGKILLed in step 3 and resumed from checkpoint 2 crosses ema_start and ends bit
     for bit as the uninterrupted one."""
-    extra = ("optim.ema_every=2", "optim.ema_start=4", "optim.ema_warmup=false", "optim.ema_decay=0.5",
-             "train.max_steps=8", "train.save_every=2", "train.keep_last=0")
-    a_out, b_out = kill_and_resume(dataset, tmp_path, base_overrides, extra, 3, 2, checkpoints_left=[2])
+    a_out, b_out = killed_and_resumed("flame-ema")
     saved = {step: ckpt.load_checkpoint(ckpt.checkpoints_dir(a_out / "run") / ckpt.step_dir_name(step))
              for step in (2, 4, 6, 8)}
     for step in (2, 4):

@@ -11,7 +11,9 @@
   uninterrupted run (weights, EMA, optimizer, per-rank RNG and data position, per-step losses and sample ids);
 * ``accelerate launch`` with the 2-rank CPU recipe runs launch/train.py end to end.
 
-The launches are module fixtures shared by the tests that read them: starting torch processes is most of the cost.
+The launches are module fixtures shared by the tests that read them: starting torch processes is most of the cost,
+so every scenario that needs no launch of its own runs in one (the refusals among them go on to the next scenario
+once both ranks have recorded theirs: tests/trainer_worker.py's continue_after_error).
 """
 
 from __future__ import annotations
@@ -19,12 +21,14 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from concurrent.futures import Future
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import pytest
 import torch
-from conftest import flip_byte
+from conftest import flip_byte, start_two_at_a_time
 from test_trainer import (
     KILL_STEP,
     MAX_STEPS,
@@ -70,17 +74,70 @@ def workdir(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("trainer-multirank")
 
 
+@pytest.fixture(scope="module")
+def launches(dataset, workdir) -> dict[str, Future]:
+    """The file's three independent launch sequences, started together (start_two_at_a_time: a launch leaves much
+    of the two cores idle, the launcher, the rendezvous, the ranks' Python starts): the interrupted runs (three
+    launches one after the other, run_interrupted), the shared launch (run_shared_launch, its data prepared here
+    first) and accelerate launch (run_accelerate_launch). In the background only processes run and their files are
+    read; each sequence's failure fails the tests that read it."""
+    shared = prepare_shared_launch(dataset, workdir / "shared")
+    return start_two_at_a_time({"interrupted": partial(run_interrupted, dataset, workdir),
+                                "shared": partial(run_shared_launch, *shared),
+                                "accelerate": partial(run_accelerate_launch, dataset, workdir / "accelerate" / "run")})
+
+
 # ---------------------------------------------------------------------------------------------------------------
-# Data-parallel equivalence and non-finite losses (one launch, three scenarios)
+# One launch for the scenarios below that need no launch of their own
 # ---------------------------------------------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
-def misc_launch(dataset, workdir) -> dict[str, Any]:
-    """One torchrun launch: the equivalence steps, the validation loss of the initial weights, a run with a NaN on
-    rank 1 (skip), then one with nonfinite=stop, which raises on every rank and ends the processes with a
-    non-zero code."""
-    root = workdir / "misc"
+def shared_launch(launches) -> dict[str, Any]:
+    return launches["shared"].result()
+
+
+def prepare_shared_launch(dataset: Path, root: Path) -> tuple[Path, list[dict[str, Any]], dict[str, dict[str, Any]]]:
+    """The scenarios of one torchrun launch, in order: the equivalence steps, the validation loss of the initial
+    weights, a run with a NaN on rank 1 (skip), the runs with a batch of only bad records on rank 1, then the
+    refusals, each recorded by both ranks before the next starts (a shard failing strict verification, a resume
+    refused on rank 0, a run folder another trainer holds, a bad record met by rank 1), and last a run with
+    nonfinite=stop, which raises on every rank and ends the processes with a non-zero code; with what each part's
+    tests need, by part."""
+    parts = {"misc": misc_scenarios(dataset, root / "misc"), "empty": empty_batch_scenarios(dataset, root / "empty"),
+             "bad_shard": bad_shard_scenario(dataset, root / "bad-shard"),
+             "refused": refused_resume_scenario(dataset, root / "refused"),
+             "held": held_folder_scenario(dataset, root / "held"),
+             "bad_record": bad_record_scenario(dataset, root / "bad-record")}
+    for name in ("bad_shard", "refused", "held", "bad_record"):
+        for scenario in parts[name][0]:
+            scenario["continue_after_error"] = True
+    scenarios = [scenario for scenarios, _ in parts.values() for scenario in scenarios]
+    scenarios.append(nonfinite_stop_scenario(dataset, root / "misc" / "stop"))
+    return root, scenarios, {name: context for name, (_, context) in parts.items()}
+
+
+def run_shared_launch(root: Path, scenarios: list[dict[str, Any]], contexts: dict[str, dict[str, Any]]
+                      ) -> dict[str, Any]:
+    """The launch of prepare_shared_launch's scenarios, with another trainer holding the held part's run folder
+    throughout. The subprocess timeout turns a hang into a failure. Returns the launch ("proc") and the contexts."""
+    holder = holding_trainer(contexts["held"]["run"], "live")
+    try:
+        proc = run_worker(TORCHRUN, scenarios, root, timeout=400)
+    finally:
+        holder.kill()
+        holder.wait(timeout=30)
+    return {"proc": proc, **contexts, "held": {**contexts["held"], "holder_pid": holder.pid}}
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Data-parallel equivalence and non-finite losses
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def misc_scenarios(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The equivalence steps, the validation loss of the initial weights and a run with a NaN on rank 1 (skip); the
+    run with nonfinite=stop (nonfinite_stop_scenario) ends the shared launch."""
     equivalence = {"kind": "equivalence", "out": str(root / "equivalence"), "steps": EQUIVALENCE_STEPS,
                    "overrides": [f"data.manifest={dataset}", f"train.out_dir={root / 'equivalence' / 'run'}",
                                  "model.dropout=0.0"]}
@@ -88,11 +145,17 @@ def misc_launch(dataset, workdir) -> dict[str, Any]:
     skip = fit_scenario(root / "skip", [f"data.manifest={dataset}", f"train.out_dir={root / 'skip' / 'run'}",
                                         "train.log_every=1", "train.max_steps=5"],
                         nan_at=[1, [NAN_STEP]], snapshot_at=[NAN_STEP, 5])
-    stop = fit_scenario(root / "stop", [f"data.manifest={dataset}", f"train.out_dir={root / 'stop' / 'run'}",
-                                        "train.log_every=1", "train.max_steps=5", "train.nonfinite=stop"],
-                        nan_at=[1, [2]])
-    proc = run_worker(TORCHRUN, [equivalence, validate, skip, stop], root, timeout=240)
-    return {"root": root, "proc": proc, "dataset": dataset}
+    return [equivalence, validate, skip], {"root": root, "dataset": dataset}
+
+
+def nonfinite_stop_scenario(dataset: Path, out: Path) -> dict[str, Any]:
+    return fit_scenario(out, [f"data.manifest={dataset}", f"train.out_dir={out / 'run'}", "train.log_every=1",
+                              "train.max_steps=5", "train.nonfinite=stop"], nan_at=[1, [2]])
+
+
+@pytest.fixture(scope="module")
+def misc_launch(shared_launch) -> dict[str, Any]:
+    return {**shared_launch["misc"], "proc": shared_launch["proc"]}
 
 
 def validation_overrides(dataset: Path, root: Path) -> list[str]:
@@ -164,12 +227,9 @@ EMPTY_STEP = 3  # every record of rank 1's batch at this step decodes to NaN
 EMPTY_RUN_STEPS = 7  # an epoch is 5 batches per rank at 2 ranks: the run crosses into epoch 1
 
 
-@pytest.fixture(scope="module")
-def empty_batch_launch(dataset, workdir) -> dict[str, Any]:
-    """One torchrun launch: a tolerant run in which rank 1's whole batch at EMPTY_STEP is bad, then the
-    equivalence steps with rank 1's slice of global batch 2 empty. The subprocess timeout turns a hang into a
-    failure."""
-    root = workdir / "empty"
+def empty_batch_scenarios(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """A tolerant run in which rank 1's whole batch at EMPTY_STEP is bad, then the equivalence steps with rank 1's
+    slice of global batch 2 empty."""
     manifest = copy_dataset(dataset, root / "data")
     overrides = [f"data.manifest={manifest}", "data.verify=tolerant", "train.log_every=1",
                  f"train.max_steps={EMPTY_RUN_STEPS}", "train.save_every=100"]
@@ -183,8 +243,12 @@ def empty_batch_launch(dataset, workdir) -> dict[str, Any]:
                    "empty_at": [1, [2]],
                    "overrides": [f"data.manifest={dataset}", f"train.out_dir={root / 'equivalence' / 'run'}",
                                  "model.dropout=0.0", "data.verify=tolerant"]}
-    proc = run_worker(TORCHRUN, [fit, equivalence], root, timeout=240)
-    return {"root": root, "proc": proc, "dataset": dataset, "plans": plans, "bad_ids": bad_ids}
+    return [fit, equivalence], {"root": root, "dataset": dataset, "plans": plans, "bad_ids": bad_ids}
+
+
+@pytest.fixture(scope="module")
+def empty_batch_launch(shared_launch) -> dict[str, Any]:
+    return {**shared_launch["empty"], "proc": shared_launch["proc"]}
 
 
 def test_a_batch_of_only_bad_records_on_one_rank_keeps_both_ranks_on_their_plan(empty_batch_launch):
@@ -246,18 +310,22 @@ def test_an_empty_slice_on_one_rank_weighs_nothing_in_the_global_mean(empty_batc
 BAD_RECORD_STEP = 3  # rank 1's batch at this step holds a record that decodes to NaN
 
 
-def test_bad_data_met_by_one_rank_stops_every_rank_at_that_step_with_its_error(dataset, workdir):
-    """Rank 1 alone reads the bad record. It used to raise there, alone: rank 0, waiting in the step's
-    all-reduce, died on the broken connection with a traceback (under NCCL it would wait for the collective
-    timeout). Now the error travels in the step's flags: both ranks stop at that step, before its update, with rank
-    1's error (launch/train.py prints it in one line, exit 2). The subprocess timeout turns a hang into a failure."""
-    root = workdir / "bad-record"
+def bad_record_scenario(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     manifest = copy_dataset(dataset, root / "data")
     overrides = [f"data.manifest={manifest}", "data.verify=strict", "train.log_every=1", "train.max_steps=6",
                  "train.save_every=100", f"train.out_dir={root / 'run'}"]
     bad_id = planned_batches(manifest, overrides, rank=1, world_size=2)[BAD_RECORD_STEP - 1][1]  # not the first:
     write_nan_into(manifest, bad_id)  # the batcher reads a batch's first record with the batch before
-    proc = run_worker(TORCHRUN, [fit_scenario(root, overrides)], root, timeout=120)
+    return [fit_scenario(root, overrides)], {"root": root, "manifest": manifest, "bad_id": bad_id}
+
+
+def test_bad_data_met_by_one_rank_stops_every_rank_at_that_step_with_its_error(shared_launch):
+    """Rank 1 alone reads the bad record. It used to raise there, alone: rank 0, waiting in the step's
+    all-reduce, died on the broken connection with a traceback (under NCCL it would wait for the collective
+    timeout). Now the error travels in the step's flags: both ranks stop at that step, before its update, with rank
+    1's error (launch/train.py prints it in one line, exit 2). The subprocess timeout turns a hang into a failure."""
+    proc, part = shared_launch["proc"], shared_launch["bad_record"]
+    root, manifest, bad_id = part["root"], part["manifest"], part["bad_id"]
     assert proc.returncode != 0
     outcomes = results(root, 2)
     assert [o.get("error") for o in outcomes] == ["RecordError"] * 2, output_of(proc)
@@ -269,15 +337,18 @@ def test_bad_data_met_by_one_rank_stops_every_rank_at_that_step_with_its_error(d
     assert complete_steps(root / "run") == []
 
 
-def test_a_shard_that_fails_strict_verification_stops_every_rank_with_the_same_error(dataset, workdir):
-    """Rank 0 verifies the shards and decides; the other ranks must end with the same error (which launch/train.py
-    prints in one line, exit 2), not a generic one, and nothing is written into the run folder."""
-    root = workdir / "bad-shard"
+def bad_shard_scenario(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     manifest = copy_dataset(dataset, root / "data")
     bad = json.loads(manifest.read_text())["splits"]["train"]["shards"][1]["path"]
     flip_byte(manifest.parent / bad, (manifest.parent / bad).stat().st_size // 2)
     overrides = [f"data.manifest={manifest}", "data.verify=strict", "train.max_steps=4", f"train.out_dir={root / 'run'}"]
-    proc = run_worker(TORCHRUN, [fit_scenario(root, overrides)], root, timeout=120)
+    return [fit_scenario(root, overrides)], {"root": root, "bad": bad}
+
+
+def test_a_shard_that_fails_strict_verification_stops_every_rank_with_the_same_error(shared_launch):
+    """Rank 0 verifies the shards and decides; the other ranks must end with the same error (which launch/train.py
+    prints in one line, exit 2), not a generic one, and nothing is written into the run folder."""
+    proc, root, bad = shared_launch["proc"], shared_launch["bad_shard"]["root"], shared_launch["bad_shard"]["bad"]
     assert proc.returncode != 0
     outcomes = results(root, 2)
     assert [o.get("error") for o in outcomes] == ["ShardVerificationError"] * 2, output_of(proc)
@@ -291,21 +362,27 @@ def test_a_shard_that_fails_strict_verification_stops_every_rank_with_the_same_e
 
 
 @pytest.fixture(scope="module")
-def uninterrupted(dataset, workdir) -> Path:
-    out = workdir / "uninterrupted"
-    proc = run_worker(TORCHRUN, [fit_scenario(out, resume_overrides(dataset, out / "run"))], out)
-    assert proc.returncode == 0, output_of(proc)
+def uninterrupted(interrupted) -> Path:
+    """The run of ``interrupted`` without interruptions: the first scenario of the launch stopped by SIGTERM."""
+    out = interrupted["uninterrupted"]
+    assert results(out, 2) == [{"exit_code": 0}] * 2, output_of(interrupted["sigterm"])
     return out
 
 
 @pytest.fixture(scope="module")
-def interrupted(dataset, workdir) -> dict[str, Any]:
+def interrupted(launches) -> dict[str, Any]:
+    return launches["interrupted"].result()
+
+
+def run_interrupted(dataset: Path, workdir: Path) -> dict[str, Any]:
     """The same run, stopped by SIGTERM to rank 1 during step 7, resumed, SIGKILLed (rank 0) during step 12,
     resumed again from checkpoint 10 to the end. At 2 ranks an epoch is 5 batches per rank, so the first resume
-    starts inside an epoch and the second on an epoch boundary."""
-    out = workdir / "interrupted"
+    starts inside an epoch and the second on an epoch boundary. The uninterrupted run goes first in the launch of
+    the SIGTERM (one launch less; every fit seeds itself afresh, and the resumed runs are fresh processes)."""
+    out, uninterrupted_out = workdir / "interrupted", workdir / "uninterrupted"
     scenario = fit_scenario(out, resume_overrides(dataset, out / "run"))
-    sigterm = run_worker(TORCHRUN, [{**scenario, "signal_at": [1, SIGTERM_STEP, "SIGTERM"]}], out)
+    uninterrupted = fit_scenario(uninterrupted_out, resume_overrides(dataset, uninterrupted_out / "run"))
+    sigterm = run_worker(TORCHRUN, [uninterrupted, {**scenario, "signal_at": [1, SIGTERM_STEP, "SIGTERM"]}], out)
     _, _, stop_state = ckpt.load_checkpoint(ckpt.checkpoints_dir(out / "run") / ckpt.step_dir_name(SIGTERM_STEP))
     after_sigterm = {"checkpoints": complete_steps(out / "run"), "results": results(out, 2),
                      "last_steps": [max(ids_by_step(out, r)) for r in (0, 1)],
@@ -315,7 +392,7 @@ def interrupted(dataset, workdir) -> dict[str, Any]:
     after_sigkill = {"checkpoints": complete_steps(out / "run"), "resume_state": resume_state}
     final = run_worker(TORCHRUN, [scenario], out)
     return {"out": out, "sigterm": sigterm, "after_sigterm": after_sigterm, "sigkill": sigkill,
-            "after_sigkill": after_sigkill, "final": final}
+            "after_sigkill": after_sigkill, "final": final, "uninterrupted": uninterrupted_out}
 
 
 def test_sigterm_to_one_rank_stops_every_rank_after_one_step_with_a_checkpoint(interrupted):
@@ -353,15 +430,19 @@ def test_resume_after_sigterm_and_sigkill_is_bit_exact_on_two_ranks(interrupted,
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def test_accelerate_launch_two_cpu_ranks_end_to_end(dataset, tmp_path):
-    run = tmp_path / "run"
+def run_accelerate_launch(dataset: Path, run: Path) -> subprocess.CompletedProcess:
     env = clean_env()
     env["ACCELERATE_USE_CPU"] = "1"
     command = [sys.executable, "-m", "accelerate.commands.launch", "--multi_gpu", "--num_processes", "2",
                "--num_machines", "1", "--mixed_precision", "no", "--dynamo_backend", "no", "--main_process_port", "0",
                str(REPO_ROOT / "launch" / "train.py"), "--config", "tiny", f"data.manifest={dataset}",
                f"train.out_dir={run}", "train.max_steps=4", "train.save_every=2", "train.log_every=2"]
-    proc = subprocess.run(command, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=240)
+    return subprocess.run(command, cwd=REPO_ROOT, env=env, capture_output=True, text=True, timeout=240)
+
+
+def test_accelerate_launch_two_cpu_ranks_end_to_end(launches, workdir):
+    run = workdir / "accelerate" / "run"
+    proc = launches["accelerate"].result()
     assert proc.returncode == 0, output_of(proc)
     assert "world size 2" in proc.stderr
     assert complete_steps(run) == [2, 4]
@@ -377,40 +458,44 @@ def test_accelerate_launch_two_cpu_ranks_end_to_end(dataset, tmp_path):
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def test_a_resume_refused_on_rank_0_ends_every_rank_before_training(dataset, tmp_path):
-    """Rank 0 alone resolves train.resume; an explicit resume point older than the run's checkpoints is refused
-    there, and the other rank must raise the same refusal at once rather than wait for a broadcast that never
-    comes (resolve_resume only reads markers, so placeholder checkpoints do)."""
-    run = tmp_path / "run"
+def refused_resume_scenario(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    run = root / "run"
     for step in (2, 4):
         ckpt.save_checkpoint(ckpt.checkpoints_dir(run), step, model_state={"w": torch.zeros(2)}, ema_state=None,
                              optimizer_state={}, scheduler_state=None, rng_states=[{}, {}], data_states=[{}, {}],
                              config={}, manifest={})
     write_run_marker(run, written_by="tests/test_trainer_multirank.py")  # a run of ours, as the trainer marks one
     older = ckpt.checkpoints_dir(run) / "step-00000002"
-    scenario = fit_scenario(tmp_path / "out", [f"data.manifest={dataset}", f"train.out_dir={run}",
-                                               "train.max_steps=6", f"train.resume={older}"])
-    proc = run_worker(TORCHRUN, [scenario], tmp_path / "out", timeout=120)
+    scenario = fit_scenario(root / "out", [f"data.manifest={dataset}", f"train.out_dir={run}",
+                                           "train.max_steps=6", f"train.resume={older}"])
+    return [scenario], {"root": root, "run": run}
+
+
+def test_a_resume_refused_on_rank_0_ends_every_rank_before_training(shared_launch):
+    """Rank 0 alone resolves train.resume; an explicit resume point older than the run's checkpoints is refused
+    there, and the other rank must raise the same refusal at once rather than wait for a broadcast that never
+    comes (resolve_resume only reads markers, so placeholder checkpoints do)."""
+    proc, root, run = shared_launch["proc"], shared_launch["refused"]["root"], shared_launch["refused"]["run"]
     assert proc.returncode != 0, output_of(proc)
-    for result in results(tmp_path / "out", 2):
+    for result in results(root / "out", 2):
         assert result["error"] == "ResumeConflictError" and "train.resume_discard_newer=true" in result["message"]
     assert complete_steps(run) == [2, 4] and not (run / "config.yaml").exists()
 
 
-def test_a_run_folder_held_by_another_trainer_is_refused_on_every_rank(dataset, tmp_path):
+def held_folder_scenario(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """A run into a folder that another trainer holds (shared_launch starts the holder before the launch and ends
+    it after)."""
+    run = root / "run"
+    scenario = fit_scenario(root / "out", [f"data.manifest={dataset}", f"train.out_dir={run}", "train.max_steps=4"])
+    return [scenario], {"root": root, "run": run}
+
+
+def test_a_run_folder_held_by_another_trainer_is_refused_on_every_rank(shared_launch):
     """Issue 24, item 5: only rank 0 checks and takes the run folder's lock; when another trainer holds the folder,
     every rank raises the same one-line refusal (naming the holder) at once instead of waiting for rank 0 in a
     collective, and nothing is written."""
-    run = tmp_path / "run"
-    holder = holding_trainer(run, "live")
-    try:
-        scenario = fit_scenario(tmp_path / "out", [f"data.manifest={dataset}", f"train.out_dir={run}",
-                                                   "train.max_steps=4"])
-        proc = run_worker(TORCHRUN, [scenario], tmp_path / "out", timeout=120)
-    finally:
-        holder.kill()
-        holder.wait(timeout=30)
+    proc, part = shared_launch["proc"], shared_launch["held"]
     assert proc.returncode != 0, output_of(proc)
-    for result in results(tmp_path / "out", 2):
-        assert result["error"] == "RunFolderInUseError" and f"pid {holder.pid} on " in result["message"], result
-    assert [p.name for p in run.iterdir()] == [RUN_LOCK]  # the holder's, nothing of the refused run
+    for result in results(part["root"] / "out", 2):
+        assert result["error"] == "RunFolderInUseError" and f"pid {part['holder_pid']} on " in result["message"], result
+    assert [p.name for p in part["run"].iterdir()] == [RUN_LOCK]  # the holder's, nothing of the refused run

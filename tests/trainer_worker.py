@@ -31,6 +31,10 @@ torch processes is most of the cost). Each scenario is a dict:
     steps         equivalence: number of optimizer steps
     empty_at      equivalence: [rank, [steps]]: that rank's slice of those global batches (1-based steps) is empty,
                   as a batch whose every record was skipped in tolerant mode
+    continue_after_error  true: an exception of this scenario, once recorded by every rank (the barrier after an
+                  error passed on this rank), does not end the process: the next scenario runs, and the process
+                  exits with 1 at the end. Several refusals then share one launch; a rank that finds the others
+                  elsewhere still ends the process at once
 
 Each rank writes OUT/result-rank{r}.json: {"exit_code": int} after fit returns, or {"error": class name,
 "message"} before re-raising an exception (the process then exits non-zero, like launch/train.py). A non-zero
@@ -60,6 +64,7 @@ from pipeline.distributed import Dist
 from pipeline.training.trainer import Draws, Trainer, draw_for_batch
 
 REAL_BUILD_OBJECTIVE = trainer_module.build_objective
+ERROR_PASSED = -1  # run_scenario's code for an exception that continue_after_error let the process outlive
 
 
 class HookedObjective:
@@ -258,8 +263,11 @@ def run_scenario(scenario: Mapping[str, Any], dist: Dist) -> int:
             code = InstrumentedTrainer(cfg, dist, scenario, faults).fit()
     except Exception as err:
         result_file.write_text(json.dumps({"error": type(err).__name__, "message": str(err)}))
-        wait_for_other_ranks(dist, after_error=True)
-        raise
+        if not wait_for_other_ranks(dist, after_error=True) or not scenario.get("continue_after_error"):
+            raise
+        logging.getLogger(__name__).error("scenario %s: %s: %s (going on to the next scenario)", out,
+                                          type(err).__name__, err)
+        return ERROR_PASSED
     finally:
         trainer_module.build_objective = REAL_BUILD_OBJECTIVE
     result_file.write_text(json.dumps({"exit_code": code}))
@@ -267,19 +275,20 @@ def run_scenario(scenario: Mapping[str, Any], dist: Dist) -> int:
     return code
 
 
-def wait_for_other_ranks(dist: Dist, after_error: bool) -> None:
+def wait_for_other_ranks(dist: Dist, after_error: bool) -> bool:
     """Every rank has written its record before any exits: once one rank's process ends with a non-zero code,
     torchrun terminates the others. After an error the other ranks may be elsewhere (a one-rank failure), so
-    that wait gives up after a while instead of hanging."""
+    that wait gives up after a while instead of hanging. Returns whether every rank reached it."""
     if not dist.is_distributed:
-        return
+        return True
     if not after_error:
         dist.barrier()
-        return
+        return True
     try:
         torch_dist.monitored_barrier(timeout=timedelta(seconds=30))
     except RuntimeError:
-        pass
+        return False
+    return True
 
 
 def main(spec_path: str) -> int:
@@ -289,12 +298,15 @@ def main(spec_path: str) -> int:
     precisions = {scenario.get("mixed_precision", "no") for scenario in scenarios}
     if len(precisions) != 1:
         raise ValueError(f"one Dist per process: every scenario of a spec needs the same mixed_precision, got {precisions}")
+    errors_passed = False
     with Dist(mixed_precision=precisions.pop(), loss_scaling=True) as dist:
         for scenario in scenarios:
             code = run_scenario(scenario, dist)
-            if code != 0:
+            if code == ERROR_PASSED:
+                errors_passed = True
+            elif code != 0:
                 return code
-    return 0
+    return 1 if errors_passed else 0
 
 
 if __name__ == "__main__":
