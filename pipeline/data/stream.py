@@ -1809,24 +1809,30 @@ class MotionLoader:
         return self._checked(iter(source), self._generation)
 
     def _checked(self, source: Iterator[dict], generation: int) -> Iterator[dict[str, Any]]:
-        for batch in source:
-            if generation != self._generation:
-                raise RuntimeError("this batch iterator is stale: the loader's state was loaded or another "
-                                   "iterator was created since; call iter_batches() again")
-            if _DATA_ERROR_KEY in batch:  # a worker met bad data (see _RankStream.__iter__)
-                raise batch[_DATA_ERROR_KEY]
-            position = tuple(batch.pop("_position"))  # robust to list conversion by collate/pin_memory
-            if position != (self.epoch, self.batches_in_epoch):
-                raise RuntimeError(f"data stream out of order: got batch {position}, expected "
-                                   f"{(self.epoch, self.batches_in_epoch)}")
-            skipped = batch.pop(SKIPPED_RECORDS_KEY, None)
-            served, fetched = batch.pop(_SHARD_CACHE_KEY, (0, 0))
-            self.shards_from_cache += int(served)
-            self.shards_fetched += int(fetched)
-            self._advance()
-            if skipped:
-                self._count_skipped(position, skipped, len(batch["ids"]))
-            yield batch
+        try:
+            for batch in source:
+                if generation != self._generation:
+                    raise RuntimeError("this batch iterator is stale: the loader's state was loaded or another "
+                                       "iterator was created since; call iter_batches() again")
+                if _DATA_ERROR_KEY in batch:  # a worker met bad data (see _RankStream.__iter__)
+                    raise batch[_DATA_ERROR_KEY]
+                position = tuple(batch.pop("_position"))  # robust to list conversion by collate/pin_memory
+                if position != (self.epoch, self.batches_in_epoch):
+                    raise RuntimeError(f"data stream out of order: got batch {position}, expected "
+                                       f"{(self.epoch, self.batches_in_epoch)}")
+                skipped = batch.pop(SKIPPED_RECORDS_KEY, None)
+                served, fetched = batch.pop(_SHARD_CACHE_KEY, (0, 0))
+                self.shards_from_cache += int(served)
+                self.shards_fetched += int(fetched)
+                self._advance()
+                if skipped:
+                    self._count_skipped(position, skipped, len(batch["ids"]))
+                yield batch
+        finally:
+            # The stream ended (closed, exhausted, or by an error such as a worker's bad record): drop the source
+            # now, and with it a DataLoader's worker processes. A traceback holding this frame (a stored DataError)
+            # would otherwise keep them alive until it is collected.
+            del source
 
     def _count_skipped(self, position: tuple[int, ...], reasons: Sequence[str], kept: int) -> None:
         """Count the records tolerant mode left out of a batch; each distinct reason is logged once as a

@@ -1021,6 +1021,9 @@ class Trainer:
                     return self._stop_on_signal(result.stop_signal)
             return 0
         finally:
+            # Ends the batch stream now, and with it the DataLoader's worker processes, however training ended: a
+            # run stopped by an error would otherwise keep them until that error's traceback is collected.
+            batches.close()
             progress.close()
             logger_sink.close()
             self.stop_signal.restore()
