@@ -51,6 +51,7 @@ if str(REPO_ROOT) not in sys.path:
 
 from mfm.evaluators import ContrastiveEvaluator, ContrastiveEvaluatorConfig, save_evaluator  # noqa: E402
 from mfm.model import MotionFlowTransformer  # noqa: E402
+from mfm.solvers import NOISE_DEVICES  # noqa: E402
 from pipeline.config import TrainConfig, load_config  # noqa: E402
 from pipeline.data.stream import Manifest  # noqa: E402
 from pipeline.distributed import Dist  # noqa: E402
@@ -282,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="tasks.editing_passes")
     parser.add_argument("--editing-samples", type=int, help="single mode's edits per preset (default: "
                         f"items x {EDITS_PER_SINGLE_PASS} / {HUMANML3D_TEST_ITEMS})")
-    parser.add_argument("--noise-device", choices=("cpu", "model"), default="cpu",
+    parser.add_argument("--noise-device", choices=NOISE_DEVICES, default="cpu",
                         help="sampling.noise_device: seeded noise drawn on the CPU or on the model's device")
     args = parser.parse_args(argv)
     if args.threads:

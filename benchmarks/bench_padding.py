@@ -167,9 +167,9 @@ def train_speed(args: argparse.Namespace) -> dict[str, Any]:
 
             step(make(warmup[:batch], None))
             step(make(warmup[batch:], args.pad_multiple))
-            # Every pass trains the same batches; only the last is timed. On a GPU under torch.compile, each new
-            # batch width compiles (after the second, a dynamic-width graph), and --passes 2 keeps that out.
-            for timed_pass in [False] * (args.passes - 1) + [True]:
+            # Every pass trains the same batches; the last pass's times are kept. On a GPU under torch.compile each
+            # new batch width compiles its own graph on first sight, and --passes 2 keeps that out of the figures.
+            for _ in range(args.passes):
                 times = {"fixed": [], "length_aware": []}
                 widths = {"fixed": [], "length_aware": []}
                 for fixed_items, aware_items in zip(fixed_batches, aware_batches):

@@ -43,8 +43,7 @@ from pipeline.training.trainer import EMA, Trainer  # noqa: E402
 def ema_update_per_tensor(self: EMA, model: torch.nn.Module, *, copy: bool = False) -> None:
     """The average's update one tensor at a time: what ``EMA.update`` did before its multi-tensor lerp."""
     with torch.no_grad():
-        self.num_updates += 1
-        decay = min(self.decay, (1 + self.num_updates) / (10 + self.num_updates)) if self.warmup else self.decay
+        decay = self.next_decay()
         for name, value in model.state_dict().items():
             if value.dtype.is_floating_point and not copy:
                 self.shadow[name].lerp_(value.detach().float(), 1.0 - decay)

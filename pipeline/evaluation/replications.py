@@ -745,26 +745,25 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
     windowed = window is not None and keep is None
     if windowed:
         num_frames = max(int(window), num_frames)
+    generators = seeded_generators(seeds, noise_generator_device(sampling.noise_device, trained.device))
     if trained.objective == "diffusion":
         schedule = trained.diffusion.respaced(point.steps)
-        generator = seeded_generators(seeds, noise_generator_device(sampling.noise_device, trained.device))
         clamp = trained.x0_clamp(baseline_sampling(trained, sampling))  # FLAME's clip_denoised on our features
         if keep is None:
             result = sample_diffusion(model, schedule, cond, lengths, num_frames=num_frames, feature_dim=dim,
-                                      sampler=point.solver, guidance=point.guidance, generator=generator,
+                                      sampler=point.solver, guidance=point.guidance, generator=generators,
                                       clip_denoised=clamp, precision=precision)
         else:
             denoise = classifier_free_guidance(model, cond, scale=point.guidance, lengths=lengths, guided_channels=dim,
                                                precision=precision)
             result = replacement_edit(denoise, schedule, known, keep, sampler=point.solver, lengths=lengths,
-                                      generator=generator, restore_known=restore_known, clip_denoised=clamp)
+                                      generator=generators, restore_known=restore_known, clip_denoised=clamp)
     else:
         velocity = guided_velocity(model, cond, scale=point.guidance, lengths=lengths, precision=precision,
                                    conditional_channels=guided_feature_mask(guided_features(trained, sampling),
                                                                             trained.skeleton))
-        x0 = draw_noise((len(seeds), num_frames, dim),
-                        seeded_generators(seeds, noise_generator_device(sampling.noise_device, trained.device)),
-                        lengths=None if windowed else lengths, device=trained.device)
+        x0 = draw_noise((len(seeds), num_frames, dim), generators, lengths=None if windowed else lengths,
+                        device=trained.device)
         if keep is None:
             result = solve(velocity if windowed else zero_padded_frames(velocity, lengths), x0, solver=point.solver,
                            steps=point.steps, rtol=sampling.rtol, atol=sampling.atol)

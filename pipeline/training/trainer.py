@@ -228,11 +228,15 @@ class EMA:
         if step % self.every == 0:
             self.update(model, copy=step <= self.start)
 
+    def next_decay(self) -> float:
+        """Counts one more update and returns its decay (with the warm-up, if on)."""
+        self.num_updates += 1
+        return min(self.decay, (1 + self.num_updates) / (10 + self.num_updates)) if self.warmup else self.decay
+
     @torch.no_grad()
     def update(self, model: torch.nn.Module, *, copy: bool = False) -> None:
         """One EMA update: the average (``copy=False``) or a copy of the weights."""
-        self.num_updates += 1
-        decay = min(self.decay, (1 + self.num_updates) / (10 + self.num_updates)) if self.warmup else self.decay
+        decay = self.next_decay()
         averaged_shadows, averaged_values = [], []
         for name, value in model.state_dict().items():
             if value.dtype.is_floating_point and not copy:
