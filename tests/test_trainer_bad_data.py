@@ -374,24 +374,34 @@ def test_bad_data_stops_the_run_with_one_line_and_exit_2(dataset, tmp_path, monk
         assert stopped_at == 4  # the bad record's step: the worker's error comes in that batch's place
 
 
-def test_a_run_stopped_by_a_workers_bad_record_leaves_no_worker_process_behind(dataset, tmp_path):
-    """The error that stops the run (a worker's non-finite record) is raised while its traceback, and the trainer
-    that stored it, still hold the batch stream: fit() ends the stream first, so the DataLoader's worker processes
-    are gone when the error leaves fit, not when the error is collected (seen in this suite: 10-14 s later, a join
-    of abandoned workers inside some other test)."""
+@pytest.mark.parametrize("stop", ["bad_record_in_a_worker", "nonfinite_budget"])
+def test_a_run_stopped_by_an_error_leaves_no_worker_process_behind(dataset, tmp_path, monkeypatch, stop):
+    """The error that stops the run is raised while its traceback, and the trainer that may store it, still hold the
+    batch stream: the stream drops its DataLoader when it raises (a worker's non-finite record), and fit() closes it
+    whatever else ended training (here the non-finite budget, raised by the trainer itself), so the worker
+    processes are gone when the error leaves fit, not when the error is collected (seen in this suite: 10-14 s
+    later, a join of abandoned workers inside some other test)."""
     import multiprocessing
+
+    from test_trainer import NaNAtSteps
 
     from pipeline.data.stages import DataError
     from pipeline.distributed import Dist
+    from pipeline.training.trainer import NonFiniteLossError
 
     manifest = copy_dataset(dataset, tmp_path / "data")
-    overrides = resume_overrides(manifest, tmp_path / "run", "data.verify=off", "data.num_workers=2")
-    bad_id = planned_batches(manifest, overrides)[3][1]
-    write_nan_into(manifest, bad_id)
+    overrides = resume_overrides(manifest, tmp_path / "run", "data.verify=off", "data.num_workers=2",
+                                 "train.nonfinite_budget=1")
+    if stop == "bad_record_in_a_worker":
+        write_nan_into(manifest, planned_batches(manifest, overrides)[3][1])  # due at step 4
+        error, says = DataError, "features contain NaN or inf"
+    else:
+        patch_loss(monkeypatch, NaNAtSteps({2, 3}))
+        error, says = NonFiniteLossError, "2 consecutive skipped steps exceed train.nonfinite_budget=1"
     before = set(multiprocessing.active_children())
     with Dist(cpu=True) as dist:
         trainer = Trainer(load_config(TrainConfig, "tiny", overrides), dist)
-        with pytest.raises(DataError, match="features contain NaN or inf") as caught:
+        with pytest.raises(error, match=says) as caught:
             trainer.fit()
         assert caught.value.__traceback__ is not None and trainer.step == 3  # all of it still alive here
         assert set(multiprocessing.active_children()) - before == set()
