@@ -17,7 +17,7 @@ count          once / twice / N times (jump, squat, kick,      jumps: flight pha
                                                                named ankle; arm raises: both wrists over the head
 place          jumps up in place / forward                     horizontal travel of the pelvis
 direction      walks forward / backward; runs forward          travel along the first frame's facing direction
-turn_angle     turns 90 degrees / turns around                 heading change nearer 90° or 180°
+turn_angle     turns 90 degrees / turns around                 heading change, to the nearest multiple of 90°
 =============  ==============================================  ===================================================
 
 Each check is ``None`` when the caption does not state that attribute (e.g. "someone kicks with their left foot"
@@ -167,7 +167,9 @@ def observed_attributes(joints: np.ndarray, action: str) -> dict[str, Any]:
         return {"side": None if abs(sideways) < TRAVEL_M else "left" if sideways > 0 else "right"}
     if action == "turn":
         change = _heading_change(joints)
-        return {"side": "left" if change > 0 else "right", "turn_angle": 90 if abs(change) < 135 else 180}
+        # The nearest multiple of 90°: a 300° spin is not "turns around", nor a 30° glance "turns 90 degrees".
+        return {"side": "left" if change > 0 else "right", "turn_angle": int(90 * round(abs(change) / 90)),
+                "heading_change_deg": round(change, 1)}  # what the check rounded, for a study of the misses
     if action in ("walk", "run"):
         # Travel along each frame's own facing, so that a walk in a curve still counts as forward.
         along = float(np.sum(np.diff(pelvis, axis=0) * _forward_directions(joints)[:-1]))

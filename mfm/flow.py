@@ -15,8 +15,10 @@ from dataclasses import dataclass
 from collections.abc import Mapping
 from typing import Any, Protocol
 
+import numpy as np
 import torch
 
+from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
 from mfm.path import MIN_NOISE_SCALE, SIGMA_MIN
 
@@ -120,21 +122,40 @@ def target_velocity(x0: torch.Tensor, x1: torch.Tensor, sigma_min: float = SIGMA
 
 
 def masked_mse(
-    prediction: torch.Tensor, target: torch.Tensor, frame_mask: torch.Tensor, sample_weight: torch.Tensor | None = None
+    prediction: torch.Tensor, target: torch.Tensor, frame_mask: torch.Tensor, sample_weight: torch.Tensor | None = None,
+    channel_weight: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """MDM/MFM's ``masked_l2``: per sample Σ((target − prediction)² · mask) / (Σ mask · D), then the mean over
     the batch, for (B, T, D) tensors and a (B, T) frame mask; each sample's term times ``sample_weight`` (B,) if
-    given.
+    given, each channel's squared error times ``channel_weight`` (D,) if given (not renormalised: the divisor stays
+    Σ mask · D, as dividing those channels' std would give; :func:`feat_bias_channel_weight`).
 
     Every sample weighs the same whatever its length (as in the reference). This is also what makes data
     parallelism exact: the mean of equal-sized per-rank means is the global mean, with no extra collective.
     """
     mask = frame_mask.unsqueeze(-1).float()
-    squared_error = ((target.float() - prediction.float()).square() * mask).sum(dim=(1, 2))
+    squared_error = (target.float() - prediction.float()).square()
+    if channel_weight is not None:
+        squared_error = squared_error * channel_weight.to(squared_error.device, squared_error.dtype)
+    squared_error = (squared_error * mask).sum(dim=(1, 2))
     per_sample = squared_error / (mask.sum(dim=(1, 2)) * prediction.shape[-1]).clamp_min(1.0)
     if sample_weight is not None:
         per_sample = per_sample * sample_weight.to(per_sample.dtype)
     return per_sample.mean()
+
+
+def feat_bias_channel_weight(layout: FeatureLayout, feat_bias: float) -> tuple[float, ...]:
+    """Per-channel squared-error weights of Guo et al.'s ``feat_bias`` (text-to-motion's Comp_v6 training divides
+    the std of the root groups, features 0:4, and of the foot contacts, the last 4, by feat_bias = 5): feat_bias² on
+    those channels, 1 elsewhere. MDM, MFM and FlowMDM train with 1 everywhere (HumanML3D's Std.npy divided by 1.0).
+    The heading of the body lives in one channel of 263 (the root's rotation velocity), so without it the network is
+    barely told where a turn ends (docs/generator-study.md, "A turn is a rate, not an angle")."""
+    if not feat_bias > 0:
+        raise ValueError(f"feat_bias must be > 0, got {feat_bias!r}")
+    weight = np.ones(layout.dim)
+    weight[layout.root_dims] = feat_bias**2
+    weight[layout.slices["contacts"]] = feat_bias**2
+    return tuple(float(w) for w in weight)
 
 
 LOSS_SPACES = ("velocity", "data")
@@ -210,6 +231,7 @@ def flow_matching_loss(
     time_sampling: tuple[str, float, float, int] = ("uniform", 0.0, 1.0, 0),
     terms_weighting: str = "data",
     velocity_weight_cap: float = 0.0,
+    channel_weight: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
     weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
@@ -223,7 +245,8 @@ def flow_matching_loss(
     global batch's draws so that any world size computes the same thing). ``t``, drawn or given, is a uniform draw
     that ``time_sampling`` = (name, loc, scale, grid_steps) turns into the training time (:func:`warp_time`;
     'uniform' keeps it); ``terms_weighting`` weighs the two terms over t (:func:`term_weight`);
-    ``velocity_weight_cap`` caps the velocity loss's weight of an x̂1 error (:func:`loss_space_weight`).
+    ``velocity_weight_cap`` caps the velocity loss's weight of an x̂1 error (:func:`loss_space_weight`);
+    ``channel_weight`` (D,) weighs the main MSE's channels (:func:`masked_mse`; the two terms are not weighted).
     ``model_kwargs`` go to the model
     (per-frame conditions, token features, positional mode of the FlowMDM/FLAME variants).
     Returns the scalar loss and ``{"loss": detached loss, "valid_frames": number of frames averaged}``.
@@ -246,7 +269,8 @@ def flow_matching_loss(
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
     loss = velocity_loss(velocity, target_velocity(x0, x1, sigma_min), x1, t, frame_mask, sigma_min=sigma_min,
                          loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
-                         geometry=geometry, terms_weighting=terms_weighting, velocity_weight_cap=velocity_weight_cap)
+                         geometry=geometry, terms_weighting=terms_weighting, velocity_weight_cap=velocity_weight_cap,
+                         channel_weight=channel_weight)
     return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
 
 
@@ -264,12 +288,13 @@ def velocity_loss(
     geometry: MotionGeometry | None = None,
     terms_weighting: str = "data",
     velocity_weight_cap: float = 0.0,
+    channel_weight: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """:func:`flow_matching_loss` of a velocity the model made at times ``t`` against its ``target``: the weighted
     MSE, plus the temporal term of the implied motion's error and the bone term, whose bones are ``x1``'s (the
     clip the path leads to)."""
     weight = loss_space_weight(t, loss_space, sigma_min, velocity_weight_cap)
-    loss = masked_mse(velocity, target, frame_mask, weight)
+    loss = masked_mse(velocity, target, frame_mask, weight, channel_weight)
     terms = term_weight(t, loss_space, terms_weighting, sigma_min, velocity_weight_cap)
     if temporal_weight > 0:
         loss = loss + temporal_weight * temporal_loss(velocity, target, t, frame_mask, sigma_min, terms)
@@ -372,6 +397,8 @@ class FlowMatchingObjective:
     time_grid_steps: int = 0
     terms_weighting: str = "data"
     velocity_weight_cap: float = 0.0
+    channel_weight: tuple[float, ...] | None = None
+    """Per-channel weights of the main MSE (:func:`feat_bias_channel_weight`); None: every channel 1 (MFM)."""
 
     def __post_init__(self) -> None:
         if self.time_sampling not in TIME_SAMPLINGS or self.time_scale <= 0:
@@ -416,4 +443,5 @@ class FlowMatchingObjective:
             time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,
+            channel_weight=None if self.channel_weight is None else torch.tensor(self.channel_weight),
         )

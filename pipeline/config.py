@@ -313,6 +313,12 @@ class TrainLoopConfig:
     (``mfm.flow.loss_space_weight``): the velocity loss where that is at most the cap, the cap times the data loss
     nearer the data end (9 = from t = 2/3). 0 = no cap (MFM). Not MFM's; in the spirit of Min-SNR-γ (Hang et al.
     2023). Also caps the terms under flow_terms_weighting=loss."""
+    flow_feat_bias: float = 1.0
+    """objective=flow: Guo et al.'s ``feat_bias`` as a loss weight (``mfm.flow.feat_bias_channel_weight``): the
+    squared error of the root's channels (rotation velocity, linear velocity, height: features 0:4) and of the foot
+    contacts (the last 4) times feat_bias², the weight text-to-motion's own generator (Comp_v6) trained with by
+    dividing those groups' std by 5. 1 = every channel alike (MDM, MFM, FlowMDM). The temporal and bone terms are
+    not weighted."""
     flow_time_sampling: Literal["uniform", "logit_normal", "grid"] = "uniform"
     """objective=flow: the density of the training times (``mfm.flow.warp_time``): 'uniform' = MFM; 'logit_normal' =
     sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice); 'grid' = the times
@@ -355,6 +361,7 @@ class TrainLoopConfig:
         _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
         _require(self.flow_time_grid_steps >= 1,
                  f"train.flow_time_grid_steps must be >= 1, got {self.flow_time_grid_steps}")
+        _require(self.flow_feat_bias > 0, f"train.flow_feat_bias must be > 0 (1 = no weighting), got {self.flow_feat_bias}")
         _require(self.flow_velocity_weight_cap >= 0,
                  f"train.flow_velocity_weight_cap must be >= 0 (0 = no cap), got {self.flow_velocity_weight_cap}")
         _require(self.flow_velocity_weight_cap == 0 or self.flow_loss == "velocity",

@@ -93,3 +93,26 @@ def test_a_trembling_leg_at_kick_height_counts_as_one_kick():
     rng = np.random.default_rng(0)
     trembling[:, ankle, 1] += rng.normal(0.0, 0.02, len(clip))  # 2 cm of jitter crossing the threshold often
     assert check_caption(trembling, clip_of("kick", 2).captions[0].text)["observed"]["count"] == stated["count"]
+
+
+def test_a_turn_reports_its_heading_change_in_degrees():
+    for seed in range(4):
+        clip = clip_of("turn", seed)
+        stated = stated_attributes(clip.captions[0].text)
+        observed = check_caption(through_features(clip.joints), clip.captions[0].text)["observed"]
+        sign = 1 if stated["side"] == "left" else -1
+        assert observed["heading_change_deg"] == pytest.approx(sign * stated["turn_angle"], abs=3), clip.captions[0]
+
+
+def test_a_turn_past_its_angle_fails():
+    """A body spinning in place through 300° has not "turned around": the angle is read to the nearest 90°."""
+    pose = clip_of("turn", 0).joints[0]
+    centred = pose - pose[:1] * np.array([1.0, 0.0, 1.0])
+    frames = []
+    for angle in np.radians(np.linspace(0, 300, 80)):
+        c, s = np.cos(angle), np.sin(angle)
+        yaw = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])  # positive: a turn to the left (Y up)
+        frames.append(centred @ yaw.T)
+    result = check_caption(np.stack(frames), "a person turns around to the left.")
+    assert abs(result["observed"]["heading_change_deg"]) == pytest.approx(300, abs=2)
+    assert result["observed"]["turn_angle"] == 270 and result["checks"]["turn_angle"] is False

@@ -345,3 +345,46 @@ def test_a_capped_velocity_loss_is_the_velocity_loss_near_the_noise_and_cap_time
         FlowMatchingObjective(loss_space="data", velocity_weight_cap=9.0)
     with pytest.raises(ValueError, match="velocity_weight_cap"):
         FlowMatchingObjective(velocity_weight_cap=-1.0)
+
+
+# ---------------------------------------------------------------------------------------------- feat_bias
+
+
+@pytest.mark.parametrize(("skeleton", "dim"), [("humanml3d", 263), ("kit", 251)])
+def test_feat_bias_weighs_the_root_and_contact_channels_only(skeleton, dim):
+    from mfm.flow import feat_bias_channel_weight
+    from mfm.layout import FeatureLayout
+    from mfm.skeleton import get_skeleton
+
+    weight = np.array(feat_bias_channel_weight(FeatureLayout(get_skeleton(skeleton)), 5.0))
+    assert weight.shape == (dim,)
+    expected = np.ones(dim)
+    expected[[0, 1, 2, 3, dim - 4, dim - 3, dim - 2, dim - 1]] = 25.0  # Guo's std / 5 is a squared error × 25
+    np.testing.assert_array_equal(weight, expected)
+    with pytest.raises(ValueError, match="feat_bias must be > 0"):
+        feat_bias_channel_weight(FeatureLayout(get_skeleton(skeleton)), 0.0)
+
+
+def test_channel_weight_scales_each_channels_squared_error():
+    gen = torch.Generator().manual_seed(0)
+    prediction, target = torch.randn(2, 5, 4, generator=gen), torch.randn(2, 5, 4, generator=gen)
+    mask = valid_frame_mask(torch.tensor([5, 3]), 5)
+    weight = torch.tensor([4.0, 1.0, 1.0, 0.5])
+    per_channel = [masked_mse(prediction[..., [c]], target[..., [c]], mask) for c in range(4)]
+    # The divisor stays Σ mask · D: the weighted loss is the weighted mean of the per-channel losses.
+    expected = sum(w * loss for w, loss in zip(weight, per_channel)) / 4
+    torch.testing.assert_close(masked_mse(prediction, target, mask, channel_weight=weight), expected)
+    torch.testing.assert_close(masked_mse(prediction, target, mask, channel_weight=torch.ones(4)),
+                               masked_mse(prediction, target, mask))
+
+
+def test_flow_objective_applies_its_channel_weight():
+    model = tiny_model().eval()
+    x1, cond, lengths = torch.randn(2, 5, 6), torch.randn(2, 3), torch.tensor([5, 4])
+    t, x0 = torch.tensor([0.3, 0.6]), torch.randn(2, 5, 6)
+    weight = (9.0, 1.0, 1.0, 1.0, 1.0, 1.0)
+    got, _ = FlowMatchingObjective(channel_weight=weight).loss(model, x1, cond, lengths, t=t, x0=x0)
+    plain, _ = FlowMatchingObjective().loss(model, x1, cond, lengths, t=t, x0=x0)
+    velocity = model(interpolate(x0, x1, t), t, cond, lengths)
+    first = masked_mse(velocity[..., :1], target_velocity(x0, x1)[..., :1], valid_frame_mask(lengths, 5)) / 6
+    torch.testing.assert_close(got, plain + 8 * first, rtol=1e-5, atol=1e-6)

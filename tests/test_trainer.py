@@ -1099,3 +1099,14 @@ def test_bad_override_through_the_script_is_one_stderr_line(tmp_path):
     assert proc.returncode == 2, output_of(proc)
     assert len(proc.stderr.strip().splitlines()) == 1 and proc.stderr.startswith("error: train.max_steps")
     assert not (tmp_path / "run").exists()
+
+
+def test_build_objective_weighs_root_and_contacts_by_feat_bias():
+    from types import SimpleNamespace
+
+    from pipeline.training.trainer import build_objective
+
+    manifest = SimpleNamespace(data={"feature_spec": {"skeleton": "humanml3d"}})
+    assert build_objective(load_config(TrainConfig, "tiny"), manifest).channel_weight is None  # MFM: 1 everywhere
+    weight = build_objective(load_config(TrainConfig, "tiny", ["train.flow_feat_bias=5"]), manifest).channel_weight
+    assert len(weight) == 263 and weight[0] == weight[3] == weight[262] == 25.0 and weight[4] == weight[258] == 1.0

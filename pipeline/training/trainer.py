@@ -73,8 +73,9 @@ from tqdm.auto import tqdm
 
 from mfm.compilation import compiled_for_training, compiles  # train.compile's rule, shared with sampling's
 from mfm.diffusion import diffusion_from_preset
-from mfm.flow import FlowMatchingObjective, MotionGeometry
+from mfm.flow import FlowMatchingObjective, MotionGeometry, feat_bias_channel_weight
 from mfm.guidance import guided_feature_mask
+from mfm.layout import FeatureLayout
 from mfm.model import (
     ModelConfig,
     MotionFlowTransformer,
@@ -424,20 +425,22 @@ def build_objective(cfg: TrainConfig, manifest: Manifest):
     """The training objective the config names (both have the same ``loss(...)`` call)."""
     if cfg.train.objective == "flow":
         geometry = None
+        skeleton = get_skeleton(manifest.data["feature_spec"]["skeleton"])
         if cfg.train.flow_bone_weight > 0:
             normalization = manifest.data["normalization"]
-            geometry = MotionGeometry.from_dataset(normalization["mean"], normalization["std"],
-                                                   get_skeleton(manifest.data["feature_spec"]["skeleton"]))
+            geometry = MotionGeometry.from_dataset(normalization["mean"], normalization["std"], skeleton)
+        channel_weight = (None if cfg.train.flow_feat_bias == 1.0
+                          else feat_bias_channel_weight(FeatureLayout(skeleton), cfg.train.flow_feat_bias))
         flow = FlowMatchingObjective(loss_space=cfg.train.flow_loss, temporal_weight=cfg.train.flow_temporal_weight,
                                      bone_weight=cfg.train.flow_bone_weight, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
                                      time_grid_steps=cfg.train.flow_time_grid_steps,
                                      terms_weighting=cfg.train.flow_terms_weighting,
-                                     velocity_weight_cap=cfg.train.flow_velocity_weight_cap)
+                                     velocity_weight_cap=cfg.train.flow_velocity_weight_cap,
+                                     channel_weight=channel_weight)
         if cfg.model.shortcut_levels == 0:
             return flow
-        skeleton = get_skeleton(manifest.data["feature_spec"]["skeleton"])
         return ShortcutObjective(flow=flow, levels=cfg.model.shortcut_levels,
                                  bootstrap_fraction=cfg.train.shortcut_fraction, guidance=cfg.train.shortcut_guidance,
                                  conditional_channels=guided_feature_mask(cfg.model.guided_features, skeleton))
