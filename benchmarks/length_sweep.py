@@ -6,8 +6,8 @@ angle" (docs/generator-study.md): each caption is sampled at several lengths and
         [--text "a person turns around to the left."] [--out sweep.json]
 
 A model that heard the caption's total ("turns around": 180° however long the clip) turns about as far at 40 frames
-as at 196; one that learnt the turn as a rate turns in proportion to the length. One line per caption and length:
-what each seed's sample shows, then the share of that length's samples passing every check. Sampling is
+as at 196; one that learnt the turn as a rate turns in proportion to the length. One JSON line per caption and
+length: what each seed's sample shows ("+66°", "left/2"), and the share of them passing every check. Sampling is
 launch/sample.py's (the model's own sampler unless --steps/--guidance/--guided-features/--smoothing say otherwise).
 The default captions are the synthetic set's (``--source synthetic``) whose checks depend on the length.
 """
@@ -84,9 +84,8 @@ def main(argv: list[str] | None = None) -> int:
         passed = [all(r["checks"].values()) for r in results if r["checks"]]
         rows.append({"text": text, "frames": n, "observed": [r["observed"] for r in results],
                      "passed": float(np.mean(passed)) if passed else None})
-        share = "-" if not passed else f"{np.mean(passed):.2f}"
-        print(f"{text[:48]:48s} {n:4d}  " + "  ".join(f"{shown(r):>7s}" for r in results) + f"  pass {share}",
-              flush=True)
+        print(json.dumps({"text": text, "frames": n, "shown": [shown(r) for r in results],
+                          "passed": rows[-1]["passed"]}, ensure_ascii=False), flush=True)
     if args.out is not None:
         args.out.write_text(json.dumps({"checkpoint": str(args.checkpoint), "seeds": seeds, "options": options,
                                         "rows": rows}, indent=1))
