@@ -361,7 +361,8 @@ class TrainLoopConfig:
         _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
         _require(self.flow_time_grid_steps >= 1,
                  f"train.flow_time_grid_steps must be >= 1, got {self.flow_time_grid_steps}")
-        _require(self.flow_feat_bias > 0, f"train.flow_feat_bias must be > 0 (1 = no weighting), got {self.flow_feat_bias}")
+        _require(self.flow_feat_bias > 0,
+                 f"train.flow_feat_bias must be > 0 (1 = no weighting), got {self.flow_feat_bias}")
         _require(self.flow_velocity_weight_cap >= 0,
                  f"train.flow_velocity_weight_cap must be >= 0 (0 = no cap), got {self.flow_velocity_weight_cap}")
         _require(self.flow_velocity_weight_cap == 0 or self.flow_loss == "velocity",
