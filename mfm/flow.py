@@ -400,6 +400,16 @@ class FlowMatchingObjective:
     channel_weight: tuple[float, ...] | None = None
     """Per-channel weights of the main MSE (:func:`feat_bias_channel_weight`); None: every channel 1 (MFM)."""
 
+    def channel_weight_on(self, device: torch.device) -> torch.Tensor | None:
+        """``channel_weight`` as a tensor on ``device``, made once per device rather than every step (on a GPU each
+        step would otherwise copy it from the host)."""
+        if self.channel_weight is None:
+            return None
+        tensors = self.__dict__.setdefault("_channel_weight_tensors", {})  # a cache, not a field (frozen dataclass)
+        if device not in tensors:
+            tensors[device] = torch.tensor(self.channel_weight, dtype=torch.float32, device=device)
+        return tensors[device]
+
     def __post_init__(self) -> None:
         if self.time_sampling not in TIME_SAMPLINGS or self.time_scale <= 0:
             raise ValueError(f"FlowMatchingObjective.time_sampling must be one of {TIME_SAMPLINGS} with time_scale "
@@ -443,5 +453,5 @@ class FlowMatchingObjective:
             time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,
-            channel_weight=None if self.channel_weight is None else torch.tensor(self.channel_weight),
+            channel_weight=self.channel_weight_on(x1.device),
         )

@@ -153,7 +153,7 @@ class ShortcutObjective:
         terms = dict(sigma_min=sigma_min, loss_space=flow.loss_space, temporal_weight=flow.temporal_weight,
                      bone_weight=flow.bone_weight, geometry=flow.geometry, terms_weighting=flow.terms_weighting,
                      velocity_weight_cap=flow.velocity_weight_cap,
-                     channel_weight=None if flow.channel_weight is None else torch.tensor(flow.channel_weight))
+                     channel_weight=flow.channel_weight_on(x1.device))
         boot_loss = velocity_loss(velocity[boot], boot_target, x1[boot], boot_t, frame_mask[boot], **terms)
         loss = boot_loss * (n_boot / batch)
         if n_flow:

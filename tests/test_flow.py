@@ -383,7 +383,11 @@ def test_flow_objective_applies_its_channel_weight():
     x1, cond, lengths = torch.randn(2, 5, 6), torch.randn(2, 3), torch.tensor([5, 4])
     t, x0 = torch.tensor([0.3, 0.6]), torch.randn(2, 5, 6)
     weight = (9.0, 1.0, 1.0, 1.0, 1.0, 1.0)
-    got, _ = FlowMatchingObjective(channel_weight=weight).loss(model, x1, cond, lengths, t=t, x0=x0)
+    weighted = FlowMatchingObjective(channel_weight=weight)
+    got, _ = weighted.loss(model, x1, cond, lengths, t=t, x0=x0)
+    # Made once per device, not every step.
+    assert weighted.channel_weight_on(x1.device) is weighted.channel_weight_on(x1.device)
+    assert weighted == FlowMatchingObjective(channel_weight=weight)  # the cache is not a field
     plain, _ = FlowMatchingObjective().loss(model, x1, cond, lengths, t=t, x0=x0)
     velocity = model(interpolate(x0, x1, t), t, cond, lengths)
     first = masked_mse(velocity[..., :1], target_velocity(x0, x1)[..., :1], valid_frame_mask(lengths, 5)) / 6
