@@ -36,6 +36,7 @@ from torch import Tensor
 from mfm.diffusion import DenoisedRange, GaussianDiffusion
 from mfm.guidance import classifier_free_guidance
 from mfm.editing import as_bool_mask
+from mfm.features import restore_bone_lengths
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
 from mfm.solvers import (
@@ -354,11 +355,25 @@ def copy_reference_root(x: Tensor, reference: Tensor, keep: Tensor | np.ndarray,
     return torch.where(keep & root, reference.to(x.dtype), x)
 
 
-def smooth_over_time(x: Tensor, lengths: Sequence[int] | Tensor, sigma: float) -> Tensor:
+@dataclass(frozen=True)
+class BoneKeeping:
+    """What :func:`smooth_over_time` needs to give every bone back its length after the filter
+    (``ModelConfig.output_smoothing_keeps_bones``): the skeleton and the dataset's Mean/Std, since the bone
+    lengths are those of the raw features."""
+
+    skeleton: Any  # mfm.skeleton.Skeleton
+    mean: Tensor
+    std: Tensor
+
+
+def smooth_over_time(x: Tensor, lengths: Sequence[int] | Tensor, sigma: float,
+                     keep_bones: BoneKeeping | None = None) -> Tensor:
     """``x`` (B, T, D) smoothed along time over each sample's valid frames, as FLAME's
     ``gaussian_filter1d(motion, sigma, axis=1)`` (scipy: reflected edges, kernel truncated at 4σ); padded frames
     stay as they are. Smoothing commutes with a per-channel affine normalisation, so normalised and raw features
-    give the same motion."""
+    give the same motion. With ``keep_bones`` (``x`` normalised by its mean/std) every bone of the smoothed ric
+    positions then gets back the length it had in ``x`` in that frame (:func:`mfm.features.restore_bone_lengths`;
+    ours, not FLAME's)."""
     if sigma <= 0:
         return x
     from scipy.ndimage import gaussian_filter1d
@@ -367,4 +382,11 @@ def smooth_over_time(x: Tensor, lengths: Sequence[int] | Tensor, sigma: float) -
     array = x.detach().cpu().double().numpy().copy()
     for b, length in enumerate(lengths.tolist()):
         array[b, :length] = gaussian_filter1d(array[b, :length], sigma=sigma, axis=0)
-    return torch.from_numpy(array).to(dtype=x.dtype, device=x.device)
+    smoothed = torch.from_numpy(array).to(dtype=x.dtype, device=x.device)
+    if keep_bones is None:
+        return smoothed
+    mean = keep_bones.mean.to(x.device, torch.float64)
+    std = keep_bones.std.to(x.device, torch.float64)
+    restored = restore_bone_lengths(smoothed.double() * std + mean, x.double() * std + mean, keep_bones.skeleton)
+    valid = valid_frame_mask(lengths.to(x.device), x.shape[1]).unsqueeze(-1)
+    return torch.where(valid, ((restored - mean) / std).to(x.dtype), smoothed)

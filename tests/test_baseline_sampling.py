@@ -160,6 +160,33 @@ def test_an_explicit_output_smoothing_is_what_every_checkpoint_samples_with_and_
     assert key() == key("sampling.output_smoothing=null") != key("sampling.output_smoothing=0.7")
 
 
+def test_smoothing_that_keeps_the_bones_reaches_the_evaluator_its_records_and_its_keys():
+    """sampling.output_smoothing_keeps_bones (unset: each checkpoint's model.output_smoothing_keeps_bones, False
+    here): the smoothed motion with every bone given back its length before the filter."""
+    from mfm.diffusion_sampling import smooth_over_time
+    from mfm.features import restore_bone_lengths
+
+    flow, point = tiny_model(objective="flow", preset=None), SamplingPoint("euler", 2, 2.5)
+    lengths = torch.tensor([10, 7])
+    raw = sample(flow, SamplingConfig(output_smoothing=0.0), point)
+    plain = sample(flow, SamplingConfig(output_smoothing=1.0), point)
+    kept = sample(flow, SamplingConfig(output_smoothing=1.0, output_smoothing_keeps_bones=True), point)
+    valid = valid_frame_mask(lengths, raw.shape[1]).unsqueeze(-1)
+    expected = restore_bone_lengths(smooth_over_time(raw, lengths, 1.0), raw, flow.skeleton) * valid
+    torch.testing.assert_close(kept, expected, atol=1e-5, rtol=1e-5)
+    assert float((kept - plain).abs().max()) > 1e-3
+    assert baseline_record(flow, SamplingConfig())["smoothing_keeps_bones"] is False
+    assert baseline_record(flow, SamplingConfig(output_smoothing_keeps_bones=True))["smoothing_keeps_bones"] is True
+    ids = {"checkpoint": "c", "evaluator": "e", "gt": "g"}
+
+    def key(*overrides):
+        return CheckpointScorer(load_eval_config("fast", overrides=list(overrides)), None).unit_for(
+            Path("s"), ids, point).key
+
+    assert key() == key("sampling.output_smoothing_keeps_bones=null") != key(
+        "sampling.output_smoothing_keeps_bones=true")
+
+
 def test_pose_guidance_is_each_flow_checkpoints_own_unless_the_sweep_sets_it_and_results_record_it():
     """model.guided_features='pose' reaches the evaluator's sampler: the root-motion channels integrate the
     conditional field (guidance 2.5 then differs from 'all' there, and the run is exactly 'all' at guidance 1);

@@ -113,6 +113,17 @@ def test_the_launchers_bf16_reaches_the_run_and_a_conflict_is_one_line_exit_2(mo
     assert err.count("\n") == 1 and "train.mixed_precision=no" in err and "Traceback" not in err
 
 
+@pytest.mark.parametrize("native", [True, False])
+def test_bf16_on_a_cpu_without_native_bf16_warns_that_fp32_is_faster(native, monkeypatch, caplog):
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: native)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False)
+    with caplog.at_level("WARNING", logger="pipeline.distributed"), Dist(mixed_precision="bf16", cpu=True) as dist:
+        assert dist.mixed_precision == "bf16"
+    warned = [r.getMessage() for r in caplog.records if "without native bf16" in r.getMessage()]
+    assert len(warned) == (0 if native else 1)
+    assert not warned or "train.mixed_precision=no" in warned[0]
+
+
 # Environments as the launchers set them (captured from accelerate 1.15 and torch 2.14 on this machine).
 ACCELERATE_CPU_N2 = {"ACCELERATE_USE_CPU": "True", "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": "29500",
                      "ACCELERATE_MIXED_PRECISION": "no", "OMP_NUM_THREADS": "1"}

@@ -398,6 +398,24 @@ def test_a_model_whose_preset_smooths_its_outputs_is_sampled_smoothed_unless_tol
     assert np.abs(np.diff(smoothed, 3, axis=0)).mean() < np.abs(np.diff(unsmoothed, 3, axis=0)).mean()
 
 
+def test_smoothing_that_keeps_the_bones_is_asked_for_and_recorded(tmp_path_factory, tmp_path):
+    from mfm.diffusion_sampling import smooth_over_time
+    from mfm.features import restore_bone_lengths
+
+    run = _preset_sampling_run(tmp_path_factory)
+    skeleton = load_trained_model(run).skeleton
+    args = ["--text", "a person walks", "--seconds", "3", "--no-video", "--no-bvh", "--seed", "3"]
+    default = sample(run, tmp_path / "default", *args)
+    raw = sample(run, tmp_path / "raw", *args, "--smoothing", "0")
+    kept = sample(run, tmp_path / "kept", *args, "--smoothing-keeps-bones", "true")
+    assert default["smoothing_keeps_bones"] is False and kept["smoothing_keeps_bones"] is True  # the model's: off
+    unsmoothed = torch.as_tensor(features_of(tmp_path / "raw", raw)[0]).double()
+    smoothed = smooth_over_time(unsmoothed[None], [len(unsmoothed)], 1.0)[0]
+    expected = restore_bone_lengths(smoothed, unsmoothed, skeleton).numpy()
+    np.testing.assert_allclose(features_of(tmp_path / "kept", kept)[0], expected, atol=1e-4)
+    assert not np.allclose(features_of(tmp_path / "default", default)[0], expected, atol=1e-4)
+
+
 def test_a_model_whose_preset_sets_its_guidance_is_sampled_with_it_unless_told_otherwise(tmp_path_factory, tmp_path):
     """model.sampling_guidance is the scale launch/sample.py uses when --guidance is not given (and results.json
     says so); --guidance still wins; a model that sets none samples at MFM's 2.5."""

@@ -59,7 +59,10 @@ def test_bf16_runs_the_network_in_bf16_and_keeps_the_state_and_velocity_fp32():
     cond, lengths = batch_of(model, 3)
     frames = int(lengths.max())
     inside: list[torch.dtype] = []
-    model.output_proj.register_forward_hook(lambda module, args, out: inside.append(out.dtype))
+    head: list[tuple[torch.dtype, torch.dtype]] = []
+    model.input_proj.register_forward_hook(lambda module, args, out: inside.append(out.dtype))
+    # The output head stays fp32 under autocast (its bf16 rounding would be frame-to-frame jitter in the motion).
+    model.output_proj.register_forward_hook(lambda module, args, out: head.append((args[0].dtype, out.dtype)))
     velocity = guided_velocity(model, cond, scale=2.5, lengths=lengths, precision="bf16")
     seen: list[tuple[torch.dtype, torch.dtype]] = []
 
@@ -72,6 +75,7 @@ def test_bf16_runs_the_network_in_bf16_and_keeps_the_state_and_velocity_fp32():
         x0 = torch.randn(3, frames, model.config.feature_dim)
         result = solve(recorded, x0, steps=4, return_trajectory=True)
     assert inside == [torch.bfloat16] * 4  # one batched (2B) pass per step, in bf16
+    assert head == [(torch.float32, torch.float32)] * 4
     assert seen == [(torch.float32, torch.float32)] * 4  # what the solver holds and gets back
     assert result.x1.dtype == result.x1_hat.dtype == torch.float32
     inside.clear()

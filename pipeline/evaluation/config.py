@@ -194,6 +194,10 @@ class SamplingConfig:
     network's raw output. None (default): each checkpoint's own (its ``model.output_smoothing``; a baseline's
     authors' σ with ``baseline_defaults``, FLAME's 1; else none). Results record the σ that ran
     (``smoothing_sigma``)."""
+    output_smoothing_keeps_bones: bool | None = None
+    """After the output smoothing, every bone gets back the length it had before the filter (ours, not FLAME's;
+    mfm.model.ModelConfig.output_smoothing_keeps_bones), for every checkpoint. None (default): each checkpoint's
+    own. Results record what ran (``smoothing_keeps_bones``); an explicit setting goes into the unit keys."""
     guided_features: str | None = None
     """Which channels classifier-free guidance mixes, for every flow checkpoint: 'all' or 'pose' (the root's motion
     left to the conditional output; mfm.model.ModelConfig.guided_features). None (default): each checkpoint's own
@@ -236,6 +240,9 @@ class SamplingConfig:
         _require(self.batch_size >= 1, f"sampling.batch_size must be >= 1, got {self.batch_size}")
         _require(self.guided_features in (None, "all", "pose"),
                  f"sampling.guided_features must be all, pose or null (each checkpoint's own), got {self.guided_features!r}")
+        _require(self.output_smoothing_keeps_bones in (None, True, False),
+                 "sampling.output_smoothing_keeps_bones must be true, false or null (each checkpoint's own), got "
+                 f"{self.output_smoothing_keeps_bones!r}")
         _require(self.output_smoothing is None or self.output_smoothing >= 0,
                  f"sampling.output_smoothing must be >= 0 (or null: each checkpoint's own), got {self.output_smoothing}")
 

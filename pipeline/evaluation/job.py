@@ -104,6 +104,7 @@ from pipeline.evaluation.replications import (
     plan_protocol,
     points_for,
     sampling_precision,
+    smoothing_keeps_bones,
 )
 from pipeline.evaluation.spaces import (
     CLASSIFIER_FILE,
@@ -166,6 +167,7 @@ def baseline_record(trained: TrainedModel, sampling: Any) -> dict[str, Any]:
     """What a result says about the output smoothing and whose sampling settings ran (a baseline's own, as run:
     guidance, smoothing, every training step, x0 clamp, EMA weights, and where the numbers come from; or ours)."""
     return {"smoothing_sigma": output_smoothing(trained, sampling),
+            "smoothing_keeps_bones": smoothing_keeps_bones(trained, sampling),
             "baseline_defaults": trained.baseline_record(baseline_sampling(trained, sampling)),
             "guided_features": guided_features(trained, sampling)}
 
@@ -347,6 +349,8 @@ class CheckpointScorer:
                      if setup["steps_per_preset"][p] != setup["steps"]}
         if cfg.sampling.output_smoothing is not None:  # unset: the checkpoint's own, as keys were before it existed
             settings["sampling"]["output_smoothing"] = cfg.sampling.output_smoothing
+        if cfg.sampling.output_smoothing_keeps_bones is not None:  # unset: the checkpoint's own, keys as before
+            settings["sampling"]["output_smoothing_keeps_bones"] = cfg.sampling.output_smoothing_keeps_bones
         if cfg.sampling.guided_features is not None:  # unset: the checkpoint's own, as keys were before it existed
             settings["sampling"]["guided_features"] = cfg.sampling.guided_features
         if own_steps:  # a preset with its own step count (reference-debug's interpolation: 1 since issue 25)

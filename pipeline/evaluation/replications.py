@@ -709,6 +709,14 @@ def output_smoothing(trained: TrainedModel, sampling: SamplingConfig) -> float:
     return trained.default_smoothing if sampling.baseline_defaults else 0.0
 
 
+def smoothing_keeps_bones(trained: TrainedModel, sampling: SamplingConfig) -> bool:
+    """Whether the output smoothing gives the bones back their lengths: ``sampling.output_smoothing_keeps_bones``
+    when set, else the checkpoint's own ``model.output_smoothing_keeps_bones``."""
+    if sampling.output_smoothing_keeps_bones is not None:
+        return bool(sampling.output_smoothing_keeps_bones)
+    return bool(trained.model_config.output_smoothing_keeps_bones)
+
+
 @torch.no_grad()
 def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], lengths: Tensor,
              seeds: Sequence[int], point: SamplingPoint, sampling: SamplingConfig, *, known: Tensor | None = None,
@@ -771,7 +779,8 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
             result = edit(velocity, known, keep, steps=point.steps, rewrite_until=rewrite_until,
                           solver=point.solver, x0=x0, lengths=lengths)
     x1 = trained.finish_output(result.x1.float(), lengths, output_smoothing(trained, sampling), known=known,
-                               keep=keep, reference_translation=reference_translation)
+                               keep=keep, reference_translation=reference_translation,
+                               keep_bones=smoothing_keeps_bones(trained, sampling))
     if windowed:
         return trained.denormalize(x1), result.nfe
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)

@@ -55,6 +55,7 @@ class ContactSheetRequest:
     guidance: float | None = None  # None: the sampler's default (the model's sampling_guidance)
     seed: int = 0
     guided_features: str | None = None  # all or pose; None: the model's own (as launch/sample.py --guided-features)
+    smoothing_keeps_bones: bool | None = None  # None: the model's own (as launch/sample.py --smoothing-keeps-bones)
     smoothing: float | None = None  # σ in frames of the output's Gaussian smoothing; None: the sampler's default
     decode: str = "ric"  # a key of pipeline.generation.sampling.JOINT_DECODES
     device: str = "auto"
@@ -188,7 +189,8 @@ def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
                 checkpoint=request.checkpoint, out_dir=folder, texts=titles, seconds=request.seconds,
                 lengths=[len(c.features) for c in captions] if not request.seconds else [],
                 steps=request.steps, solver=request.solver, guidance=request.guidance, seed=request.seed,
-                smoothing=request.smoothing, guided_features=request.guided_features,
+                smoothing=request.smoothing, smoothing_keeps_bones=request.smoothing_keeps_bones,
+                guided_features=request.guided_features,
                 device=request.device, weights=request.weights, text_weights=request.text_weights,
                 decode=request.decode, video=False, bvh=False, progress=False))
             motions = [np.load(Path(folder) / f["path"]) for s in results["samples"] for f in s["files"]
@@ -200,7 +202,7 @@ def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
                   f"seed {results['seed']}")
         info = {"mode": "generated", **{key: results[key] for key in ("checkpoint", "step", "solver", "steps",
                                                                         "guidance", "guided_features", "seed",
-                                                                        "smoothing_sigma")}}
+                                                                        "smoothing_sigma", "smoothing_keeps_bones")}}
         if captions and not request.seconds:
             clips = [DECODERS[request.decode](c.features[: len(m)], skeleton) for c, m in zip(captions, motions)]
             info["against_dataset_clips"] = compare_with_clips(motions, clips, skeleton,

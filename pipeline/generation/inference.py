@@ -37,6 +37,7 @@ from mfm.diffusion_sampling import (
     BASELINE_SAMPLING,
     ROTATION_6D_RANGE_RECORD,
     BaselineSampling,
+    BoneKeeping,
     copy_reference_root,
     rotation_6d_range,
     smooth_over_time,
@@ -248,13 +249,15 @@ class TrainedModel:
 
     def finish_output(self, x: torch.Tensor, lengths: torch.Tensor, smoothing_sigma: float, *,
                       known: torch.Tensor | None = None, keep: torch.Tensor | None = None,
-                      reference_translation: bool = False) -> torch.Tensor:
+                      reference_translation: bool = False, keep_bones: bool | None = None) -> torch.Tensor:
         """The sampler's output ``x`` (B, T, D, normalised) as it is written or scored: smoothed over time with
         σ = ``smoothing_sigma`` (0: as is), then, for a diffusion edit (``keep`` of ``known``) with
         ``reference_translation``, the source's root copied where the edit keeps it, after the smoothing as
         FLAME's edit_motion.py: 79–82 then 93–94 (:func:`mfm.diffusion_sampling.copy_reference_root`). Flow edits
         (MFM's procedure) never copy. Shared by the evaluator and the sampler."""
-        x = smooth_over_time(x, lengths, smoothing_sigma)
+        keep_bones = self.model_config.output_smoothing_keeps_bones if keep_bones is None else keep_bones
+        x = smooth_over_time(x, lengths, smoothing_sigma,
+                             BoneKeeping(self.skeleton, self.mean, self.std) if keep_bones else None)
         if keep is not None and reference_translation and self.objective == "diffusion":
             x = copy_reference_root(x, known.to(x.dtype), keep, FeatureLayout(self.skeleton))
         return x

@@ -207,6 +207,7 @@ def results_header(request: SampleRequest, trained: TrainedModel, integrator: In
         "guidance": request.guidance_for(trained) if conditioned else 0.0,
         "guided_features": request.guided_features_for(trained),
         "smoothing_sigma": request.smoothing_for(trained),
+        "smoothing_keeps_bones": request.smoothing_keeps_bones_for(trained),
         # A diffusion baseline's authors' settings as run (FLAME's) and which the request overrode; null: ours.
         "baseline_defaults": request.baseline_record(trained),
         "seed": request.seed,

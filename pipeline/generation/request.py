@@ -114,6 +114,10 @@ class SampleRequest:
     """Gaussian smoothing of the output over time, σ in frames; null: the diffusion baseline's own (FLAME: 1), else
     the model's ``output_smoothing`` (none unless its preset says otherwise; not the baseline's with
     ``baseline_defaults=false``)."""
+    smoothing_keeps_bones: bool | None = None
+    """After the smoothing, give every bone back the length it had before the filter (it then smooths the bones'
+    directions only; ours, not FLAME's); null: the model's ``output_smoothing_keeps_bones`` (false unless its preset
+    says otherwise). Nothing to keep without smoothing."""
     baseline_defaults: bool = True
     """Diffusion checkpoints of a preset whose authors sampled it their own way run that way unless a key below
     overrides one setting (mfm.diffusion_sampling.BASELINE_SAMPLING; FLAME: guidance 8.0, σ = 1 smoothing, every
@@ -332,6 +336,12 @@ class SampleRequest:
             return float(self.smoothing)
         return trained.smoothing_with(self.baseline_for(trained))
 
+    def smoothing_keeps_bones_for(self, trained: TrainedModel) -> bool:
+        """Whether the smoothing keeps the bones' lengths: as given, else the model's."""
+        if self.smoothing_keeps_bones is not None:
+            return bool(self.smoothing_keeps_bones)
+        return bool(trained.model_config.output_smoothing_keeps_bones)
+
     def baseline_for(self, trained: TrainedModel) -> BaselineSampling | None:
         """The authors' sampling settings of ``trained``'s diffusion preset as this request runs them (None: ours,
         for flow models, presets without such settings and ``baseline_defaults=false``): every training step
@@ -411,6 +421,13 @@ class Flag:
     metavar: str | None = None
 
 
+def _on_off(text: str) -> bool:
+    settings = {"true": True, "on": True, "false": False, "off": False}
+    if text.lower() not in settings:
+        raise argparse.ArgumentTypeError(f"true or false, got {text!r}")
+    return settings[text.lower()]
+
+
 def _compile_setting(text: str) -> bool | str:
     """``--compile``'s value as the request key holds it: auto, True or False."""
     settings = {"auto": "auto", "true": True, "on": True, "false": False, "off": False}
@@ -440,6 +457,7 @@ FLAGS: tuple[Flag, ...] = (
     Flag("--guidance", "guidance", type=float),
     Flag("--guided-features", "guided_features", choices=("all", "pose")),
     Flag("--smoothing", "smoothing", type=float),
+    Flag("--smoothing-keeps-bones", "smoothing_keeps_bones", type=_on_off, metavar="{true,false}"),
     Flag("--no-baseline-defaults", "baseline_defaults", "false"),
     Flag("--no-clip-denoised", "baseline_clip_denoised", "false"),
     Flag("--no-reference-translation", "edit_reference_translation", "false"),

@@ -347,7 +347,8 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
                       solver=integrator.name, x0=x0, lengths=lengths, return_trajectory=request.plot_trajectory)
     # As the evaluator: smoothed, then a diffusion edit's source root copied (FLAME's use_reference_translation)
     x1 = trained.finish_output(result.x1.float(), lengths, request.smoothing_for(trained), known=known, keep=keep,
-                               reference_translation=request.edit_reference_translation)
+                               reference_translation=request.edit_reference_translation,
+                               keep_bones=request.smoothing_keeps_bones_for(trained))
     return BatchResult(
         specs, x1.cpu(), result.nfe, None if keep is None else keep.cpu(),
         None if result.x1_hat is None else result.x1_hat.float().cpu(), result.x1_hat_times,

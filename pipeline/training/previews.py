@@ -41,7 +41,7 @@ import torch
 
 from mfm.composition import bind_inputs
 from mfm.diffusion import GaussianDiffusion
-from mfm.diffusion_sampling import BASELINE_SAMPLING, sample_diffusion, smooth_over_time
+from mfm.diffusion_sampling import BASELINE_SAMPLING, BoneKeeping, sample_diffusion, smooth_over_time
 from mfm.export import render_contact_sheet
 from mfm.features import features_to_joints
 from mfm.guidance import guided_feature_mask
@@ -173,10 +173,11 @@ class PreviewSampler:
                             solver=FLOW_SOLVER, steps=config.sampling_steps, guidance=self.guidance,
                             conditional_channels=None if conditional is None else conditional.to(device),
                             generator=generators)
-        x1 = smooth_over_time(result.x1.float(), lengths.to(result.x1.device), self.smoothing).cpu()
         normalization = self.manifest.data["normalization"]
         mean = torch.as_tensor(np.asarray(normalization["mean"], dtype=np.float32))
         std = torch.as_tensor(np.asarray(normalization["std"], dtype=np.float32))
+        keep_bones = BoneKeeping(self.skeleton, mean, std) if config.output_smoothing_keeps_bones else None
+        x1 = smooth_over_time(result.x1.float().cpu(), lengths, self.smoothing, keep_bones)
         features = (x1 * std + mean).numpy()
         return [features_to_joints(features[i, :n], self.skeleton) for i, n in enumerate(prompts.lengths)]
 
