@@ -39,6 +39,7 @@ from mfm.editing import as_bool_mask
 from mfm.features import restore_bone_lengths
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
+from mfm.skeleton import Skeleton
 from mfm.solvers import (
     NoiseGenerators,
     SolveResult,
@@ -361,7 +362,7 @@ class BoneKeeping:
     (``ModelConfig.output_smoothing_keeps_bones``): the skeleton and the dataset's Mean/Std, since the bone
     lengths are those of the raw features."""
 
-    skeleton: Any  # mfm.skeleton.Skeleton
+    skeleton: Skeleton
     mean: Tensor
     std: Tensor
 
