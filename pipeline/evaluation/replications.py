@@ -712,9 +712,7 @@ def output_smoothing(trained: TrainedModel, sampling: SamplingConfig) -> float:
 def smoothing_keeps_bones(trained: TrainedModel, sampling: SamplingConfig) -> bool:
     """Whether the output smoothing gives the bones back their lengths: ``sampling.output_smoothing_keeps_bones``
     when set, else the checkpoint's own ``model.output_smoothing_keeps_bones``."""
-    if sampling.output_smoothing_keeps_bones is not None:
-        return bool(sampling.output_smoothing_keeps_bones)
-    return bool(trained.model_config.output_smoothing_keeps_bones)
+    return trained.smoothing_keeps_bones_with(sampling.output_smoothing_keeps_bones)
 
 
 @torch.no_grad()

@@ -138,6 +138,11 @@ class TrainedModel:
             return "all"
         return override or self.model_config.guided_features
 
+    def smoothing_keeps_bones_with(self, override: bool | None) -> bool:
+        """Whether the output smoothing gives the bones back their lengths: ``override`` when set (a sample
+        request's or the evaluator's), else the model's ``output_smoothing_keeps_bones``."""
+        return bool(self.model_config.output_smoothing_keeps_bones if override is None else override)
+
     @property
     def default_guidance(self) -> float:
         """The classifier-free guidance scale samplers use unless told otherwise: a diffusion baseline's own
@@ -255,9 +260,8 @@ class TrainedModel:
         ``reference_translation``, the source's root copied where the edit keeps it, after the smoothing as
         FLAME's edit_motion.py: 79–82 then 93–94 (:func:`mfm.diffusion_sampling.copy_reference_root`). Flow edits
         (MFM's procedure) never copy. Shared by the evaluator and the sampler."""
-        keep_bones = self.model_config.output_smoothing_keeps_bones if keep_bones is None else keep_bones
-        x = smooth_over_time(x, lengths, smoothing_sigma,
-                             BoneKeeping(self.skeleton, self.mean, self.std) if keep_bones else None)
+        x = smooth_over_time(x, lengths, smoothing_sigma, BoneKeeping(self.skeleton, self.mean, self.std)
+                             if self.smoothing_keeps_bones_with(keep_bones) else None)
         if keep is not None and reference_translation and self.objective == "diffusion":
             x = copy_reference_root(x, known.to(x.dtype), keep, FeatureLayout(self.skeleton))
         return x

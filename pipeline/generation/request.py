@@ -338,9 +338,7 @@ class SampleRequest:
 
     def smoothing_keeps_bones_for(self, trained: TrainedModel) -> bool:
         """Whether the smoothing keeps the bones' lengths: as given, else the model's."""
-        if self.smoothing_keeps_bones is not None:
-            return bool(self.smoothing_keeps_bones)
-        return bool(trained.model_config.output_smoothing_keeps_bones)
+        return trained.smoothing_keeps_bones_with(self.smoothing_keeps_bones)
 
     def baseline_for(self, trained: TrainedModel) -> BaselineSampling | None:
         """The authors' sampling settings of ``trained``'s diffusion preset as this request runs them (None: ours,
@@ -422,6 +420,7 @@ class Flag:
 
 
 def _on_off(text: str) -> bool:
+    """A switch's value (--smoothing-keeps-bones): true/on or false/off."""
     settings = {"true": True, "on": True, "false": False, "off": False}
     if text.lower() not in settings:
         raise argparse.ArgumentTypeError(f"true or false, got {text!r}")
@@ -430,10 +429,12 @@ def _on_off(text: str) -> bool:
 
 def _compile_setting(text: str) -> bool | str:
     """``--compile``'s value as the request key holds it: auto, True or False."""
-    settings = {"auto": "auto", "true": True, "on": True, "false": False, "off": False}
-    if text.lower() not in settings:
-        raise argparse.ArgumentTypeError(f"auto, true or false, got {text!r}")
-    return settings[text.lower()]
+    if text.lower() == "auto":
+        return "auto"
+    try:
+        return _on_off(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"auto, true or false, got {text!r}") from None
 
 
 def _key_value(text: str) -> tuple[str, str]:
