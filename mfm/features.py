@@ -500,26 +500,18 @@ def restore_bone_lengths(features: Tensor, reference: Tensor, skeleton: Skeleton
     layout = FeatureLayout(skeleton)
     ric, joints = layout.slices["ric"], skeleton.num_joints
 
-    def positions(f: Tensor) -> Tensor:
+    def positions(f: Tensor) -> tuple[Tensor, tuple[int, ...]]:
+        """The pelvis at (0, height, 0) and the ric joints, components first (3, J, N, T)."""
         pelvis = torch.zeros(f.shape[:-1] + (1, 3), dtype=f.dtype, device=f.device)
         pelvis[..., 0, 1] = f[..., layout.slices["root_height"]][..., 0]
-        return torch.cat([pelvis, f[..., ric].unflatten(-1, (joints - 1, 3))], dim=-2)
+        return _components_first(torch.cat([pelvis, f[..., ric].unflatten(-1, (joints - 1, 3))], dim=-2))
 
-    moved, original = positions(features), positions(reference.to(features.dtype))
-    parents = skeleton.parents
-    depth = np.zeros(joints, dtype=np.int64)
-    for joint in range(joints):
-        walk = joint
-        while parents[walk] >= 0:
-            depth[joint] += 1
-            walk = parents[walk]
-    placed = moved.clone()
-    for joint in sorted(range(1, joints), key=lambda j: depth[j]):
-        parent = int(parents[joint])
-        direction = moved[..., joint, :] - moved[..., parent, :]
-        length = (original[..., joint, :] - original[..., parent, :]).norm(dim=-1, keepdim=True)
-        placed[..., joint, :] = placed[..., parent, :] + direction * (
-            length / direction.norm(dim=-1, keepdim=True).clamp_min(1e-12))
+    topo = _topology_of(skeleton, chains_from_root=True)  # either: only parents/ancestors are used
+    (moved, lead), (original, _) = positions(features), positions(reference.to(features.dtype))
+    bones = _bones_cf(moved, topo)
+    length = torch.sqrt(_squared_norm(_bones_cf(original, topo)))
+    rescaled = bones * (length / torch.sqrt(_squared_norm(bones)).clamp_min(1e-12))
+    placed = _components_last(_sum_bones_cf(moved[:, 0], rescaled, topo), lead)  # (..., T, J, 3)
     out = features.clone()
     out[..., ric] = placed[..., 1:, :].flatten(-2)
     return out
