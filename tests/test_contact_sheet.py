@@ -15,6 +15,7 @@ from mfm.export import render_contact_sheet
 from mfm.export.contact_sheet import HEADER_PX, ROW_TITLE_PX, sheet_frames
 from mfm.export.stick import SIDE_COLORS, bone_sides
 from mfm.skeleton import HUMANML3D, KIT, get_skeleton
+from pipeline.cli.contact_sheet import parse_args as parse_sheet_args
 from pipeline.data.stream import open_manifest
 from pipeline.generation.contact_sheet import (
     ContactSheetRequest,
@@ -89,6 +90,16 @@ def test_cli_samples_one_row_per_prompt(text_run, tmp_path, capsys):  # noqa: F8
     assert pixels(out).shape == (HEADER_PX + 2 * (ROW_TITLE_PX + 160), 5 * 160, 3)
     assert sheet_entry.main(["--checkpoint", str(text_run), "--out", str(out)]) == 2
     assert "exactly one" in capsys.readouterr().err
+
+
+def test_cli_reads_the_bone_keeping_switch_as_launch_sample_does(capsys):
+    read = parse_sheet_args
+    assert read(["--out", "x.png"]).smoothing_keeps_bones is None  # the model's own
+    assert read(["--out", "x.png", "--smoothing-keeps-bones", "on"]).smoothing_keeps_bones is True
+    assert read(["--out", "x.png", "--smoothing-keeps-bones", "FALSE"]).smoothing_keeps_bones is False
+    with pytest.raises(SystemExit):
+        read(["--out", "x.png", "--smoothing-keeps-bones", "maybe"])
+    assert "true or false, got 'maybe'" in capsys.readouterr().err
 
 
 @pytest.mark.slow

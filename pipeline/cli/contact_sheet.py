@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from pipeline.generation.contact_sheet import ContactSheetRequest, run_contact_sheet
-from pipeline.generation.request import JOINT_DECODES, SamplingError, read_prompts
+from pipeline.generation.request import JOINT_DECODES, SamplingError, on_off, read_prompts
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -45,7 +45,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--seed", type=int, default=0)
     add("--guided-features", choices=("all", "pose"), help="channels guidance mixes (as launch/sample.py)")
     add("--smoothing", type=float, help="Gaussian smoothing of the output over time, σ in frames (as launch/sample.py)")
-    add("--smoothing-keeps-bones", choices=("true", "false"),
+    add("--smoothing-keeps-bones", type=on_off, metavar="{true,false}",
         help="after the smoothing, every bone gets back its length (default: the model's; as launch/sample.py)")
     add("--decode", choices=sorted(JOINT_DECODES), default="ric", help="joints as recovered from the ric block "
                                                                       "(default) or fitted onto fixed bone lengths")
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             seconds=args.seconds,
             steps=args.steps, solver=args.solver, guidance=args.guidance, seed=args.seed, smoothing=args.smoothing,
             guided_features=args.guided_features,
-            smoothing_keeps_bones=None if args.smoothing_keeps_bones is None else args.smoothing_keeps_bones == "true",
+            smoothing_keeps_bones=args.smoothing_keeps_bones,
             decode=args.decode,
             device=args.device, weights=args.model_weights, text_weights=args.text_weights))
     except (SamplingError, FileNotFoundError) as err:

@@ -419,8 +419,9 @@ class Flag:
     metavar: str | None = None
 
 
-def _on_off(text: str) -> bool:
-    """A switch's value (--smoothing-keeps-bones): true/on or false/off."""
+def on_off(text: str) -> bool:
+    """A switch's value (--smoothing-keeps-bones of launch/sample.py and launch/contact_sheet.py): true/on or
+    false/off."""
     settings = {"true": True, "on": True, "false": False, "off": False}
     if text.lower() not in settings:
         raise argparse.ArgumentTypeError(f"true or false, got {text!r}")
@@ -432,7 +433,7 @@ def _compile_setting(text: str) -> bool | str:
     if text.lower() == "auto":
         return "auto"
     try:
-        return _on_off(text)
+        return on_off(text)
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(f"auto, true or false, got {text!r}") from None
 
@@ -458,7 +459,7 @@ FLAGS: tuple[Flag, ...] = (
     Flag("--guidance", "guidance", type=float),
     Flag("--guided-features", "guided_features", choices=("all", "pose")),
     Flag("--smoothing", "smoothing", type=float),
-    Flag("--smoothing-keeps-bones", "smoothing_keeps_bones", type=_on_off, metavar="{true,false}"),
+    Flag("--smoothing-keeps-bones", "smoothing_keeps_bones", type=on_off, metavar="{true,false}"),
     Flag("--no-baseline-defaults", "baseline_defaults", "false"),
     Flag("--no-clip-denoised", "baseline_clip_denoised", "false"),
     Flag("--no-reference-translation", "edit_reference_translation", "false"),
