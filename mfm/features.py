@@ -468,9 +468,10 @@ def joints_to_features(
 # features -> joints
 
 
-def _root_trajectory(features: Tensor) -> tuple[Parts, Tensor]:
-    """Integrate the root (reference ``recover_root_rot_pos``): rotation components (..., T) and positions
-    (3, ..., T); the angle and XZ start at 0 on frame 0, the height is read from dim 3."""
+def root_path(features: Tensor) -> tuple[Tensor, Tensor]:
+    """Integrate the root (reference ``recover_root_rot_pos``) of raw (not normalised) torch features (..., T, D):
+    the heading angle about +Y (..., T, radians) and the root's position (3, ..., T). The angle and XZ start at
+    0 on frame 0; the height is read from dim 3. Differentiable (training's trajectory term uses it)."""
     rot_vel = features[..., 0]
     zero = torch.zeros_like(rot_vel[..., :1])
     angle = torch.cumsum(torch.cat((zero, rot_vel[..., :-1]), dim=-1), dim=-1)
@@ -483,7 +484,13 @@ def _root_trajectory(features: Tensor) -> tuple[Parts, Tensor]:
     )
     step_x, _, step_z = rotate_about_y(qinv(r_rot), step)
     position = torch.stack((torch.cumsum(step_x, dim=-1), features[..., 3], torch.cumsum(step_z, dim=-1)))
-    return r_rot, position
+    return angle, position
+
+
+def _root_trajectory(features: Tensor) -> tuple[Parts, Tensor]:
+    """:func:`root_path` with the heading as rotation components (..., T)."""
+    angle, position = root_path(features)
+    return quat_about_y(angle, as_tuple=True), position
 
 
 def restore_bone_lengths(features: Tensor, reference: Tensor, skeleton: Skeleton) -> Tensor:

@@ -304,10 +304,14 @@ class TrainLoopConfig:
     flow_bone_weight: float = 0.0
     """objective=flow: weight of ``mfm.flow.bone_length_loss`` (bone lengths of the implied motion against the
     clip's, m²), added to the flow loss. 0 = MFM."""
+    flow_trajectory_weight: float = 0.0
+    """objective=flow: weight of ``mfm.flow.trajectory_loss`` (the root's integrated path of the implied motion
+    against the clip's: ground position m² plus heading rad²), added to the flow loss. 0 = MFM."""
     flow_terms_weighting: Literal["data", "loss"] = "data"
-    """objective=flow: how the temporal and bone terms are weighted over t (``mfm.flow.term_weight``): 'data' = the
-    same at every t (as introduced); 'loss' = as the main loss weighs an x̂1 error at that t (under the velocity
-    loss 1/(1 − t)², so the terms keep their proportion to it where the sampler's last steps are). Not MFM's."""
+    """objective=flow: how the temporal, bone and trajectory terms are weighted over t (``mfm.flow.term_weight``):
+    'data' = the same at every t (as introduced); 'loss' = as the main loss weighs an x̂1 error at that t (under the
+    velocity loss 1/(1 − t)², so the terms keep their proportion to it where the sampler's last steps are). Not
+    MFM's."""
     flow_velocity_weight_cap: float = 0.0
     """objective=flow, flow_loss=velocity: cap on the weight the velocity loss puts on an x̂1 error, 1/(1 − t)²
     (``mfm.flow.loss_space_weight``): the velocity loss where that is at most the cap, the cap times the data loss
@@ -317,7 +321,7 @@ class TrainLoopConfig:
     """objective=flow: Guo et al.'s ``feat_bias`` as a loss weight (``mfm.flow.feat_bias_channel_weight``): the
     squared error of the root's channels (rotation velocity, linear velocity, height: features 0:4) and of the foot
     contacts (the last 4) times feat_bias², the weight text-to-motion's own generator (Comp_v6) trained with by
-    dividing those groups' std by 5. 1 = every channel alike (MDM, MFM, FlowMDM). The temporal and bone terms are
+    dividing those groups' std by 5. 1 = every channel alike (MDM, MFM, FlowMDM). The temporal, bone and trajectory terms are
     not weighted."""
     flow_time_sampling: Literal["uniform", "logit_normal", "grid"] = "uniform"
     """objective=flow: the density of the training times (``mfm.flow.warp_time``): 'uniform' = MFM; 'logit_normal' =
@@ -357,6 +361,8 @@ class TrainLoopConfig:
         coerce_fields(self)
         _require(self.max_steps >= 1, f"train.max_steps must be >= 1, got {self.max_steps}")
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
+        _require(self.flow_trajectory_weight >= 0,
+                 f"train.flow_trajectory_weight must be >= 0, got {self.flow_trajectory_weight}")
         _require(self.flow_temporal_weight >= 0, f"train.flow_temporal_weight must be >= 0, got {self.flow_temporal_weight}")
         _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
         _require(self.flow_time_grid_steps >= 1,

@@ -245,6 +245,87 @@ def test_motion_geometry_reads_the_bones_of_a_real_clip(reference_data):
     assert loss.item() == pytest.approx(0.1 ** 2 / len(children), rel=1e-3)
 
 
+def test_root_path_is_the_root_of_recover_from_ric_on_a_real_clip(reference_data):
+    """mfm.features.root_path integrates the root as features_to_joints places it (clip 012314), and
+    MotionGeometry.root_path reads the same path off normalised features."""
+    from mfm.features import features_to_joints, root_path
+    from mfm.flow import MotionGeometry
+    from mfm.skeleton import get_skeleton
+
+    skeleton = get_skeleton("humanml3d")
+    features = np.load(reference_data / "humanml3d" / "new_joint_vecs_012314.npy").astype(np.float32)
+    mean = np.load(reference_data / "humanml3d" / "Mean.npy").astype(np.float32)
+    std = np.load(reference_data / "humanml3d" / "Std.npy").astype(np.float32)
+    angle, position = root_path(torch.as_tensor(features))
+    joints = features_to_joints(torch.as_tensor(features), skeleton).numpy()
+    np.testing.assert_allclose(position.movedim(0, -1).numpy(), joints[:, 0], atol=1e-5)
+    np.testing.assert_allclose(angle.numpy(), np.concatenate([[0.0], np.cumsum(features[:-1, 0])]), atol=1e-5)
+    heading, ground = MotionGeometry.from_dataset(mean, std, skeleton).root_path(torch.as_tensor((features - mean) / std)[None])
+    np.testing.assert_allclose(heading[0].numpy(), angle.numpy(), atol=1e-4)
+    np.testing.assert_allclose(ground[0].numpy(), joints[:, 0, [0, 2]], atol=1e-4)
+
+
+def trajectory_geometry(dim: int = 263):
+    from mfm.flow import MotionGeometry
+    from mfm.skeleton import get_skeleton
+
+    return MotionGeometry.from_dataset(np.zeros(dim, np.float32), np.ones(dim, np.float32), get_skeleton("humanml3d"))
+
+
+def test_trajectory_loss_grows_with_a_persistent_rate_bias_and_ignores_padding():
+    """A bias δ in the root's forward velocity (per frame) puts the root k·δ off by frame k: the term is the mean of
+    (k·δ)² over valid frames, so it grows with the clip's length as the drift does (the main MSE charges δ² per frame
+    whatever the length); a heading-rate bias ε costs (k·ε)² the same way; padding frames do not count."""
+    from mfm.flow import trajectory_loss
+
+    geometry = trajectory_geometry()
+    clip = torch.zeros(2, 10, 263)
+    mask = valid_frame_mask(torch.tensor([10, 5]), 10)
+    assert trajectory_loss(clip, clip, mask, geometry).item() == 0.0
+    delta, eps = 0.003, 0.01
+    drifting = clip.clone()
+    drifting[..., 2] = delta  # the facing frame's Z velocity (forward)
+    drifting[1, 5:] = 50.0  # padding of sample 1
+    frames = torch.arange(10.0)
+    expected = 0.5 * ((frames * delta).square().mean() + (frames[:5] * delta).square().mean())
+    assert trajectory_loss(drifting, clip, mask, geometry).item() == pytest.approx(expected.item(), rel=1e-4)
+    turning = clip.clone()
+    turning[..., 0] = eps
+    expected = 0.5 * ((frames * eps).square().mean() + (frames[:5] * eps).square().mean())
+    assert trajectory_loss(turning, clip, mask, geometry).item() == pytest.approx(expected.item(), rel=1e-4)
+
+
+def test_the_trajectory_term_adds_its_weight_times_the_implied_paths_error():
+    """flow_matching_loss with trajectory_weight w = the loss without it + w × trajectory_loss(x̂1, x1) on the same
+    draws; the gradient reaches the model; the objective refuses a negative weight or a missing geometry."""
+    from mfm.flow import implied_motion_error, trajectory_loss
+
+    torch.manual_seed(0)
+    geometry = trajectory_geometry()
+    model = MotionFlowTransformer(ModelConfig(feature_dim=263, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
+    x1, cond, lengths = 0.1 * torch.randn(2, 12, 263), torch.randn(2, 4), torch.tensor([12, 7])
+    t, x0 = torch.tensor([0.3, 0.8]), torch.randn(2, 12, 263)
+    plain, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0)
+    with_term, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, trajectory_weight=2.0, geometry=geometry)
+    velocity = model(interpolate(x0, x1, t), t, cond, lengths)
+    x1_hat = x1 + implied_motion_error(velocity, target_velocity(x0, x1), t)
+    term = trajectory_loss(x1_hat, x1, valid_frame_mask(lengths, 12), geometry)
+    assert term.item() > 0
+    assert with_term.item() == pytest.approx(plain.item() + 2.0 * term.item(), rel=1e-5)
+    with_term.backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+    objective = FlowMatchingObjective(trajectory_weight=1.0, geometry=geometry)
+    assert objective.loss(model, x1, cond, lengths, t=t, x0=x0)[0].item() == pytest.approx(
+        plain.item() + term.item(), rel=1e-5)
+    with pytest.raises(ValueError, match="trajectory_weight"):
+        FlowMatchingObjective(trajectory_weight=1.0)
+    with pytest.raises(ValueError, match="trajectory_weight"):
+        FlowMatchingObjective(trajectory_weight=-1.0, geometry=geometry)
+    with pytest.raises(ValueError, match="geometry"):
+        flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, trajectory_weight=1.0)
+
+
 def test_uniform_time_sampling_keeps_the_draws_and_logit_normal_is_its_inverse_cdf():
     u = torch.rand(20_000, generator=torch.Generator().manual_seed(0))
     assert torch.equal(warp_time(u, "uniform"), u)
