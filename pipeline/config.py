@@ -321,8 +321,8 @@ class TrainLoopConfig:
     """objective=flow: Guo et al.'s ``feat_bias`` as a loss weight (``mfm.flow.feat_bias_channel_weight``): the
     squared error of the root's channels (rotation velocity, linear velocity, height: features 0:4) and of the foot
     contacts (the last 4) times feat_bias², the weight text-to-motion's own generator (Comp_v6) trained with by
-    dividing those groups' std by 5. 1 = every channel alike (MDM, MFM, FlowMDM). The temporal, bone and trajectory terms are
-    not weighted."""
+    dividing those groups' std by 5. 1 = every channel alike (MDM, MFM, FlowMDM). The temporal, bone and trajectory
+    terms are not weighted."""
     flow_time_sampling: Literal["uniform", "logit_normal", "grid"] = "uniform"
     """objective=flow: the density of the training times (``mfm.flow.warp_time``): 'uniform' = MFM; 'logit_normal' =
     sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice); 'grid' = the times
