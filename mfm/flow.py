@@ -272,8 +272,8 @@ def flow_matching_loss(
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
     loss = velocity_loss(velocity, target_velocity(x0, x1, sigma_min), x1, t, frame_mask, sigma_min=sigma_min,
                          loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
-                         trajectory_weight=trajectory_weight, geometry=geometry, terms_weighting=terms_weighting, velocity_weight_cap=velocity_weight_cap,
-                         channel_weight=channel_weight)
+                         trajectory_weight=trajectory_weight, geometry=geometry, terms_weighting=terms_weighting,
+                         velocity_weight_cap=velocity_weight_cap, channel_weight=channel_weight)
     return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
 
 
@@ -385,7 +385,7 @@ def trajectory_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Te
     MSE weighs an error of a rate the same whether it comes and goes or persists. A persistent bias of 3 mm per
     frame, nothing per frame against a walk's 2-5 cm, is 0.5 m after 173 frames: "jumps up in place" drifts, and
     a turn's total angle grows with the clip's length. Integrated, that bias is the error that grows; this term
-    weighs it so. Ours (in the spirit of MDM's and FLAME's geometric losses on positions); not part of MFM."""
+    weighs it so. Ours (in the spirit of MDM's geometric losses on positions); not part of MFM."""
     hat_angle, hat_ground = geometry.root_path(x1_hat)
     angle, ground = geometry.root_path(x1)
     mask = frame_mask.float()
