@@ -472,6 +472,18 @@ def root_path(features: Tensor) -> tuple[Tensor, Tensor]:
     """Integrate the root (reference ``recover_root_rot_pos``) of raw (not normalised) torch features (..., T, D):
     the heading angle about +Y (..., T, radians) and the root's position (3, ..., T). The angle and XZ start at
     0 on frame 0; the height is read from dim 3. Differentiable (training's trajectory term uses it)."""
+    angle, _, position = _integrate_root(features)
+    return angle, position
+
+
+def _root_trajectory(features: Tensor) -> tuple[Parts, Tensor]:
+    """:func:`root_path` with the heading as rotation components (..., T)."""
+    _, r_rot, position = _integrate_root(features)
+    return r_rot, position
+
+
+def _integrate_root(features: Tensor) -> tuple[Tensor, Parts, Tensor]:
+    """The heading angle, its rotation components and the position of :func:`root_path`, computed once."""
     rot_vel = features[..., 0]
     zero = torch.zeros_like(rot_vel[..., :1])
     angle = torch.cumsum(torch.cat((zero, rot_vel[..., :-1]), dim=-1), dim=-1)
@@ -484,13 +496,7 @@ def root_path(features: Tensor) -> tuple[Tensor, Tensor]:
     )
     step_x, _, step_z = rotate_about_y(qinv(r_rot), step)
     position = torch.stack((torch.cumsum(step_x, dim=-1), features[..., 3], torch.cumsum(step_z, dim=-1)))
-    return angle, position
-
-
-def _root_trajectory(features: Tensor) -> tuple[Parts, Tensor]:
-    """:func:`root_path` with the heading as rotation components (..., T)."""
-    angle, position = root_path(features)
-    return quat_about_y(angle, as_tuple=True), position
+    return angle, r_rot, position
 
 
 def restore_bone_lengths(features: Tensor, reference: Tensor, skeleton: Skeleton) -> Tensor:

@@ -341,9 +341,13 @@ class MotionGeometry:
         return cls(torch.as_tensor(mean, dtype=torch.float32), torch.as_tensor(std, dtype=torch.float32),
                    tuple(int(p) for p in skeleton.parents), layout.slices["ric"], layout.slices["root_height"].start)
 
+    def raw(self, features: torch.Tensor) -> torch.Tensor:
+        """Normalised (B, T, D) features back in the dataset's units (float32)."""
+        return features.float() * self.std.to(features.device) + self.mean.to(features.device)
+
     def joints(self, features: torch.Tensor) -> torch.Tensor:
         """(B, T, J, 3) positions in the facing frame, root above the origin, from normalised (B, T, D) features."""
-        raw = features.float() * self.std.to(features.device) + self.mean.to(features.device)
+        raw = self.raw(features)
         others = raw[..., self.ric].reshape(*raw.shape[:-1], -1, 3)
         root = torch.zeros_like(others[..., :1, :])
         root[..., 1] = raw[..., self.root_height : self.root_height + 1]
@@ -352,8 +356,7 @@ class MotionGeometry:
     def root_path(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The root's integrated heading (B, T, radians) and ground position (B, T, 2: X, Z in metres) from
         normalised (B, T, D) features (:func:`mfm.features.root_path`)."""
-        raw = features.float() * self.std.to(features.device) + self.mean.to(features.device)
-        angle, position = root_path(raw)
+        angle, position = root_path(self.raw(features))
         return angle, torch.stack((position[0], position[2]), dim=-1)
 
     def bone_lengths(self, features: torch.Tensor) -> torch.Tensor:

@@ -260,7 +260,8 @@ def test_root_path_is_the_root_of_recover_from_ric_on_a_real_clip(reference_data
     joints = features_to_joints(torch.as_tensor(features), skeleton).numpy()
     np.testing.assert_allclose(position.movedim(0, -1).numpy(), joints[:, 0], atol=1e-5)
     np.testing.assert_allclose(angle.numpy(), np.concatenate([[0.0], np.cumsum(features[:-1, 0])]), atol=1e-5)
-    heading, ground = MotionGeometry.from_dataset(mean, std, skeleton).root_path(torch.as_tensor((features - mean) / std)[None])
+    geometry = MotionGeometry.from_dataset(mean, std, skeleton)
+    heading, ground = geometry.root_path(torch.as_tensor((features - mean) / std)[None])
     np.testing.assert_allclose(heading[0].numpy(), angle.numpy(), atol=1e-4)
     np.testing.assert_allclose(ground[0].numpy(), joints[:, 0, [0, 2]], atol=1e-4)
 
