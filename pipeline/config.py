@@ -307,6 +307,11 @@ class TrainLoopConfig:
     flow_trajectory_weight: float = 0.0
     """objective=flow: weight of ``mfm.flow.trajectory_loss`` (the root's integrated path of the implied motion
     against the clip's: ground position m² plus heading rad²), added to the flow loss. 0 = MFM."""
+    flow_trajectory_start_step: int = 0
+    """objective=flow: the trajectory term counts only in the updates after the first this many (0: in all). Why:
+    from the first step its heavy-tailed gradient, clipped with the main loss's, slows the main loss; late in a
+    run it straightens the root's path at little cost (docs/generator-study.md). The validation loss includes the
+    term from then on, as the training loss does. Ours, not MFM's."""
     flow_terms_weighting: Literal["data", "loss"] = "data"
     """objective=flow: how the temporal, bone and trajectory terms are weighted over t (``mfm.flow.term_weight``):
     'data' = the same at every t (as introduced); 'loss' = as the main loss weighs an x̂1 error at that t (under the
@@ -363,6 +368,9 @@ class TrainLoopConfig:
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
         _require(self.flow_trajectory_weight >= 0,
                  f"train.flow_trajectory_weight must be >= 0, got {self.flow_trajectory_weight}")
+        _require(0 <= self.flow_trajectory_start_step < self.max_steps,
+                 f"train.flow_trajectory_start_step must be in [0, train.max_steps={self.max_steps}), "
+                 f"got {self.flow_trajectory_start_step}")
         _require(self.flow_temporal_weight >= 0, f"train.flow_temporal_weight must be >= 0, got {self.flow_temporal_weight}")
         _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
         _require(self.flow_time_grid_steps >= 1,

@@ -657,6 +657,24 @@ def four_step_run(dataset, tmp_path_factory) -> Path:
     return run
 
 
+def test_the_trajectory_term_from_a_start_step_leaves_the_run_before_it_unchanged(four_step_run, dataset, tmp_path):
+    """train.flow_trajectory_start_step=2: steps 1-2 are the run without the term, bit for bit (the term draws
+    nothing); from step 3 the loss is the one with it."""
+    run = tmp_path / "late"
+    assert train_entry.main(["--config", "tiny", *continue_overrides(
+        dataset, run, "train.max_steps=4", "train.flow_trajectory_weight=0.5",
+        "train.flow_trajectory_start_step=2")]) == 0
+    step_2 = ckpt.step_dir_name(2)
+    plain_model, plain_ema, _ = ckpt.load_checkpoint(ckpt.checkpoints_dir(four_step_run) / step_2)
+    late_model, late_ema, _ = ckpt.load_checkpoint(ckpt.checkpoints_dir(run) / step_2)
+    assert_identical(plain_model, late_model, "model")
+    assert_identical(plain_ema, late_ema, "ema")
+    plain, late = metrics_by_step(four_step_run), metrics_by_step(run)
+    assert [late[s]["loss"] for s in (1, 2)] == [plain[s]["loss"] for s in (1, 2)]
+    # From step 3 the term adds a positive amount (a loss of the same draws, larger by about 0.5 x the term).
+    assert late[3]["loss"] > plain[3]["loss"] + 1e-4, (late[3]["loss"], plain[3]["loss"])
+
+
 def copy_of(run: Path, tmp_path: Path) -> Path:
     copy = tmp_path / "run"
     shutil.copytree(run, copy)

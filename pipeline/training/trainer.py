@@ -421,19 +421,21 @@ def load_initial_weights(model: torch.nn.Module, checkpoint: str) -> None:
                           ) from None
 
 
-def build_objective(cfg: TrainConfig, manifest: Manifest):
-    """The training objective the config names (both have the same ``loss(...)`` call)."""
+def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bool = True):
+    """The training objective the config names (both have the same ``loss(...)`` call). ``trajectory_term=False``:
+    the flow objective without train.flow_trajectory_weight's term (before train.flow_trajectory_start_step)."""
     if cfg.train.objective == "flow":
         geometry = None
         skeleton = get_skeleton(manifest.data["feature_spec"]["skeleton"])
-        if cfg.train.flow_bone_weight > 0 or cfg.train.flow_trajectory_weight > 0:
+        trajectory_weight = cfg.train.flow_trajectory_weight if trajectory_term else 0.0
+        if cfg.train.flow_bone_weight > 0 or trajectory_weight > 0:
             normalization = manifest.data["normalization"]
             geometry = MotionGeometry.from_dataset(normalization["mean"], normalization["std"], skeleton)
         channel_weight = (None if cfg.train.flow_feat_bias == 1.0
                           else feat_bias_channel_weight(FeatureLayout(skeleton), cfg.train.flow_feat_bias))
         flow = FlowMatchingObjective(loss_space=cfg.train.flow_loss, temporal_weight=cfg.train.flow_temporal_weight,
                                      bone_weight=cfg.train.flow_bone_weight,
-                                     trajectory_weight=cfg.train.flow_trajectory_weight, geometry=geometry,
+                                     trajectory_weight=trajectory_weight, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
                                      time_grid_steps=cfg.train.flow_time_grid_steps,
@@ -481,6 +483,11 @@ class Trainer:
         bad_shards, self.shard_report = self._verified_bad_shards("train")
         check_noise_source(cfg, self.manifest)
         self.objective = build_objective(cfg, self.manifest)
+        # train.flow_trajectory_start_step: the same objective without the term for the first updates (the term
+        # draws nothing, so the draws and the run up to then are the run without it).
+        self.objective_before_trajectory = (
+            build_objective(cfg, self.manifest, trajectory_term=False)
+            if cfg.train.objective == "flow" and cfg.train.flow_trajectory_start_step > 0 else self.objective)
         self.model_config = model_config_for(
             self.manifest, cfg.model, learned_variance=getattr(self.objective, "learn_sigma", False))
 
@@ -623,9 +630,11 @@ class Trainer:
             cond_mask, overrides = draws.cond_mask, {"t": draws.t, "x0": draws.x0}
             if draws.positional_mode is not None:
                 model_kwargs["positional_mode"] = draws.positional_mode
-        loss, _ = self.objective.loss(self.model if model is None else model, features, self._condition(batch),
-                                      lengths, generator=generator,
-                                      cond_mask=cond_mask, model_kwargs=model_kwargs, **overrides)
+        objective = (self.objective if self.step >= self.cfg.train.flow_trajectory_start_step
+                     else self.objective_before_trajectory)  # self.step: the updates before this one
+        loss, _ = objective.loss(self.model if model is None else model, features, self._condition(batch),
+                                 lengths, generator=generator,
+                                 cond_mask=cond_mask, model_kwargs=model_kwargs, **overrides)
         return loss
 
     def _stand_in(self, empty: Mapping[str, Any]) -> dict[str, Any]:
