@@ -41,6 +41,9 @@ from pipeline.training.trainer import Trainer
 SOURCES = ("random", "loader")
 
 
+RANDOM_CAPTION_TOKENS = 32  # a manifest that does not say how many token features it keeps
+
+
 def random_batches(trainer: Trainer, count: int) -> list[dict[str, Any]]:
     """``count`` distinct batches of random tensors with the run's shapes, already on the training device, with
     record ids as the loader gives them (``Trainer.train_step`` weighs each micro-batch by its number of ids).
@@ -56,6 +59,12 @@ def random_batches(trainer: Trainer, count: int) -> list[dict[str, Any]]:
             "text_emb": torch.randn(b, model_config.cond_dim, generator=generator),
             "action": torch.randint(0, max(1, model_config.num_actions), (b,), generator=generator),
         }
+        if model_config.conditioning == "cross_attention":
+            # the caption's token features as the loader gives them: padded to the set's max_tokens, each caption
+            # at least one token long
+            tokens = trainer.manifest.data["text_encoder"].get("max_tokens") or RANDOM_CAPTION_TOKENS
+            batch["text_tokens"] = torch.randn(b, tokens, model_config.token_dim, generator=generator)
+            batch["text_token_len"] = torch.randint(1, tokens + 1, (b,), generator=generator)
         batches.append({**{k: v.to(device) for k, v in batch.items()},
                         "ids": [f"random-{len(batches)}-{i}" for i in range(b)]})
     return batches

@@ -59,7 +59,8 @@ concatenated sinusoidal positions (``absolute_positions``) and an extra Linear e
 (``wrapper_projections``).
 
 All attention runs through ``F.scaled_dot_product_attention`` with boolean masks (True = may attend), which is safe
-under bf16 autocast; no softmax row is ever empty.
+under bf16 autocast; no softmax row is ever empty. In CPU training, bf16 attention runs in fp32
+(:func:`scaled_dot_product_attention`: PyTorch's CPU bf16 flash-attention backward is the slower of the two).
 """
 
 from __future__ import annotations
@@ -577,6 +578,24 @@ def apply_rotary(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch
     return torch.cat((rotated.to(x.dtype), rest), dim=-1)
 
 
+def scaled_dot_product_attention(q: Tensor, k: Tensor, v: Tensor, attn_mask: Tensor | None = None,
+                                 dropout_p: float = 0.0) -> Tensor:
+    """``F.scaled_dot_product_attention``, except that on a CPU, when a gradient will flow back, a bf16/fp16 query,
+    key and value are attended in fp32 (outside autocast) and the result cast back. Why: PyTorch's CPU
+    flash-attention backward is 2-5x slower in bf16 than in fp32 (torch 2.14 on a Xeon with AMX: 63 against 28 ms
+    for 16 x 6 heads x 200 frames x 64 channels, 43 against 9 ms over 32 caption tokens), so in the synthetic
+    preset's bf16 training step attention's backward took 38 % of the time (docs/performance.md). Its bf16 forward
+    is the faster one (8.6 against 12.8 ms), so inference (sampling under bf16 autocast) keeps it; on CUDA the fused
+    bf16 kernels are fast both ways and stay."""
+    backward = torch.is_grad_enabled() and (q.requires_grad or k.requires_grad or v.requires_grad)
+    if backward and q.device.type == "cpu" and q.dtype in (torch.bfloat16, torch.float16):
+        with torch.autocast("cpu", enabled=False):
+            out = F.scaled_dot_product_attention(q.float(), k.float(), v.float(), attn_mask=attn_mask,
+                                                 dropout_p=dropout_p)
+        return out.to(q.dtype)
+    return F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask, dropout_p=dropout_p)
+
+
 class DenseAttention:
     """Plain attention over the whole token sequence with an optional boolean mask (True = may attend), broadcast
     to (B, heads, S, S): MFM's key-padding mask (B, 1, 1, S) or None."""
@@ -588,7 +607,7 @@ class DenseAttention:
         return q, k
 
     def attend(self, q: Tensor, k: Tensor, v: Tensor, dropout_p: float) -> Tensor:
-        return F.scaled_dot_product_attention(q, k, v, attn_mask=self.mask, dropout_p=dropout_p)
+        return scaled_dot_product_attention(q, k, v, attn_mask=self.mask, dropout_p=dropout_p)
 
 
 class BlendedAttention:
@@ -685,7 +704,7 @@ class BlendedAttention:
 
     def attend(self, q: Tensor, k: Tensor, v: Tensor, dropout_p: float) -> Tensor:
         if self.chunk is None:
-            return F.scaled_dot_product_attention(q, k, v, attn_mask=self.mask, dropout_p=dropout_p)
+            return scaled_dot_product_attention(q, k, v, attn_mask=self.mask, dropout_p=dropout_p)
         return self._attend_chunked(q, k, v, dropout_p)
 
     def _attend_chunked(self, q: Tensor, k: Tensor, v: Tensor, dropout_p: float) -> Tensor:
@@ -694,7 +713,7 @@ class BlendedAttention:
         k_aux, v_aux = k[:, :, :aux], v[:, :, :aux]
         outputs = []
         if aux:
-            outputs.append(F.scaled_dot_product_attention(q[:, :, :aux], k_aux, v_aux, dropout_p=dropout_p))
+            outputs.append(scaled_dot_product_attention(q[:, :, :aux], k_aux, v_aux, dropout_p=dropout_p))
         for q_lo in range(0, frames, chunk):
             q_hi = min(frames, q_lo + chunk)
             k_lo, k_hi = max(0, q_lo - window), min(frames, q_hi + window)
@@ -705,7 +724,7 @@ class BlendedAttention:
             keys = torch.cat([k_aux, k[:, :, aux + k_lo : aux + k_hi]], dim=2)
             values = torch.cat([v_aux, v[:, :, aux + k_lo : aux + k_hi]], dim=2)
             outputs.append(
-                F.scaled_dot_product_attention(
+                scaled_dot_product_attention(
                     q[:, :, aux + q_lo : aux + q_hi], keys, values, attn_mask=mask, dropout_p=dropout_p
                 )
             )
@@ -818,7 +837,7 @@ class EncoderLayer(nn.Module):
         dropout_p = self.attention_dropout if self.training else 0.0
         (q,) = self._split_heads(self.cross_q(x), 1)
         k, v = self._split_heads(self.cross_kv(memory), 2)
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=memory_mask, dropout_p=dropout_p)
+        out = scaled_dot_product_attention(q, k, v, attn_mask=memory_mask, dropout_p=dropout_p)
         return F.dropout(self.cross_out(self._merge_heads(out)), self.residual_dropout, self.training)
 
     def _feed_forward(self, x: torch.Tensor) -> torch.Tensor:

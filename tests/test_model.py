@@ -3,12 +3,14 @@ import math
 import pytest
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from mfm.model import (
     ModelConfig,
     MotionFlowTransformer,
     count_parameters,
     draw_cond_drop_mask,
+    scaled_dot_product_attention,
     sinusoidal_embedding,
     valid_frame_mask,
 )
@@ -345,6 +347,31 @@ def test_bf16_autocast_is_finite_and_close_to_fp32():
     assert torch.isfinite(low).all()
     relative = (low - reference).norm() / reference.norm()
     assert relative < 0.03, relative
+
+
+def test_cpu_attention_under_bf16_autocast_runs_in_fp32_and_passes_gradients():
+    """In CPU training the bf16 query/key/value are attended in fp32 (PyTorch's bf16 flash backward there is the
+    slower): under autocast the result is the fp32 attention cast to bf16, exactly, not the bf16 kernel's, and the
+    gradient reaches the bf16 inputs in bf16. Without a gradient (sampling) the bf16 kernel, the faster forward,
+    runs; fp32 inputs go to PyTorch's kernel unchanged."""
+    torch.manual_seed(0)
+    q, k, v = (torch.randn(2, 3, 20, 16) for _ in range(3))
+    mask = torch.ones(2, 1, 20, 20, dtype=torch.bool)
+    mask[1, ..., 12:] = False
+    low = [x.bfloat16().requires_grad_() for x in (q, k, v)]
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = scaled_dot_product_attention(*low, attn_mask=mask)
+        bf16_kernel = F.scaled_dot_product_attention(*low, attn_mask=mask)
+    fp32 = F.scaled_dot_product_attention(*(x.detach().float() for x in low), attn_mask=mask)
+    assert out.dtype == torch.bfloat16
+    assert torch.equal(out, fp32.bfloat16())
+    assert not torch.equal(out, bf16_kernel)  # the test would not see a bf16 kernel otherwise
+    out.float().square().sum().backward()
+    assert all(x.grad is not None and x.grad.dtype == torch.bfloat16 and x.grad.abs().sum() > 0 for x in low)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        assert torch.equal(scaled_dot_product_attention(*low, attn_mask=mask), bf16_kernel)
+    assert torch.equal(scaled_dot_product_attention(q, k, v, attn_mask=mask),
+                       F.scaled_dot_product_attention(q, k, v, attn_mask=mask))
 
 
 @pytest.mark.parametrize("overrides", [{}, {"length_token": True}, {"num_actions": 3}])
