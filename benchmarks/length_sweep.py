@@ -64,6 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--guided-features", choices=("all", "pose"))
     p.add_argument("--smoothing", type=float)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--model-weights", choices=("ema", "model"), default="ema",
+                   help="the checkpoint's EMA weights (default) or its raw ones")
     p.add_argument("--out", type=Path, help="write every row as JSON here")
     args = p.parse_args(argv)
 
@@ -71,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     lengths = [int(n) for n in args.lengths.split(",")]
     seeds = [int(s) for s in args.seeds.split(",")]
     options = dict(steps=args.steps, guidance=args.guidance, guided_features=args.guided_features,
-                   smoothing=args.smoothing, device=args.device)
+                   smoothing=args.smoothing, device=args.device, weights=args.model_weights)
     cells = [(text, n) for text in texts for n in lengths]
     checks: dict[tuple[str, int], list[dict]] = {cell: [] for cell in cells}
     for seed in seeds:

@@ -41,3 +41,22 @@ def test_sweep_reads_each_length_and_seed_as_sampling_does(text_run, tmp_path, c
               if f["kind"] == "joints"]
     assert rows[1]["observed"][1] == check_caption(joints[1], texts[0])["observed"]
     assert isinstance(rows[1]["observed"][1]["heading_change_deg"], float)
+
+
+@pytest.mark.usefixtures("single_thread")
+def test_sweep_samples_the_raw_weights_when_asked(text_run, tmp_path, capsys):  # noqa: F811
+    text = "a person jumps up in place twice."
+    out = tmp_path / "sweep.json"
+    assert length_sweep().main(["--checkpoint", str(text_run), "--text", text, "--lengths", "24", "--seeds", "0",
+                                "--steps", "2", "--model-weights", "model", "--out", str(out)]) == 0
+    written = json.loads(out.read_text())
+    assert written["options"]["weights"] == "model"
+    joints = {}
+    for weights in ("model", "ema"):
+        results = sample(text_run, tmp_path / weights, "--text", text, "--length", "24", "--seed", "0",
+                         "--steps", "2", "--model-weights", weights, "--no-video", "--no-bvh")
+        joints[weights] = [np.load(tmp_path / weights / f["path"]) for s in results["samples"] for f in s["files"]
+                           if f["kind"] == "joints"][0]
+    # The raw and the EMA weights make different motions, and the sweep read the raw one's.
+    assert not np.allclose(joints["model"], joints["ema"])
+    assert written["rows"][0]["observed"][0] == check_caption(joints["model"], text)["observed"]
