@@ -165,7 +165,7 @@ TERM_WEIGHTINGS = ("data", "loss")
 
 def term_weight(t: torch.Tensor, loss_space: str, terms_weighting: str,
                 sigma_min: float = SIGMA_MIN, velocity_weight_cap: float = 0.0) -> torch.Tensor | None:
-    """Per-sample weight of the temporal, bone and trajectory terms (which are errors of the implied motion x̂1).
+    """Per-sample weight of the temporal, bone, trajectory and foot-contact terms (which are errors of the implied motion x̂1).
 
     'data': none, as the terms were introduced: every time counts alike. 'loss': the weight the main loss puts on
     an x̂1 error at that time, relative to the data loss's, so the terms keep the same proportion to the main loss at
@@ -229,6 +229,7 @@ def flow_matching_loss(
     temporal_weight: float = 0.0,
     bone_weight: float = 0.0,
     trajectory_weight: float = 0.0,
+    foot_contact_weight: float = 0.0,
     geometry: MotionGeometry | None = None,
     time_sampling: tuple[str, float, float, int] = ("uniform", 0.0, 1.0, 0),
     terms_weighting: str = "data",
@@ -237,8 +238,8 @@ def flow_matching_loss(
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
     weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
-    ``bone_weight`` × :func:`bone_length_loss` and ``trajectory_weight`` × :func:`trajectory_loss` (both need
-    ``geometry``).
+    ``bone_weight`` × :func:`bone_length_loss`, ``trajectory_weight`` × :func:`trajectory_loss` and
+    ``foot_contact_weight`` × :func:`foot_contact_loss` (the three need ``geometry``).
 
     x1: (B, T, D) normalised motion features, padded beyond ``lengths`` (B,).
     Random draws, in this order, all from ``generator`` if given (deterministic tests and resume):
@@ -272,7 +273,8 @@ def flow_matching_loss(
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
     loss = velocity_loss(velocity, target_velocity(x0, x1, sigma_min), x1, t, frame_mask, sigma_min=sigma_min,
                          loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
-                         trajectory_weight=trajectory_weight, geometry=geometry, terms_weighting=terms_weighting,
+                         trajectory_weight=trajectory_weight, foot_contact_weight=foot_contact_weight,
+                         geometry=geometry, terms_weighting=terms_weighting,
                          velocity_weight_cap=velocity_weight_cap, channel_weight=channel_weight)
     return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
 
@@ -289,6 +291,7 @@ def velocity_loss(
     temporal_weight: float = 0.0,
     bone_weight: float = 0.0,
     trajectory_weight: float = 0.0,
+    foot_contact_weight: float = 0.0,
     geometry: MotionGeometry | None = None,
     terms_weighting: str = "data",
     velocity_weight_cap: float = 0.0,
@@ -296,21 +299,24 @@ def velocity_loss(
 ) -> torch.Tensor:
     """:func:`flow_matching_loss` of a velocity the model made at times ``t`` against its ``target``: the weighted
     MSE, plus the temporal term of the implied motion's error, the bone term, whose bones are ``x1``'s (the
-    clip the path leads to), and the trajectory term, whose path is ``x1``'s."""
+    clip the path leads to), the trajectory term, whose path is ``x1``'s, and the foot-contact term, whose contact
+    labels are ``x1``'s."""
     weight = loss_space_weight(t, loss_space, sigma_min, velocity_weight_cap)
     loss = masked_mse(velocity, target, frame_mask, weight, channel_weight)
     terms = term_weight(t, loss_space, terms_weighting, sigma_min, velocity_weight_cap)
     if temporal_weight > 0:
         loss = loss + temporal_weight * temporal_loss(velocity, target, t, frame_mask, sigma_min, terms)
-    if bone_weight > 0 or trajectory_weight > 0:
+    if bone_weight > 0 or trajectory_weight > 0 or foot_contact_weight > 0:
         if geometry is None:
-            raise ValueError("bone_weight > 0 or trajectory_weight > 0 needs the motion geometry (normalisation and "
-                             "skeleton)")
+            raise ValueError("bone_weight, trajectory_weight or foot_contact_weight > 0 needs the motion geometry "
+                             "(normalisation and skeleton)")
         x1_hat = x1.float() + implied_motion_error(velocity, target, t, sigma_min)
         if bone_weight > 0:
             loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms)
         if trajectory_weight > 0:
             loss = loss + trajectory_weight * trajectory_loss(x1_hat, x1, frame_mask, geometry, terms)
+        if foot_contact_weight > 0:
+            loss = loss + foot_contact_weight * foot_contact_loss(x1_hat, x1, frame_mask, geometry, terms)
     return loss
 
 
@@ -332,6 +338,8 @@ class MotionGeometry:
     parents: tuple[int, ...]
     ric: slice
     root_height: int
+    skeleton: Any = None
+    """The :class:`mfm.skeleton.Skeleton` (world-frame joints and foot contacts need it)."""
 
     @classmethod
     def from_dataset(cls, mean: Any, std: Any, skeleton: Any) -> MotionGeometry:
@@ -339,7 +347,8 @@ class MotionGeometry:
 
         layout = FeatureLayout(skeleton)
         return cls(torch.as_tensor(mean, dtype=torch.float32), torch.as_tensor(std, dtype=torch.float32),
-                   tuple(int(p) for p in skeleton.parents), layout.slices["ric"], layout.slices["root_height"].start)
+                   tuple(int(p) for p in skeleton.parents), layout.slices["ric"], layout.slices["root_height"].start,
+                   skeleton)
 
     def raw(self, features: torch.Tensor) -> torch.Tensor:
         """Normalised (B, T, D) features back in the dataset's units (float32)."""
@@ -358,6 +367,20 @@ class MotionGeometry:
         normalised (B, T, D) features (:func:`mfm.features.root_path`)."""
         angle, position = root_path(self.raw(features))
         return angle, torch.stack((position[0], position[2]), dim=-1)
+
+    def feet(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The foot joints' world positions (B, T, 4, 3; the root's path integrated as :func:`root_path`, the
+        reference ``recover_from_ric``) and the features' own foot-contact labels (B, T, 4, raw 0/1), both in the
+        layout's contact order [left ankle, left foot, right ankle, right foot]."""
+        from mfm.features import features_to_joints
+        from mfm.layout import FeatureLayout
+
+        if self.skeleton is None:
+            raise ValueError("MotionGeometry.feet needs the skeleton (MotionGeometry.from_dataset)")
+        layout = FeatureLayout(self.skeleton)
+        raw = self.raw(features)
+        joints = features_to_joints(raw, self.skeleton)
+        return joints[..., list(layout.contact_joints), :], raw[..., layout.slices["contacts"]]
 
     def bone_lengths(self, features: torch.Tensor) -> torch.Tensor:
         """(B, T, J − 1) length of every bone (non-root joint to its parent)."""
@@ -397,6 +420,27 @@ def trajectory_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Te
     return _weighted_mean(per_sample, sample_weight)
 
 
+def foot_contact_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Tensor,
+                      geometry: MotionGeometry, sample_weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Squared error (m² per frame) of the implied motion x̂1's foot-joint displacements against the clip x1's, in
+    the world frame, over the frame pairs (t, t + 1) in which x1's features label that joint in contact with the
+    ground (its contact channel at t > 0.5); per sample over its valid frame pairs and the four foot joints, then
+    the batch mean.
+
+    Why: a foot the clip plants should stay planted; the main MSE sees a sliding foot only as small errors spread
+    over the ric, velocity and contact channels, and the bone term not at all. In the spirit of MDM's foot-contact
+    loss (``lambda_fc``), which penalises the predicted foot joints' velocity itself where the ground truth's is at
+    most 0.01; ours compares it with the clip's, so the clip itself costs nothing (HumanML3D's contact labels allow
+    feet up to about 4.5 cm per frame). Not part of MFM."""
+    feet_hat, _ = geometry.feet(x1_hat)
+    feet, contacts = geometry.feet(x1)
+    pairs = (frame_mask[:, 1:] & frame_mask[:, :-1]).float()
+    planted = (contacts[:, :-1] > 0.5).float() * pairs.unsqueeze(-1)  # the label of frame t: the pair (t, t + 1)
+    error = ((feet_hat[:, 1:] - feet_hat[:, :-1]) - (feet[:, 1:] - feet[:, :-1])).square().sum(dim=-1) * planted
+    per_sample = error.sum(dim=(1, 2)) / (pairs.sum(dim=1) * error.shape[-1]).clamp_min(1.0)
+    return _weighted_mean(per_sample, sample_weight)
+
+
 def temporal_loss(
     velocity: torch.Tensor, target: torch.Tensor, t: torch.Tensor, frame_mask: torch.Tensor,
     sigma_min: float = SIGMA_MIN, sample_weight: torch.Tensor | None = None,
@@ -428,6 +472,7 @@ class FlowMatchingObjective:
     temporal_weight: float = 0.0
     bone_weight: float = 0.0
     trajectory_weight: float = 0.0
+    foot_contact_weight: float = 0.0
     geometry: MotionGeometry | None = None
     time_sampling: str = "uniform"
     time_loc: float = 0.0
@@ -461,6 +506,10 @@ class FlowMatchingObjective:
         if self.trajectory_weight < 0 or (self.trajectory_weight > 0 and self.geometry is None):
             raise ValueError(f"FlowMatchingObjective.trajectory_weight must be >= 0 and needs a geometry when > 0, "
                              f"got {self.trajectory_weight!r}")
+        if self.foot_contact_weight < 0 or (self.foot_contact_weight > 0 and (
+                self.geometry is None or self.geometry.skeleton is None)):
+            raise ValueError(f"FlowMatchingObjective.foot_contact_weight must be >= 0 and needs a geometry with its "
+                             f"skeleton when > 0, got {self.foot_contact_weight!r}")
         if self.temporal_weight < 0:
             raise ValueError(f"FlowMatchingObjective.temporal_weight must be >= 0, got {self.temporal_weight!r}")
         if not 0.0 <= self.sigma_min < 1.0:
@@ -491,8 +540,8 @@ class FlowMatchingObjective:
             model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask,
             t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
             temporal_weight=self.temporal_weight, bone_weight=self.bone_weight,
-            trajectory_weight=self.trajectory_weight, geometry=self.geometry,
-            time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
+            trajectory_weight=self.trajectory_weight, foot_contact_weight=self.foot_contact_weight,
+            geometry=self.geometry, time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,
             channel_weight=self.channel_weight_on(x1.device),

@@ -151,7 +151,8 @@ class ShortcutObjective:
 
         frame_mask = valid_frame_mask(lengths, x1.shape[1])
         terms = dict(sigma_min=sigma_min, loss_space=flow.loss_space, temporal_weight=flow.temporal_weight,
-                     bone_weight=flow.bone_weight, trajectory_weight=flow.trajectory_weight, geometry=flow.geometry,
+                     bone_weight=flow.bone_weight, trajectory_weight=flow.trajectory_weight,
+                     foot_contact_weight=flow.foot_contact_weight, geometry=flow.geometry,
                      terms_weighting=flow.terms_weighting,
                      velocity_weight_cap=flow.velocity_weight_cap,
                      channel_weight=flow.channel_weight_on(x1.device))

@@ -307,6 +307,10 @@ class TrainLoopConfig:
     flow_trajectory_weight: float = 0.0
     """objective=flow: weight of ``mfm.flow.trajectory_loss`` (the root's integrated path of the implied motion
     against the clip's: ground position m² plus heading rad²), added to the flow loss. 0 = MFM."""
+    flow_foot_contact_weight: float = 0.0
+    """objective=flow: weight of ``mfm.flow.foot_contact_loss`` (the squared error of the implied motion's foot
+    displacements against the clip's, m² per frame, over the frames whose clip labels that foot in contact), added
+    to the flow loss. In the spirit of MDM's foot-contact loss (``lambda_fc``); ours, 0 = MFM."""
     flow_trajectory_start_step: int = 0
     """objective=flow: the trajectory term counts only in the updates after the first this many (0: in all). Why:
     from the first step its heavy-tailed gradient, clipped with the main loss's, slows the main loss; late in a
@@ -368,6 +372,8 @@ class TrainLoopConfig:
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
         _require(self.flow_trajectory_weight >= 0,
                  f"train.flow_trajectory_weight must be >= 0, got {self.flow_trajectory_weight}")
+        _require(self.flow_foot_contact_weight >= 0,
+                 f"train.flow_foot_contact_weight must be >= 0, got {self.flow_foot_contact_weight}")
         _require(0 <= self.flow_trajectory_start_step < self.max_steps,
                  f"train.flow_trajectory_start_step must be in [0, train.max_steps={self.max_steps}), "
                  f"got {self.flow_trajectory_start_step}")

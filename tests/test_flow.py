@@ -1,3 +1,5 @@
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -296,35 +298,66 @@ def test_trajectory_loss_grows_with_a_persistent_rate_bias_and_ignores_padding()
     assert trajectory_loss(turning, clip, mask, geometry).item() == pytest.approx(expected.item(), rel=1e-4)
 
 
-def test_the_trajectory_term_adds_its_weight_times_the_implied_paths_error():
-    """flow_matching_loss with trajectory_weight w = the loss without it + w × trajectory_loss(x̂1, x1) on the same
-    draws; the gradient reaches the model; the objective refuses a negative weight or a missing geometry."""
-    from mfm.flow import implied_motion_error, trajectory_loss
+def test_foot_contact_loss_charges_the_planted_feet_only_and_ignores_padding():
+    """Against a still clip, a root drifting δ per frame moves every foot joint δ per frame: the term is δ² times the
+    share of (valid frame pair, foot joint) cells the clip labels planted, the implied motion's own labels do not
+    count; a clip costs nothing against itself, a moving one included."""
+    from mfm.flow import foot_contact_loss
 
+    geometry = trajectory_geometry()
+    clip = torch.zeros(2, 10, 263)
+    clip[:, :5, 259] = 1.0  # the left ankle planted on frames 0-4
+    mask = valid_frame_mask(torch.tensor([10, 5]), 10)
+    assert foot_contact_loss(clip, clip, mask, geometry).item() == 0.0
+    delta = 0.02
+    sliding = torch.zeros_like(clip)  # its own contact labels: none
+    sliding[..., 2] = delta  # the facing frame's Z velocity (forward)
+    sliding[1, 5:] = 50.0  # padding of sample 1
+    # sample 0: 9 pairs x 4 joints, 5 planted; sample 1: 4 pairs x 4 joints, 4 planted (frame 4's pair is padding)
+    expected = 0.5 * (5 / 36 + 4 / 16) * delta**2
+    assert foot_contact_loss(sliding, clip, mask, geometry).item() == pytest.approx(expected, rel=1e-4)
+    walking = sliding.clone()
+    walking[..., 259:263] = 1.0
+    assert foot_contact_loss(walking, walking, mask, geometry).item() == 0.0
+    assert foot_contact_loss(clip, walking, mask, geometry).item() > 0  # still feet against the clip's moving ones
+    no_skeleton = dataclasses.replace(geometry, skeleton=None)
+    with pytest.raises(ValueError, match="skeleton"):
+        foot_contact_loss(sliding, clip, mask, no_skeleton)
+
+
+@pytest.mark.parametrize("term", ["trajectory", "foot_contact"])
+def test_a_geometric_term_adds_its_weight_times_the_implied_motions_error(term):
+    """flow_matching_loss with the term's weight w = the loss without it + w × the term of (x̂1, x1) on the same
+    draws; the gradient reaches the model; the objective refuses a negative weight or a missing geometry."""
+    from mfm.flow import foot_contact_loss, implied_motion_error, trajectory_loss
+
+    term_loss = {"trajectory": trajectory_loss, "foot_contact": foot_contact_loss}[term]
+    weight_name = f"{term}_weight"
     torch.manual_seed(0)
     geometry = trajectory_geometry()
     model = MotionFlowTransformer(ModelConfig(feature_dim=263, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
                                               cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
     x1, cond, lengths = 0.1 * torch.randn(2, 12, 263), torch.randn(2, 4), torch.tensor([12, 7])
+    x1[..., 259:263] = 1.0  # feet planted throughout
     t, x0 = torch.tensor([0.3, 0.8]), torch.randn(2, 12, 263)
     plain, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0)
-    with_term, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, trajectory_weight=2.0, geometry=geometry)
+    with_term, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, geometry=geometry, **{weight_name: 2.0})
     velocity = model(interpolate(x0, x1, t), t, cond, lengths)
     x1_hat = x1 + implied_motion_error(velocity, target_velocity(x0, x1), t)
-    term = trajectory_loss(x1_hat, x1, valid_frame_mask(lengths, 12), geometry)
-    assert term.item() > 0
-    assert with_term.item() == pytest.approx(plain.item() + 2.0 * term.item(), rel=1e-5)
+    value = term_loss(x1_hat, x1, valid_frame_mask(lengths, 12), geometry)
+    assert value.item() > 0
+    assert with_term.item() == pytest.approx(plain.item() + 2.0 * value.item(), rel=1e-5)
     with_term.backward()
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
-    objective = FlowMatchingObjective(trajectory_weight=1.0, geometry=geometry)
+    objective = FlowMatchingObjective(geometry=geometry, **{weight_name: 1.0})
     assert objective.loss(model, x1, cond, lengths, t=t, x0=x0)[0].item() == pytest.approx(
-        plain.item() + term.item(), rel=1e-5)
-    with pytest.raises(ValueError, match="trajectory_weight"):
-        FlowMatchingObjective(trajectory_weight=1.0)
-    with pytest.raises(ValueError, match="trajectory_weight"):
-        FlowMatchingObjective(trajectory_weight=-1.0, geometry=geometry)
+        plain.item() + value.item(), rel=1e-5)
+    with pytest.raises(ValueError, match=weight_name):
+        FlowMatchingObjective(**{weight_name: 1.0})
+    with pytest.raises(ValueError, match=weight_name):
+        FlowMatchingObjective(geometry=geometry, **{weight_name: -1.0})
     with pytest.raises(ValueError, match="geometry"):
-        flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, trajectory_weight=1.0)
+        flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, **{weight_name: 1.0})
 
 
 def test_uniform_time_sampling_keeps_the_draws_and_logit_normal_is_its_inverse_cdf():

@@ -1128,3 +1128,16 @@ def test_build_objective_weighs_root_and_contacts_by_feat_bias():
     assert build_objective(load_config(TrainConfig, "tiny"), manifest).channel_weight is None  # MFM: 1 everywhere
     weight = build_objective(load_config(TrainConfig, "tiny", ["train.flow_feat_bias=5"]), manifest).channel_weight
     assert len(weight) == 263 and weight[0] == weight[3] == weight[262] == 25.0 and weight[4] == weight[258] == 1.0
+
+
+def test_build_objective_gives_the_foot_contact_term_its_weight_and_the_datasets_geometry():
+    from types import SimpleNamespace
+
+    from pipeline.training.trainer import build_objective
+
+    manifest = SimpleNamespace(data={"feature_spec": {"skeleton": "humanml3d"},
+                                     "normalization": {"mean": [0.0] * 263, "std": [1.0] * 263}})
+    objective = build_objective(load_config(TrainConfig, "tiny", ["train.flow_foot_contact_weight=3"]), manifest)
+    assert objective.foot_contact_weight == 3.0
+    assert objective.geometry is not None and objective.geometry.skeleton.name == "humanml3d"
+    assert build_objective(load_config(TrainConfig, "tiny"), manifest).foot_contact_weight == 0.0

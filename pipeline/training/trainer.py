@@ -428,14 +428,15 @@ def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bo
         geometry = None
         skeleton = get_skeleton(manifest.data["feature_spec"]["skeleton"])
         trajectory_weight = cfg.train.flow_trajectory_weight if trajectory_term else 0.0
-        if cfg.train.flow_bone_weight > 0 or trajectory_weight > 0:
+        if cfg.train.flow_bone_weight > 0 or trajectory_weight > 0 or cfg.train.flow_foot_contact_weight > 0:
             normalization = manifest.data["normalization"]
             geometry = MotionGeometry.from_dataset(normalization["mean"], normalization["std"], skeleton)
         channel_weight = (None if cfg.train.flow_feat_bias == 1.0
                           else feat_bias_channel_weight(FeatureLayout(skeleton), cfg.train.flow_feat_bias))
         flow = FlowMatchingObjective(loss_space=cfg.train.flow_loss, temporal_weight=cfg.train.flow_temporal_weight,
                                      bone_weight=cfg.train.flow_bone_weight,
-                                     trajectory_weight=trajectory_weight, geometry=geometry,
+                                     trajectory_weight=trajectory_weight,
+                                     foot_contact_weight=cfg.train.flow_foot_contact_weight, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
                                      time_grid_steps=cfg.train.flow_time_grid_steps,
