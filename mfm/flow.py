@@ -165,7 +165,8 @@ TERM_WEIGHTINGS = ("data", "loss")
 
 def term_weight(t: torch.Tensor, loss_space: str, terms_weighting: str,
                 sigma_min: float = SIGMA_MIN, velocity_weight_cap: float = 0.0) -> torch.Tensor | None:
-    """Per-sample weight of the temporal, bone, trajectory and foot-contact terms (which are errors of the implied motion x̂1).
+    """Per-sample weight of the temporal, bone, trajectory and foot-contact terms (which are errors of the implied
+    motion x̂1).
 
     'data': none, as the terms were introduced: every time counts alike. 'loss': the weight the main loss puts on
     an x̂1 error at that time, relative to the data loss's, so the terms keep the same proportion to the main loss at
@@ -541,7 +542,8 @@ class FlowMatchingObjective:
             t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
             temporal_weight=self.temporal_weight, bone_weight=self.bone_weight,
             trajectory_weight=self.trajectory_weight, foot_contact_weight=self.foot_contact_weight,
-            geometry=self.geometry, time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
+            geometry=self.geometry,
+            time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,
             channel_weight=self.channel_weight_on(x1.device),

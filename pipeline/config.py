@@ -317,10 +317,10 @@ class TrainLoopConfig:
     run it straightens the root's path at little cost (docs/generator-study.md). The validation loss includes the
     term from then on, as the training loss does. Ours, not MFM's."""
     flow_terms_weighting: Literal["data", "loss"] = "data"
-    """objective=flow: how the temporal, bone, trajectory and foot-contact terms are weighted over t (``mfm.flow.term_weight``):
-    'data' = the same at every t (as introduced); 'loss' = as the main loss weighs an x̂1 error at that t (under the
-    velocity loss 1/(1 − t)², so the terms keep their proportion to it where the sampler's last steps are). Not
-    MFM's."""
+    """objective=flow: how the temporal, bone, trajectory and foot-contact terms are weighted over t
+    (``mfm.flow.term_weight``): 'data' = the same at every t (as introduced); 'loss' = as the main loss weighs an x̂1
+    error at that t (under the velocity loss 1/(1 − t)², so the terms keep their proportion to it where the
+    sampler's last steps are). Not MFM's."""
     flow_velocity_weight_cap: float = 0.0
     """objective=flow, flow_loss=velocity: cap on the weight the velocity loss puts on an x̂1 error, 1/(1 − t)²
     (``mfm.flow.loss_space_weight``): the velocity loss where that is at most the cap, the cap times the data loss
