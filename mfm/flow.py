@@ -230,6 +230,7 @@ def flow_matching_loss(
     temporal_weight: float = 0.0,
     bone_weight: float = 0.0,
     trajectory_weight: float = 0.0,
+    trajectory_min_t: float = 0.0,
     foot_contact_weight: float = 0.0,
     geometry: MotionGeometry | None = None,
     time_sampling: tuple[str, float, float, int] = ("uniform", 0.0, 1.0, 0),
@@ -274,8 +275,8 @@ def flow_matching_loss(
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
     loss = velocity_loss(velocity, target_velocity(x0, x1, sigma_min), x1, t, frame_mask, sigma_min=sigma_min,
                          loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
-                         trajectory_weight=trajectory_weight, foot_contact_weight=foot_contact_weight,
-                         geometry=geometry, terms_weighting=terms_weighting,
+                         trajectory_weight=trajectory_weight, trajectory_min_t=trajectory_min_t,
+                         foot_contact_weight=foot_contact_weight, geometry=geometry, terms_weighting=terms_weighting,
                          velocity_weight_cap=velocity_weight_cap, channel_weight=channel_weight)
     return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
 
@@ -292,6 +293,7 @@ def velocity_loss(
     temporal_weight: float = 0.0,
     bone_weight: float = 0.0,
     trajectory_weight: float = 0.0,
+    trajectory_min_t: float = 0.0,
     foot_contact_weight: float = 0.0,
     geometry: MotionGeometry | None = None,
     terms_weighting: str = "data",
@@ -300,8 +302,8 @@ def velocity_loss(
 ) -> torch.Tensor:
     """:func:`flow_matching_loss` of a velocity the model made at times ``t`` against its ``target``: the weighted
     MSE, plus the temporal term of the implied motion's error, the bone term, whose bones are ``x1``'s (the
-    clip the path leads to), the trajectory term, whose path is ``x1``'s, and the foot-contact term, whose contact
-    labels are ``x1``'s."""
+    clip the path leads to), the trajectory term, whose path is ``x1``'s (counted only for the rows whose ``t`` is
+    at least ``trajectory_min_t``), and the foot-contact term, whose contact labels are ``x1``'s."""
     weight = loss_space_weight(t, loss_space, sigma_min, velocity_weight_cap)
     loss = masked_mse(velocity, target, frame_mask, weight, channel_weight)
     terms = term_weight(t, loss_space, terms_weighting, sigma_min, velocity_weight_cap)
@@ -315,7 +317,8 @@ def velocity_loss(
         if bone_weight > 0:
             loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms)
         if trajectory_weight > 0:
-            loss = loss + trajectory_weight * trajectory_loss(x1_hat, x1, frame_mask, geometry, terms)
+            loss = loss + trajectory_weight * trajectory_loss(x1_hat, x1, frame_mask, geometry,
+                                                              _from_time(terms, t, trajectory_min_t))
         if foot_contact_weight > 0:
             loss = loss + foot_contact_weight * foot_contact_loss(x1_hat, x1, frame_mask, geometry, terms)
     return loss
@@ -460,6 +463,14 @@ def temporal_loss(
     return _weighted_mean(per_sample, sample_weight)
 
 
+def _from_time(sample_weight: torch.Tensor | None, t: torch.Tensor, min_t: float) -> torch.Tensor | None:
+    """``sample_weight`` with the rows whose time is below ``min_t`` set to 0 (``min_t`` 0: unchanged)."""
+    if min_t <= 0:
+        return sample_weight
+    counted = (t.float() >= min_t).float()
+    return counted if sample_weight is None else sample_weight * counted
+
+
 def _weighted_mean(per_sample: torch.Tensor, sample_weight: torch.Tensor | None) -> torch.Tensor:
     return (per_sample if sample_weight is None else per_sample * sample_weight.to(per_sample.dtype)).mean()
 
@@ -473,6 +484,8 @@ class FlowMatchingObjective:
     temporal_weight: float = 0.0
     bone_weight: float = 0.0
     trajectory_weight: float = 0.0
+    trajectory_min_t: float = 0.0
+    """The trajectory term counts only for rows trained at t >= this (0: every row)."""
     foot_contact_weight: float = 0.0
     geometry: MotionGeometry | None = None
     time_sampling: str = "uniform"
@@ -507,6 +520,8 @@ class FlowMatchingObjective:
         if self.trajectory_weight < 0 or (self.trajectory_weight > 0 and self.geometry is None):
             raise ValueError(f"FlowMatchingObjective.trajectory_weight must be >= 0 and needs a geometry when > 0, "
                              f"got {self.trajectory_weight!r}")
+        if not 0.0 <= self.trajectory_min_t < 1.0:
+            raise ValueError(f"FlowMatchingObjective.trajectory_min_t must be in [0, 1), got {self.trajectory_min_t!r}")
         if self.foot_contact_weight < 0 or (self.foot_contact_weight > 0 and (
                 self.geometry is None or self.geometry.skeleton is None)):
             raise ValueError(f"FlowMatchingObjective.foot_contact_weight must be >= 0 and needs a geometry with its "
@@ -541,8 +556,8 @@ class FlowMatchingObjective:
             model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask,
             t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
             temporal_weight=self.temporal_weight, bone_weight=self.bone_weight,
-            trajectory_weight=self.trajectory_weight, foot_contact_weight=self.foot_contact_weight,
-            geometry=self.geometry,
+            trajectory_weight=self.trajectory_weight, trajectory_min_t=self.trajectory_min_t,
+            foot_contact_weight=self.foot_contact_weight, geometry=self.geometry,
             time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,

@@ -360,6 +360,37 @@ def test_a_geometric_term_adds_its_weight_times_the_implied_motions_error(term):
         flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, **{weight_name: 1.0})
 
 
+def test_the_trajectory_term_from_a_minimum_time_counts_only_the_rows_trained_at_or_after_it():
+    """trajectory_min_t = 0.5 with rows at t = 0.3 and 0.8: the loss is the plain loss + w × (the term of the t = 0.8
+    row alone) / 2 (the batch mean still divides by both rows); the main loss, the other terms and the draws are
+    untouched; min_t 0 is the term over every row; the objective refuses min_t outside [0, 1)."""
+    from mfm.flow import implied_motion_error, trajectory_loss
+
+    torch.manual_seed(0)
+    geometry = trajectory_geometry()
+    model = MotionFlowTransformer(ModelConfig(feature_dim=263, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
+    x1, cond, lengths = 0.1 * torch.randn(2, 12, 263), torch.randn(2, 4), torch.tensor([12, 7])
+    t, x0 = torch.tensor([0.3, 0.8]), torch.randn(2, 12, 263)
+    plain, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, bone_weight=1.0, geometry=geometry)
+    velocity = model(interpolate(x0, x1, t), t, cond, lengths)
+    x1_hat = x1 + implied_motion_error(velocity, target_velocity(x0, x1), t)
+    mask = valid_frame_mask(lengths, 12)
+    per_row = [trajectory_loss(x1_hat[i : i + 1], x1[i : i + 1], mask[i : i + 1], geometry).item() for i in (0, 1)]
+    assert min(per_row) > 0
+    late, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, bone_weight=1.0, geometry=geometry,
+                                 trajectory_weight=2.0, trajectory_min_t=0.5)
+    assert late.item() == pytest.approx(plain.item() + 2.0 * per_row[1] / 2, rel=1e-5)
+    every, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, bone_weight=1.0, geometry=geometry,
+                                  trajectory_weight=2.0)
+    assert every.item() == pytest.approx(plain.item() + 2.0 * sum(per_row) / 2, rel=1e-5)
+    objective = FlowMatchingObjective(geometry=geometry, bone_weight=1.0, trajectory_weight=2.0, trajectory_min_t=0.5)
+    assert objective.loss(model, x1, cond, lengths, t=t, x0=x0)[0].item() == pytest.approx(late.item(), rel=1e-6)
+    for bad in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="trajectory_min_t"):
+            FlowMatchingObjective(geometry=geometry, trajectory_weight=1.0, trajectory_min_t=bad)
+
+
 def test_uniform_time_sampling_keeps_the_draws_and_logit_normal_is_its_inverse_cdf():
     u = torch.rand(20_000, generator=torch.Generator().manual_seed(0))
     assert torch.equal(warp_time(u, "uniform"), u)

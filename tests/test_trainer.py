@@ -1141,3 +1141,7 @@ def test_build_objective_gives_the_foot_contact_term_its_weight_and_the_datasets
     assert objective.foot_contact_weight == 3.0
     assert objective.geometry is not None and objective.geometry.skeleton.name == "humanml3d"
     assert build_objective(load_config(TrainConfig, "tiny"), manifest).foot_contact_weight == 0.0
+    objective = build_objective(load_config(TrainConfig, "tiny", ["train.flow_trajectory_weight=0.1",
+                                                                  "train.flow_trajectory_min_t=0.5"]), manifest)
+    assert (objective.trajectory_weight, objective.trajectory_min_t) == (0.1, 0.5)
+    assert build_objective(load_config(TrainConfig, "tiny"), manifest).trajectory_min_t == 0.0
