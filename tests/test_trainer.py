@@ -1141,6 +1141,15 @@ def test_build_objective_gives_the_foot_contact_term_its_weight_and_the_datasets
     assert objective.foot_contact_weight == 3.0
     assert objective.geometry is not None and objective.geometry.skeleton.name == "humanml3d"
     assert build_objective(load_config(TrainConfig, "tiny"), manifest).foot_contact_weight == 0.0
+
+
+def test_build_objective_gives_the_trajectory_term_its_minimum_time():
+    from types import SimpleNamespace
+
+    from pipeline.training.trainer import build_objective
+
+    manifest = SimpleNamespace(data={"feature_spec": {"skeleton": "humanml3d"},
+                                     "normalization": {"mean": [0.0] * 263, "std": [1.0] * 263}})
     objective = build_objective(load_config(TrainConfig, "tiny", ["train.flow_trajectory_weight=0.1",
                                                                   "train.flow_trajectory_min_t=0.5"]), manifest)
     assert (objective.trajectory_weight, objective.trajectory_min_t) == (0.1, 0.5)
