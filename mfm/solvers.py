@@ -446,9 +446,12 @@ def sample(
     options: dict | None = None,
     precision: str = "fp32",
     noise_device: str = "cpu",
+    noise: Tensor | None = None,
 ) -> SolveResult:
     """Generate B = len(lengths) motions (B, num_frames, D) of normalised features by integrating the guided field.
     ``conditional_channels``: feature channels left unguided (:func:`guided_velocity`).
+    ``noise``: the (B, num_frames, D) initial noise to integrate from instead of drawing it (its padded frames are
+    zeroed); ``seed``, ``generator`` and ``noise_device`` are then unused.
 
     The initial noise comes from ``generator`` or, by default, a generator seeded with ``seed`` on the CPU
     (``noise_device='cpu'``: the same seed, batch (cond, lengths) and device give identical results, and the noise
@@ -464,9 +467,14 @@ def sample(
     device, cond, lengths = sampling_inputs(model, cond, lengths, num_frames)
     shape = (lengths.shape[0], num_frames, model_feature_dim(model, feature_dim))
     valid = valid_frame_mask(lengths, num_frames).unsqueeze(-1)
-    if generator is None:
-        generator = torch.Generator(device=noise_generator_device(noise_device, device)).manual_seed(seed)
-    x0 = draw_noise(shape, generator, lengths=lengths, device=device) * valid
+    if noise is not None:
+        if tuple(noise.shape) != shape:
+            raise ValueError(f"noise must be {shape} (batch, num_frames, feature_dim), got {tuple(noise.shape)}")
+        x0 = noise.to(device=device, dtype=torch.float32) * valid
+    else:
+        if generator is None:
+            generator = torch.Generator(device=noise_generator_device(noise_device, device)).manual_seed(seed)
+        x0 = draw_noise(shape, generator, lengths=lengths, device=device) * valid
     velocity = zero_padded_frames(
         guided_velocity(model, cond, scale=guidance, lengths=lengths, null_cond=null_cond,
                         conditional_channels=conditional_channels, precision=precision),
@@ -476,6 +484,34 @@ def sample(
         velocity, x0, solver=solver, steps=steps, grid=grid, rtol=rtol, atol=atol, options=options,
         return_trajectory=return_trajectory,
     )
+
+
+FLOW_MAP_PERTURBATION = 1e-3
+"""RMS per noise element of :func:`flow_map_amplification`'s perturbation: well above float32 rounding of a solve
+(about 1e-7 relative) and well below the noise's own scale (1)."""
+
+
+def flow_map_amplification(solve_from: Callable[[Tensor], Tensor], x0: Tensor, direction: Tensor,
+                           lengths: Tensor, *, perturbation: float = FLOW_MAP_PERTURBATION) -> Tensor:
+    """How far a sampler's motion moves per unit change of its initial noise: per motion,
+    ``||Φ(x0 + δ) − Φ(x0)|| / ||δ||`` over its valid frames, where ``Φ = solve_from`` maps a (B, T, D) noise batch to
+    its (B, T, D) endpoints and ``δ = perturbation · direction`` (a finite difference along one direction; zero on
+    padded frames). Returns (B,) float.
+
+    Why it matters: reflow (docs/few-step.md) trains a student to jump from a noise straight to the teacher's motion
+    from it, so the teacher's map must be a function a network can fit. About 1 or less: nearby noises give nearby
+    motions. Thousands: a change far below anything a network resolves moves the motion, so the pairs are, to the
+    student, an arbitrary assignment of motions to noises, and a 1-2 step student learns their average.
+    ``solve_from`` is called twice with the same batch shape, so each unperturbed row is computed exactly as its
+    perturbed twin (on a rough map even the float rounding that other batch mates cause shows)."""
+    if perturbation <= 0:
+        raise ValueError(f"perturbation must be > 0, got {perturbation}")
+    if x0.shape != direction.shape or x0.dim() != 3:
+        raise ValueError(f"x0 and direction must both be (B, T, D), got {tuple(x0.shape)} and {tuple(direction.shape)}")
+    valid = valid_frame_mask(lengths.to(x0.device), x0.shape[1]).unsqueeze(-1).to(x0.dtype)
+    delta = perturbation * direction * valid
+    moved = (solve_from(x0 + delta) - solve_from(x0)) * valid
+    return (moved.flatten(1).norm(dim=1) / delta.flatten(1).norm(dim=1).clamp_min(1e-30)).float()
 
 
 def sample_lengths(

@@ -455,6 +455,12 @@ class DistillConfig:
     """Motions per teacher batch while making the pairs (does not change the pairs)."""
     student_steps: int = 2
     """The student's default sampler steps (its model.sampling_steps): 1 or 2 function evaluations."""
+    flow_map_probes: int = 32
+    """method=reflow: captions whose first pair the teacher solves again from a perturbed noise, to measure how far
+    its motion moves per unit change of the noise (pipeline.generation.pairs.probe_amplification; 0: not measured).
+    Recorded in the pair set's manifest and the student's config; a rough map gets a warning (docs/few-step.md,
+    'A rough teacher'). Costs two extra teacher solves per probe. Not part of the pair set's identity: a reused set
+    keeps the figure it was made with."""
     shortcut_levels: int = 2
     """method=shortcut: the student's model.shortcut_levels K (Euler at 1, 2, ..., 2^(K−1) steps; the flow field
     at 2^K or more). 2: steps 1 and 2, the finest built from the flow field at 4 steps (docs/few-step.md)."""
@@ -472,12 +478,16 @@ class DistillConfig:
     """The guidance scale of the pairs (recorded: the teacher's model.sampling_guidance)."""
     teacher_guided_features: str = "all"
     """The channels guidance mixed in the pairs (recorded: the teacher's model.guided_features)."""
+    teacher_flow_map_amplification: float | None = None
+    """The median of the pair set's probed flow-map amplifications (recorded from its manifest; None: not measured,
+    e.g. flow_map_probes=0, a pair set made before it was measured, or method=shortcut)."""
 
     def __post_init__(self) -> None:
         coerce_fields(self)
         _require(self.pairs_per_caption >= 1, f"distill.pairs_per_caption must be >= 1, got {self.pairs_per_caption}")
         _require(self.seed >= 0, f"distill.seed must be >= 0, got {self.seed}")
         _require(self.batch_size >= 1, f"distill.batch_size must be >= 1, got {self.batch_size}")
+        _require(self.flow_map_probes >= 0, f"distill.flow_map_probes must be >= 0, got {self.flow_map_probes}")
         _require(self.student_steps >= 1, f"distill.student_steps must be >= 1, got {self.student_steps}")
         _require(1 <= self.shortcut_levels <= 10, f"distill.shortcut_levels must be in [1, 10], got {self.shortcut_levels}")
         _require(self.method != "shortcut" or self.student_steps in level_steps(self.shortcut_levels),

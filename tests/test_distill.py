@@ -31,7 +31,14 @@ from test_trainer import (
 )
 
 import pipeline.generation.pairs as pairs_module
-from mfm.solvers import draw_noise, guided_velocity, seeded_generators, solve, zero_padded_frames
+from mfm.solvers import (
+    FLOW_MAP_PERTURBATION,
+    draw_noise,
+    guided_velocity,
+    seeded_generators,
+    solve,
+    zero_padded_frames,
+)
 from pipeline import checkpoint as ckpt
 from pipeline.cli.distill import student_config
 from pipeline.config import ConfigError, DistillConfig, TrainConfig, load_config
@@ -39,7 +46,15 @@ from pipeline.data.stream import iter_motions, open_manifest
 from pipeline.distributed import Dist
 from pipeline.generation.inference import load_trained_model
 from pipeline.generation.integration import sample_seed
-from pipeline.generation.pairs import PairSetError, PlannedPair, RecordWindow, make_pairs
+from pipeline.generation.pairs import (
+    FLOW_MAP_KEY,
+    PairSetError,
+    PlannedPair,
+    RecordWindow,
+    make_pairs,
+    probe_indices,
+    report_flow_map,
+)
 from pipeline.generation.pretrained import CARD_FILE, MotionPipeline, export_pretrained
 from pipeline.training.run_folder import RUN_MARKER
 from pipeline.training.trainer import Trainer
@@ -136,6 +151,56 @@ def test_pair_set_is_the_teachers_samples_made_once(student_run, teacher_run, tm
                 make_pairs(teacher, dataclasses.replace(settings, seed=1), student_run, dist)
         finally:
             pairs_module.solve_pairs = original
+
+
+def test_the_pair_set_measures_the_teachers_flow_map(student_run, teacher_run, tmp_path):
+    """The manifest holds the teacher's flow-map amplification at distill.flow_map_probes pairs spread over the
+    split; one of them recomputed by hand (the pair's noise, then the next draw of its generator as the direction)
+    agrees; the median is recorded in the student's config and model card."""
+    manifest = json.loads((student_run / "pairs" / "manifest.json").read_text())
+    flow_map = manifest[FLOW_MAP_KEY]
+    records = pair_records(student_run)
+    probed = sorted(int(k) for k in flow_map["by_pair"])
+    assert flow_map["probes"] == len(probed) == min(DistillConfig.flow_map_probes, len(records))
+    assert probed[0] == 0 and probed[-1] == len(records) - 1  # spread over the whole split
+    values = list(flow_map["by_pair"].values())
+    assert all(np.isfinite(v) and v > 0 for v in values)
+    assert flow_map["amplification_median"] == pytest.approx(float(np.median(values)))
+
+    teacher = load_trained_model(teacher_run)
+    guidance = float(teacher.model_config.sampling_guidance)
+    record = records[probed[len(probed) // 2]]
+    length = record.features.shape[0]
+    lengths = torch.tensor([length])
+    generators = seeded_generators([record.noise_seed])
+    shape = (1, length, teacher.model_config.feature_dim)
+    x0, direction = draw_noise(shape, generators, lengths=lengths), draw_noise(shape, generators, lengths=lengths)
+    velocity = zero_padded_frames(guided_velocity(teacher.model, torch.from_numpy(record.text_emb[:1]),
+                                                  scale=guidance, lengths=lengths), lengths)
+    with torch.no_grad():
+        ends = [solve(velocity, x, solver="euler", steps=10).x1 for x in (x0, x0 + FLOW_MAP_PERTURBATION * direction)]
+    by_hand = float((ends[1] - ends[0]).norm() / (FLOW_MAP_PERTURBATION * direction).norm())
+    assert flow_map["by_pair"][str(probed[len(probed) // 2])] == pytest.approx(by_hand, rel=1e-2)
+
+    recorded = yaml.safe_load((student_run / "config.yaml").read_text())["distill"]
+    assert recorded["teacher_flow_map_amplification"] == pytest.approx(flow_map["amplification_median"])
+    card = (export_pretrained(student_run, tmp_path / "export") / CARD_FILE).read_text()
+    assert f"flow-map amplification" in card
+    assert f"{flow_map['amplification_median']:.3g}" in card
+
+
+def test_probes_spread_over_the_captions_and_a_rough_map_is_warned_of(caplog):
+    pairs = [PlannedPair(i, i // 6, f"r{i // 6}", (i // 3) % 2, i % 3, 40, i) for i in range(60)]  # 20 captions x 3
+    firsts = [p.index for p in pairs if p.repeat == 0]
+    assert probe_indices(pairs, 100) == set(firsts)
+    picked = sorted(probe_indices(pairs, 5))
+    assert len(picked) == 5 and picked[0] == 0 and picked[-1] == firsts[-1] and set(picked) <= set(firsts)
+    assert probe_indices(pairs, 0) == set()
+    with caplog.at_level("INFO", logger="pipeline.generation.pairs"):
+        report_flow_map({"probes": 5, "amplification_median": 1.3, "amplification_max": 2.0})
+        assert [r.levelname for r in caplog.records] == ["INFO"]
+        report_flow_map({"probes": 5, "amplification_median": 2.7e4, "amplification_max": 8e5})
+        assert caplog.records[-1].levelname == "WARNING" and "rough" in caplog.records[-1].getMessage()
 
 
 def test_pairs_made_in_chunks_straddling_records_are_the_same_pairs(student_run, teacher_run, tmp_path, monkeypatch):

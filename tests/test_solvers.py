@@ -9,6 +9,7 @@ from mfm.solvers import (
     FIXED_STEP_SOLVERS,
     check_grid,
     draw_noise,
+    flow_map_amplification,
     guided_velocity,
     initial_noise,
     noise_generator_device,
@@ -316,6 +317,48 @@ def test_sample_with_guidance_one_matches_a_conditional_solve_from_the_same_nois
         expected = solve(lambda x, t: model(x, t, cond, lengths), x0, solver="heun", steps=3)
     torch.testing.assert_close(result.x1, expected.x1)
     assert result.nfe == 6 and result.x1_hat.shape == (3, 2, 9, 6)
+
+
+def test_sample_integrates_from_given_noise_with_its_padding_zeroed():
+    model = tiny_text_model()
+    cond = torch.randn(2, 8, generator=torch.Generator().manual_seed(4))
+    lengths = [9, 5]
+    drawn = sample(model, cond, lengths, num_frames=9, steps=4, seed=11)
+    noise = draw_noise((2, 9, 6), torch.Generator().manual_seed(11), lengths=torch.tensor(lengths))
+    noise[1, 5:] = 7.0  # padding given as garbage is zeroed, as the sampler's own draw is
+    assert torch.equal(sample(model, cond, lengths, num_frames=9, steps=4, noise=noise).x1, drawn.x1)
+    with pytest.raises(ValueError, match="noise must be"):
+        sample(model, cond, lengths, num_frames=9, steps=4, noise=noise[:, :8])
+
+
+@pytest.mark.parametrize("rate", [-0.5, 0.0, 2.0])
+def test_flow_map_amplification_of_a_linear_field_is_its_euler_growth(rate):
+    """v = k·x: 10 Euler steps map x0 to (1 + k/10)^10 · x0, so every direction is amplified by exactly that
+    factor; what the map does on padded frames does not count."""
+    x0, direction = x0_batch(), torch.randn(3, 5, 4, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    lengths = torch.tensor([5, 3, 1])
+
+    def solve_from(noise):
+        out = solve(linear_field(rate), noise, solver="euler", steps=10).x1.clone()
+        out[1, 3:] = torch.randn(2, 4, dtype=out.dtype)  # padding: garbage that differs between the two calls
+        return out
+
+    amplification = flow_map_amplification(solve_from, x0, direction, lengths)
+    torch.testing.assert_close(amplification, torch.full((3,), (1 + rate / 10) ** 10, dtype=torch.float32))
+    with pytest.raises(ValueError, match="perturbation"):
+        flow_map_amplification(solve_from, x0, direction, lengths, perturbation=0.0)
+
+
+def test_flow_map_amplification_sees_a_map_that_ignores_or_scatters_the_noise():
+    x0, direction = x0_batch(), torch.randn(3, 5, 4, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    lengths = torch.tensor([5, 5, 5])
+    constant = flow_map_amplification(lambda noise: torch.ones_like(noise), x0, direction, lengths)
+    assert torch.equal(constant, torch.zeros(3))
+    # A map with sharp basins (the sign of each element): a perturbation across a boundary moves the endpoint by 2.
+    near = x0.clone()
+    near[0, 0, 0] = 1e-5
+    sharp = flow_map_amplification(torch.sign, near, torch.ones_like(near) * -1, lengths)
+    assert sharp[0] > 100 and torch.equal(sharp[1:], torch.zeros(2))
 
 
 def test_sample_with_dopri5_reports_counted_evaluations():

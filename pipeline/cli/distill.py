@@ -15,7 +15,10 @@ the whole path; train.flow_time_sampling=grid (train.flow_time_grid_steps=2: t =
 rectified flow's k-step distillation) trains only the times its sampler visits: better bones and jerk at 1 step,
 slightly lower FID and R@1 (docs/few-step.md, "Training at the sampler's times"). Guidance is distilled in: the student
 samples with guidance 1 (one pass per step) and trains without condition dropout (model.sampling_guidance=1,
-model.cond_drop_prob=0 in its config).
+model.cond_drop_prob=0 in its config). Before training, the teacher solves distill.flow_map_probes pairs again from a
+slightly perturbed noise: the median of how far its motion moves per unit change of the noise goes into the pair
+set's manifest, the student's distill.teacher_flow_map_amplification and its model card, with a warning when it is
+too rough for reflow to fit (docs/few-step.md, "A rough teacher").
 
 shortcut (Frans et al. 2024, mfm/shortcut.py): no pair set. The student is the teacher's network with a step-size
 input (model.shortcut_levels = distill.shortcut_levels, default 2: Euler in 1 or 2 steps), initialised from the
@@ -42,6 +45,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import logging
 import shlex
 import sys
@@ -55,7 +59,7 @@ from pipeline.config import ConfigError, DistillConfig, TrainConfig, describe_co
 from pipeline.data.stages import DataError
 from pipeline.distributed import Dist, MixedPrecisionError
 from pipeline.generation.inference import TrainedModel, load_trained_model
-from pipeline.generation.pairs import PairSetError, make_pairs, pairs_dir
+from pipeline.generation.pairs import FLOW_MAP_KEY, PairSetError, make_pairs, pairs_dir
 from pipeline.training.run_folder import RunFolderLock, check_run_folder, write_run_marker
 from pipeline.training.trainer import CheckpointSaveError, Trainer
 from preprocess.shards import MANIFEST_NAME, ManifestError, OutputFolderError
@@ -109,6 +113,13 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
                                                                           if settings.method == "shortcut" else 0)))
 
 
+def with_flow_map(cfg: TrainConfig, pair_manifest: Path) -> TrainConfig:
+    """``cfg`` with the pair set's probed teacher flow-map amplification recorded in its distill section."""
+    flow_map = json.loads(pair_manifest.read_text()).get(FLOW_MAP_KEY)
+    median = None if flow_map is None else float(flow_map["amplification_median"])
+    return dataclasses.replace(cfg, distill=dataclasses.replace(cfg.distill, teacher_flow_map_amplification=median))
+
+
 def prepare_out_dir(out: Path, dist: Dist) -> None:
     """Rank 0: the folder is one a run may use (new, empty, or a run of ours: a student being resumed), and from now
     on a run of ours (its marker), so the pair set may go inside it. Held under the run lock while checked."""
@@ -144,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
             teacher = teacher.to(dist.device)
             prepare_out_dir(out, dist)
             if cfg.distill.method == "reflow":
-                make_pairs(teacher, cfg.distill, out, dist)
+                cfg = with_flow_map(cfg, make_pairs(teacher, cfg.distill, out, dist))
             return Trainer(cfg, dist).fit()
     except ResumeConflictError as exc:
         given = sys.argv[1:] if argv is None else argv

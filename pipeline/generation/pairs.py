@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from mfm.guidance import guided_feature_mask
-from mfm.solvers import sample, seeded_generators
+from mfm.solvers import FLOW_MAP_PERTURBATION, draw_noise, flow_map_amplification, sample, seeded_generators
 from pipeline import checkpoint as ckpt
 from pipeline.config import DistillConfig
 from pipeline.data.stages import MotionRecord
@@ -67,6 +67,14 @@ from preprocess.shards import (
 )
 
 logger = logging.getLogger(__name__)
+
+FLOW_MAP_KEY = "teacher_flow_map"
+"""The pair set manifest's section with the teacher's flow-map amplification (:func:`probe_amplification`)."""
+ROUGH_AMPLIFICATION = 10.0
+"""Median flow-map amplification above which launch/distill.py warns that reflow cannot fit the teacher. Measured
+(docs/few-step.md, 'A rough teacher'): the embedded default's teacher 0.099 and the synthetic preset's 0.32, whose
+students come within or near 10 % of them at 2 steps; the embedded default's BPE + PCCAT teacher 167, whose student's
+loss stalls 20x higher."""
 
 PAIRS_FOLDER = "pairs"
 TMP_FOLDER = ".build-tmp"
@@ -186,9 +194,9 @@ class RecordWindow:
 
 @torch.no_grad()
 def solve_pairs(teacher: TrainedModel, pairs: Sequence[PlannedPair], records: Mapping[int, MotionRecord],
-                settings: DistillConfig) -> torch.Tensor:
+                settings: DistillConfig, noise: torch.Tensor | None = None) -> torch.Tensor:
     """The teacher's (B, T, D) normalised ODE solutions of ``pairs`` (one batch; ``records`` holds their records by
-    position), zero past each length."""
+    position), zero past each length; from ``noise`` (B, T, D) instead of the pairs' seeded noise if given."""
     device = teacher.device
     lengths = torch.tensor([p.length for p in pairs], dtype=torch.long, device=device)
     rows = [(records[p.record_index], p.caption) for p in pairs]
@@ -203,8 +211,60 @@ def solve_pairs(teacher: TrainedModel, pairs: Sequence[PlannedPair], records: Ma
     result = sample(model, cond, lengths, num_frames=int(lengths.max()), feature_dim=teacher.model_config.feature_dim,
                     solver=settings.teacher_solver, steps=settings.teacher_steps, guidance=settings.teacher_guidance,
                     conditional_channels=guided_feature_mask(settings.teacher_guided_features, teacher.skeleton),
-                    generator=seeded_generators([p.seed for p in pairs]))
+                    generator=seeded_generators([p.seed for p in pairs]), noise=noise)
     return result.x1.float()
+
+
+def probe_indices(pairs: Sequence[PlannedPair], count: int) -> set[int]:
+    """The pairs :func:`probe_amplification` measures: the first pair (``repeat`` 0) of ``count`` captions spread
+    evenly over the split (all captions if it has fewer)."""
+    firsts = [p.index for p in pairs if p.repeat == 0]
+    if count <= 0 or not firsts:
+        return set()
+    picks = np.unique(np.round(np.linspace(0, len(firsts) - 1, min(count, len(firsts)))).astype(int))
+    return {firsts[i] for i in picks}
+
+
+@torch.no_grad()
+def probe_amplification(teacher: TrainedModel, pairs: Sequence[PlannedPair], records: Mapping[int, MotionRecord],
+                        settings: DistillConfig) -> dict[int, float]:
+    """By pair index: how far the teacher's solution of each pair moves per unit change of its noise
+    (:func:`mfm.solvers.flow_map_amplification`, one batch). The direction is the next draw of the pair's own noise
+    generator, so the figure is a function of the pair alone."""
+    device, dim = teacher.device, teacher.model_config.feature_dim
+    lengths = torch.tensor([p.length for p in pairs], dtype=torch.long)
+    shape = (len(pairs), int(lengths.max()), dim)
+    generators = seeded_generators([p.seed for p in pairs])
+    x0 = draw_noise(shape, generators, lengths=lengths, device=device)
+    direction = draw_noise(shape, generators, lengths=lengths, device=device)
+    amplification = flow_map_amplification(lambda noise: solve_pairs(teacher, pairs, records, settings, noise),
+                                           x0, direction, lengths.to(device))
+    return {p.index: float(a) for p, a in zip(pairs, amplification.tolist())}
+
+
+def flow_map_summary(amplification: Mapping[int, float]) -> dict[str, Any] | None:
+    """The pair set manifest's ``teacher_flow_map`` section (None when nothing was probed)."""
+    if not amplification:
+        return None
+    values = np.array(list(amplification.values()), dtype=np.float64)
+    return {"probes": len(values), "perturbation_rms": FLOW_MAP_PERTURBATION,
+            "amplification_median": float(np.median(values)), "amplification_max": float(values.max()),
+            "by_pair": {str(k): float(v) for k, v in sorted(amplification.items())}}
+
+
+def report_flow_map(summary: Mapping[str, Any] | None) -> None:
+    """Log the teacher's flow-map amplification; a warning when reflow cannot fit it (:data:`ROUGH_AMPLIFICATION`)."""
+    if summary is None:
+        return
+    median, most, probes = summary["amplification_median"], summary["amplification_max"], summary["probes"]
+    if median > ROUGH_AMPLIFICATION:
+        logger.warning(
+            "the teacher's flow map is rough: a noise change moves its motion %.3g-fold (median of %d probes, "
+            "max %.3g; above %g). Reflow's pairs are then not a smooth function of the noise, and a 1-2 step "
+            "student learns their average: expect a high distillation loss and blurred motion (docs/few-step.md, "
+            "'A rough teacher')", median, probes, most, ROUGH_AMPLIFICATION)
+    else:
+        logger.info("teacher flow-map amplification %.3g (median of %d probes, max %.3g)", median, probes, most)
 
 
 def _existing(folder: Path, wanted: Mapping[str, Any]) -> bool:
@@ -234,8 +294,12 @@ def make_pairs(teacher: TrainedModel, settings: DistillConfig, out_dir: str | Pa
     reuse = dist.broadcast_object(_existing(folder, wanted) if dist.is_main else None)
     if reuse:
         dist.log0("reusing the pair set in %s (same teacher and settings)", folder)
+        if dist.is_main:
+            report_flow_map(load_manifest(folder, verify="size").get(FLOW_MAP_KEY))
         return folder / MANIFEST_NAME
     pairs = plan_pairs(source, settings, wanted["max_length"])
+    probes = probe_indices(pairs, settings.flow_map_probes)
+    amplification: dict[int, float] = {}
     tmp = folder / TMP_FOLDER
     if dist.is_main:
         tmp.mkdir(parents=True, exist_ok=True)
@@ -253,20 +317,27 @@ def make_pairs(teacher: TrainedModel, settings: DistillConfig, out_dir: str | Pa
             motions = teacher.denormalize(solve_pairs(teacher, batch, records, settings)).cpu().numpy()
             for row, pair in enumerate(batch):
                 solved[pair.index] = np.ascontiguousarray(motions[row, :pair.length], dtype=np.float32)
+        probed = [p for p in chunk if p.index in probes]
+        if probed:
+            amplification.update(probe_amplification(teacher, probed, records, settings))
         torch.save(solved, chunk_path(tmp, dist.rank, chunk_index))
         dist.log0("teacher pairs: %d of %d on rank 0", start + len(chunk), len(mine))
-    dist.barrier()
+    gathered = dist.all_gather_object(amplification)
     if dist.is_main:
-        write_pair_set(folder, teacher, source, pairs, SolvedChunks(tmp, dist.world_size, size), wanted)
+        summary = flow_map_summary({k: v for part in gathered for k, v in part.items()})
+        report_flow_map(summary)
+        write_pair_set(folder, teacher, source, pairs, SolvedChunks(tmp, dist.world_size, size), wanted, summary)
         shutil.rmtree(tmp)
     dist.barrier()
     return folder / MANIFEST_NAME
 
 
 def write_pair_set(folder: Path, teacher: TrainedModel, source: Manifest, pairs: Sequence[PlannedPair],
-                   solved: Mapping[int, np.ndarray], settings: Mapping[str, Any]) -> dict[str, Any]:
+                   solved: Mapping[int, np.ndarray], settings: Mapping[str, Any],
+                   flow_map: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The shards (in pair order) and, last, the manifest of the pair set; the records' captions and text features
-    streamed from ``source`` again, the motions read from ``solved`` one at a time."""
+    streamed from ``source`` again, the motions read from ``solved`` one at a time. ``flow_map``: the teacher's
+    probed amplification (:func:`flow_map_summary`), kept beside the pairs' settings, not part of their identity."""
     text = source.data["text_encoder"]
     tokens = bool(text.get("token_features", False))
     spec = source.data["feature_spec"]
@@ -306,6 +377,8 @@ def write_pair_set(folder: Path, teacher: TrainedModel, source: Manifest, pairs:
                         "ignored_files": {"count": 0, "paths": []}},
         PAIRS_KEY: dict(settings),
     }
+    if flow_map is not None:
+        manifest[FLOW_MAP_KEY] = dict(flow_map)
     manifest["dataset_id"] = derive_dataset_id(manifest)
     write_manifest(folder, manifest)
     logger.info("wrote %d teacher pairs to %s", len(pairs), folder)

@@ -64,6 +64,7 @@ from pipeline.generation.inference import (  # the folder format and its reader 
     load_trained_model,
 )
 from pipeline.generation.integration import resolve_device
+from pipeline.generation.pairs import ROUGH_AMPLIFICATION
 from pipeline.generation.request import SampleRequest
 from preprocess.shards import ManifestError, derive_dataset_id, load_manifest
 
@@ -364,6 +365,12 @@ def _recipe_lines(config: Mapping[str, Any], model: ModelConfig, recipe: Mapping
             f"{distill.get('teacher_solver')} {distill.get('teacher_steps')}-step solutions at guidance "
             f"{distill.get('teacher_guidance'):g} ({distill.get('teacher_guided_features')} channels); samples in "
             f"{model.sampling_steps} step(s) at guidance {model.sampling_guidance:g}")
+        amplification = distill.get("teacher_flow_map_amplification")
+        if amplification is not None:
+            lines.append(f"- the teacher's flow-map amplification (how far its motion moves per unit change of the "
+                         f"noise, median over probed pairs; reflow fits a map near 1): {amplification:.3g}"
+                         + (" (rough: a reflow student learns an average of the teacher's motions; docs/few-step.md, "
+                            "'A rough teacher')" if amplification > ROUGH_AMPLIFICATION else ""))
         if recipe.get("flow_time_sampling") == "grid":
             grid = int(recipe.get("flow_time_grid_steps") or 0)
             lines.append(f"- trained only at the times its {grid}-step Euler sampler visits (0, 1/{grid}, ...: "
