@@ -72,9 +72,9 @@ FLOW_MAP_KEY = "teacher_flow_map"
 """The pair set manifest's section with the teacher's flow-map amplification (:func:`probe_amplification`)."""
 ROUGH_AMPLIFICATION = 10.0
 """Median flow-map amplification above which launch/distill.py warns that reflow cannot fit the teacher. Measured
-(docs/few-step.md, 'A rough teacher'): the embedded default's teacher 0.099 and the synthetic preset's 0.32, whose
-students come within or near 10 % of them at 2 steps; the embedded default's BPE + PCCAT teacher 167, whose student's
-loss stalls 20x higher."""
+(docs/few-step.md, 'A rough teacher'): the embedded default's teacher 0.099, whose 2-step students come near its
+10-step figures, and the synthetic preset's 0.32; a PCCAT-only teacher of the embedded default 3.91; its BPE + PCCAT
+teacher 167, whose student's loss stalls 20x higher."""
 
 PAIRS_FOLDER = "pairs"
 TMP_FOLDER = ".build-tmp"
