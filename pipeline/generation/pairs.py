@@ -44,7 +44,14 @@ import numpy as np
 import torch
 
 from mfm.guidance import guided_feature_mask
-from mfm.solvers import FLOW_MAP_PERTURBATION, draw_noise, flow_map_amplification, sample, seeded_generators
+from mfm.solvers import (
+    FLOW_MAP_PERTURBATION,
+    ROUGH_AMPLIFICATION,
+    draw_noise,
+    flow_map_amplification,
+    sample,
+    seeded_generators,
+)
 from pipeline import checkpoint as ckpt
 from pipeline.config import DistillConfig
 from pipeline.data.stages import MotionRecord
@@ -70,11 +77,6 @@ logger = logging.getLogger(__name__)
 
 FLOW_MAP_KEY = "teacher_flow_map"
 """The pair set manifest's section with the teacher's flow-map amplification (:func:`probe_amplification`)."""
-ROUGH_AMPLIFICATION = 10.0
-"""Median flow-map amplification above which launch/distill.py warns that reflow cannot fit the teacher. Measured
-(docs/few-step.md, 'A rough teacher'): the embedded default's teacher 0.099, whose 2-step students come near its
-10-step figures, and the synthetic preset's 0.32; a PCCAT-only teacher of the embedded default 3.91; its BPE + PCCAT
-teacher 167, whose student's loss stalls 20x higher."""
 
 PAIRS_FOLDER = "pairs"
 TMP_FOLDER = ".build-tmp"
@@ -253,7 +255,7 @@ def flow_map_summary(amplification: Mapping[int, float]) -> dict[str, Any] | Non
 
 
 def report_flow_map(summary: Mapping[str, Any] | None) -> None:
-    """Log the teacher's flow-map amplification; a warning when reflow cannot fit it (:data:`ROUGH_AMPLIFICATION`)."""
+    """Log the teacher's flow-map amplification; a warning when reflow cannot fit it (:data:`mfm.solvers.ROUGH_AMPLIFICATION`)."""
     if summary is None:
         return
     median, most, probes = summary["amplification_median"], summary["amplification_max"], summary["probes"]

@@ -47,7 +47,7 @@ import yaml
 
 from mfm.features import features_to_joints
 from mfm.model import ModelConfig
-from mfm.solvers import sample_lengths
+from mfm.solvers import ROUGH_AMPLIFICATION, sample_lengths
 from pipeline import checkpoint as ckpt
 from pipeline.generation import integration, outputs, sampling
 from pipeline.generation.inference import (  # the folder format and its reader live with the other loaders
@@ -64,7 +64,6 @@ from pipeline.generation.inference import (  # the folder format and its reader 
     load_trained_model,
 )
 from pipeline.generation.integration import resolve_device
-from pipeline.generation.pairs import ROUGH_AMPLIFICATION
 from pipeline.generation.request import SampleRequest
 from preprocess.shards import ManifestError, derive_dataset_id, load_manifest
 
