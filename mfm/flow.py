@@ -231,6 +231,7 @@ def flow_matching_loss(
     bone_weight: float = 0.0,
     trajectory_weight: float = 0.0,
     trajectory_min_t: float = 0.0,
+    trajectory_huber: float = 0.0,
     foot_contact_weight: float = 0.0,
     geometry: MotionGeometry | None = None,
     time_sampling: tuple[str, float, float, int] = ("uniform", 0.0, 1.0, 0),
@@ -276,7 +277,8 @@ def flow_matching_loss(
     loss = velocity_loss(velocity, target_velocity(x0, x1, sigma_min), x1, t, frame_mask, sigma_min=sigma_min,
                          loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
                          trajectory_weight=trajectory_weight, trajectory_min_t=trajectory_min_t,
-                         foot_contact_weight=foot_contact_weight, geometry=geometry, terms_weighting=terms_weighting,
+                         trajectory_huber=trajectory_huber, foot_contact_weight=foot_contact_weight,
+                         geometry=geometry, terms_weighting=terms_weighting,
                          velocity_weight_cap=velocity_weight_cap, channel_weight=channel_weight)
     return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
 
@@ -294,6 +296,7 @@ def velocity_loss(
     bone_weight: float = 0.0,
     trajectory_weight: float = 0.0,
     trajectory_min_t: float = 0.0,
+    trajectory_huber: float = 0.0,
     foot_contact_weight: float = 0.0,
     geometry: MotionGeometry | None = None,
     terms_weighting: str = "data",
@@ -303,7 +306,7 @@ def velocity_loss(
     """:func:`flow_matching_loss` of a velocity the model made at times ``t`` against its ``target``: the weighted
     MSE, plus the temporal term of the implied motion's error, the bone term, whose bones are ``x1``'s (the
     clip the path leads to), the trajectory term, whose path is ``x1``'s (counted only for the rows whose ``t`` is
-    at least ``trajectory_min_t``), and the foot-contact term, whose contact labels are ``x1``'s."""
+    at least ``trajectory_min_t``; pseudo-Huber per frame beyond ``trajectory_huber`` m when > 0), and the foot-contact term, whose contact labels are ``x1``'s."""
     weight = loss_space_weight(t, loss_space, sigma_min, velocity_weight_cap)
     loss = masked_mse(velocity, target, frame_mask, weight, channel_weight)
     terms = term_weight(t, loss_space, terms_weighting, sigma_min, velocity_weight_cap)
@@ -318,7 +321,8 @@ def velocity_loss(
             loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms)
         if trajectory_weight > 0:
             loss = loss + trajectory_weight * trajectory_loss(x1_hat, x1, frame_mask, geometry,
-                                                              _from_time(terms, t, trajectory_min_t))
+                                                              _from_time(terms, t, trajectory_min_t),
+                                                              huber=trajectory_huber)
         if foot_contact_weight > 0:
             loss = loss + foot_contact_weight * foot_contact_loss(x1_hat, x1, frame_mask, geometry, terms)
     return loss
@@ -406,10 +410,17 @@ def bone_length_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.T
 
 
 def trajectory_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Tensor,
-                    geometry: MotionGeometry, sample_weight: torch.Tensor | None = None) -> torch.Tensor:
+                    geometry: MotionGeometry, sample_weight: torch.Tensor | None = None,
+                    huber: float = 0.0) -> torch.Tensor:
     """Squared error of the root's integrated path, the implied motion x̂1's against the clip x1's, over valid
     frames (per sample, then the batch mean): the ground position's (m², X and Z summed) plus the heading's
     (rad², i.e. as if measured 1 m from the root).
+
+    ``huber`` > 0 (m): each frame's squared distance ``e`` becomes the pseudo-Huber ``2·h²·(√(1 + e/h²) − 1)``,
+    ``e`` itself for distances well below ``h`` and growing only linearly beyond, so the gradient a frame sends back
+    is at most ``2·h`` whatever its error. Why: a walk's path early in training is metres off, and its squared
+    error's gradient, summed back along the integral over every later frame, is the heavy tail that the gradient
+    clip then cuts out of the main loss's update too (docs/generator-study.md). 0: the squared error.
 
     Why: the features give the root as per-frame rates (heading rate, velocity in the facing frame), and the main
     MSE weighs an error of a rate the same whether it comes and goes or persists. A persistent bias of 3 mm per
@@ -419,9 +430,17 @@ def trajectory_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Te
     hat_angle, hat_ground = geometry.root_path(x1_hat)
     angle, ground = geometry.root_path(x1)
     mask = frame_mask.float()
-    error = ((hat_ground - ground).square().sum(dim=-1) + (hat_angle - angle).square()) * mask
-    per_sample = error.sum(dim=1) / mask.sum(dim=1).clamp_min(1.0)
+    error = (hat_ground - ground).square().sum(dim=-1) + (hat_angle - angle).square()
+    if huber > 0:
+        error = pseudo_huber(error, huber)
+    per_sample = (error * mask).sum(dim=1) / mask.sum(dim=1).clamp_min(1.0)
     return _weighted_mean(per_sample, sample_weight)
+
+
+def pseudo_huber(squared: torch.Tensor, scale: float) -> torch.Tensor:
+    """``2·scale²·(√(1 + squared/scale²) − 1)`` of a squared distance: the squared distance itself below ``scale``,
+    linear in the distance above it (slope ``2·scale``)."""
+    return 2.0 * scale ** 2 * (torch.sqrt(1.0 + squared / scale ** 2) - 1.0)
 
 
 def foot_contact_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Tensor,
@@ -486,6 +505,8 @@ class FlowMatchingObjective:
     trajectory_weight: float = 0.0
     trajectory_min_t: float = 0.0
     """The trajectory term counts only for rows trained at t >= this (0: every row)."""
+    trajectory_huber: float = 0.0
+    """The trajectory term's per-frame error is pseudo-Huber beyond this distance in m (0: squared error)."""
     foot_contact_weight: float = 0.0
     geometry: MotionGeometry | None = None
     time_sampling: str = "uniform"
@@ -522,6 +543,8 @@ class FlowMatchingObjective:
                              f"got {self.trajectory_weight!r}")
         if not 0.0 <= self.trajectory_min_t < 1.0:
             raise ValueError(f"FlowMatchingObjective.trajectory_min_t must be in [0, 1), got {self.trajectory_min_t!r}")
+        if self.trajectory_huber < 0:
+            raise ValueError(f"FlowMatchingObjective.trajectory_huber must be >= 0, got {self.trajectory_huber!r}")
         if self.foot_contact_weight < 0 or (self.foot_contact_weight > 0 and (
                 self.geometry is None or self.geometry.skeleton is None)):
             raise ValueError(f"FlowMatchingObjective.foot_contact_weight must be >= 0 and needs a geometry with its "
@@ -557,7 +580,7 @@ class FlowMatchingObjective:
             t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
             temporal_weight=self.temporal_weight, bone_weight=self.bone_weight,
             trajectory_weight=self.trajectory_weight, trajectory_min_t=self.trajectory_min_t,
-            foot_contact_weight=self.foot_contact_weight, geometry=self.geometry,
+            trajectory_huber=self.trajectory_huber, foot_contact_weight=self.foot_contact_weight, geometry=self.geometry,
             time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,

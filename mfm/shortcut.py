@@ -152,7 +152,7 @@ class ShortcutObjective:
         frame_mask = valid_frame_mask(lengths, x1.shape[1])
         terms = dict(sigma_min=sigma_min, loss_space=flow.loss_space, temporal_weight=flow.temporal_weight,
                      bone_weight=flow.bone_weight, trajectory_weight=flow.trajectory_weight,
-                     trajectory_min_t=flow.trajectory_min_t,
+                     trajectory_min_t=flow.trajectory_min_t, trajectory_huber=flow.trajectory_huber,
                      foot_contact_weight=flow.foot_contact_weight, geometry=flow.geometry,
                      terms_weighting=flow.terms_weighting,
                      velocity_weight_cap=flow.velocity_weight_cap,

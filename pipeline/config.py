@@ -322,6 +322,12 @@ class TrainLoopConfig:
     path, so most of the term there is the spread of the clips' paths, which no network removes; nearer the data the
     path is in x_t and the error is the network's. On the synthetic preset at 0.5 from scratch it kept the jumps in
     place but still cost the counts (docs/generator-study.md, "... only where the path is in x_t"). Ours, not MFM's."""
+    flow_trajectory_huber: float = 0.0
+    """objective=flow: when > 0 (metres), the trajectory term's per-frame squared path error becomes its
+    pseudo-Huber (``mfm.flow.pseudo_huber``): the squared error below this distance, linear beyond, so no frame's
+    gradient exceeds 2 × this. Why it was tried: the squared path error of a walk that is metres off early in
+    training sends a heavy-tailed gradient that the gradient clip then cuts out of the main loss's update
+    (docs/generator-study.md). 0: squared error. Ours, not MFM's."""
     flow_terms_weighting: Literal["data", "loss"] = "data"
     """objective=flow: how the temporal, bone, trajectory and foot-contact terms are weighted over t
     (``mfm.flow.term_weight``): 'data' = the same at every t (as introduced); 'loss' = as the main loss weighs an x̂1
@@ -385,6 +391,8 @@ class TrainLoopConfig:
                  f"got {self.flow_trajectory_start_step}")
         _require(0 <= self.flow_trajectory_min_t < 1,
                  f"train.flow_trajectory_min_t must be in [0, 1), got {self.flow_trajectory_min_t}")
+        _require(self.flow_trajectory_huber >= 0,
+                 f"train.flow_trajectory_huber must be >= 0, got {self.flow_trajectory_huber}")
         _require(self.flow_temporal_weight >= 0, f"train.flow_temporal_weight must be >= 0, got {self.flow_temporal_weight}")
         _require(self.flow_time_scale > 0, f"train.flow_time_scale must be > 0, got {self.flow_time_scale}")
         _require(self.flow_time_grid_steps >= 1,

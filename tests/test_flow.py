@@ -360,6 +360,36 @@ def test_a_geometric_term_adds_its_weight_times_the_implied_motions_error(term):
         flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, **{weight_name: 1.0})
 
 
+def test_the_pseudo_huber_trajectory_term_is_the_squared_error_when_small_and_bounds_a_frames_gradient():
+    """huber h: a drift far below h costs what the squared error does; a drift of metres costs about 2·h·distance,
+    and the gradient it sends to a root velocity is bounded by the frames it reaches × 2h, while the squared error's
+    grows with the drift; h 0 is the squared error exactly; the objective refuses h < 0."""
+    from mfm.flow import pseudo_huber, trajectory_loss
+
+    geometry = trajectory_geometry()
+    clip = torch.zeros(1, 20, 263)
+    mask = valid_frame_mask(torch.tensor([20]), 20)
+    assert pseudo_huber(torch.tensor([0.0]), 0.1).item() == 0.0
+    small = clip.clone()
+    small[..., 2] = 1e-4  # 2 mm after 20 frames, against h = 0.1 m
+    squared = trajectory_loss(small, clip, mask, geometry).item()
+    assert trajectory_loss(small, clip, mask, geometry, huber=0.0).item() == squared
+    assert trajectory_loss(small, clip, mask, geometry, huber=0.1).item() == pytest.approx(squared, rel=1e-3)
+    gradients = {}
+    for huber in (0.0, 0.1):
+        for drift in (0.1, 1.0):  # m per frame: 1.9 m and 19 m after 20 frames
+            x1_hat = clip.clone()
+            x1_hat[..., 2] = drift
+            x1_hat.requires_grad_(True)
+            trajectory_loss(x1_hat, clip, mask, geometry, huber=huber).backward()
+            gradients[huber, drift] = x1_hat.grad[0, 0, 2].abs().item()
+    assert gradients[0.0, 1.0] == pytest.approx(10 * gradients[0.0, 0.1], rel=1e-3)  # squared: grows with the drift
+    assert gradients[0.1, 1.0] == pytest.approx(gradients[0.1, 0.1], rel=0.05)  # pseudo-Huber: saturated
+    assert gradients[0.1, 1.0] <= 2 * 0.1 * 19 / 20 + 1e-6  # 19 later frames' bounded pulls, over 20 frames
+    with pytest.raises(ValueError, match="trajectory_huber"):
+        FlowMatchingObjective(geometry=geometry, trajectory_weight=1.0, trajectory_huber=-0.1)
+
+
 def test_the_trajectory_term_from_a_minimum_time_counts_only_the_rows_trained_at_or_after_it():
     """trajectory_min_t = 0.5 with rows at t = 0.3 and 0.8: the loss is the plain loss + w × (the term of the t = 0.8
     row alone) / 2 (the batch mean still divides by both rows); the main loss, the other terms and the draws are

@@ -1143,7 +1143,7 @@ def test_build_objective_gives_the_foot_contact_term_its_weight_and_the_datasets
     assert build_objective(load_config(TrainConfig, "tiny"), manifest).foot_contact_weight == 0.0
 
 
-def test_build_objective_gives_the_trajectory_term_its_minimum_time():
+def test_build_objective_gives_the_trajectory_term_its_minimum_time_and_pseudo_huber_scale():
     from types import SimpleNamespace
 
     from pipeline.training.trainer import build_objective
@@ -1151,6 +1151,8 @@ def test_build_objective_gives_the_trajectory_term_its_minimum_time():
     manifest = SimpleNamespace(data={"feature_spec": {"skeleton": "humanml3d"},
                                      "normalization": {"mean": [0.0] * 263, "std": [1.0] * 263}})
     objective = build_objective(load_config(TrainConfig, "tiny", ["train.flow_trajectory_weight=0.1",
-                                                                  "train.flow_trajectory_min_t=0.5"]), manifest)
-    assert (objective.trajectory_weight, objective.trajectory_min_t) == (0.1, 0.5)
-    assert build_objective(load_config(TrainConfig, "tiny"), manifest).trajectory_min_t == 0.0
+                                                                  "train.flow_trajectory_min_t=0.5",
+                                                                  "train.flow_trajectory_huber=0.2"]), manifest)
+    assert (objective.trajectory_weight, objective.trajectory_min_t, objective.trajectory_huber) == (0.1, 0.5, 0.2)
+    default = build_objective(load_config(TrainConfig, "tiny"), manifest)
+    assert (default.trajectory_min_t, default.trajectory_huber) == (0.0, 0.0)

@@ -437,6 +437,7 @@ def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bo
                                      bone_weight=cfg.train.flow_bone_weight,
                                      trajectory_weight=trajectory_weight,
                                      trajectory_min_t=cfg.train.flow_trajectory_min_t,
+                                     trajectory_huber=cfg.train.flow_trajectory_huber,
                                      foot_contact_weight=cfg.train.flow_foot_contact_weight, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
