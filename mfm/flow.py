@@ -306,7 +306,8 @@ def velocity_loss(
     """:func:`flow_matching_loss` of a velocity the model made at times ``t`` against its ``target``: the weighted
     MSE, plus the temporal term of the implied motion's error, the bone term, whose bones are ``x1``'s (the
     clip the path leads to), the trajectory term, whose path is ``x1``'s (counted only for the rows whose ``t`` is
-    at least ``trajectory_min_t``; pseudo-Huber per frame beyond ``trajectory_huber`` m when > 0), and the foot-contact term, whose contact labels are ``x1``'s."""
+    at least ``trajectory_min_t``; pseudo-Huber per frame beyond ``trajectory_huber`` m when > 0), and the
+    foot-contact term, whose contact labels are ``x1``'s."""
     weight = loss_space_weight(t, loss_space, sigma_min, velocity_weight_cap)
     loss = masked_mse(velocity, target, frame_mask, weight, channel_weight)
     terms = term_weight(t, loss_space, terms_weighting, sigma_min, velocity_weight_cap)
@@ -418,9 +419,11 @@ def trajectory_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Te
 
     ``huber`` > 0 (m): each frame's squared distance ``e`` becomes the pseudo-Huber ``2·h²·(√(1 + e/h²) − 1)``,
     ``e`` itself for distances well below ``h`` and growing only linearly beyond, so the gradient a frame sends back
-    is at most ``2·h`` whatever its error. Why: a walk's path early in training is metres off, and its squared
-    error's gradient, summed back along the integral over every later frame, is the heavy tail that the gradient
-    clip then cuts out of the main loss's update too (docs/generator-study.md). 0: the squared error.
+    is at most ``2·h`` whatever its error. Why it was tried: a walk's path early in training is metres off, and its
+    squared error's gradient, summed back along the integral over every later frame, is a heavy tail that could
+    crowd the main loss out of the clipped update. On the synthetic preset it did not: bounded, the term still cost
+    the counts and no longer cured the drift (docs/generator-study.md, "... with its tail bounded"). 0: the squared
+    error.
 
     Why: the features give the root as per-frame rates (heading rate, velocity in the facing frame), and the main
     MSE weighs an error of a rate the same whether it comes and goes or persists. A persistent bias of 3 mm per
@@ -580,7 +583,8 @@ class FlowMatchingObjective:
             t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
             temporal_weight=self.temporal_weight, bone_weight=self.bone_weight,
             trajectory_weight=self.trajectory_weight, trajectory_min_t=self.trajectory_min_t,
-            trajectory_huber=self.trajectory_huber, foot_contact_weight=self.foot_contact_weight, geometry=self.geometry,
+            trajectory_huber=self.trajectory_huber, foot_contact_weight=self.foot_contact_weight,
+            geometry=self.geometry,
             time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,

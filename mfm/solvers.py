@@ -493,8 +493,8 @@ FLOW_MAP_PERTURBATION = 1e-3
 ROUGH_AMPLIFICATION = 10.0
 """Median flow-map amplification above which launch/distill.py warns that reflow cannot fit the teacher (and an
 exported student's model card says so). Measured (docs/few-step.md, 'A rough teacher'): the embedded default's
-teacher 0.099, whose 2-step students come near its 10-step figures, and the synthetic preset's 0.32; a PCCAT-only teacher of the embedded default 3.91; its BPE + PCCAT
-teacher 167, whose student's loss stalls 20x higher."""
+teacher 0.099, whose 2-step students come near its 10-step figures, and the synthetic preset's 0.32; a PCCAT-only
+teacher of the embedded default 3.91; its BPE + PCCAT teacher 167, whose student's loss stalls 20x higher."""
 
 
 def flow_map_amplification(solve_from: Callable[[Tensor], Tensor], x0: Tensor, direction: Tensor,

@@ -326,8 +326,9 @@ class TrainLoopConfig:
     """objective=flow: when > 0 (metres), the trajectory term's per-frame squared path error becomes its
     pseudo-Huber (``mfm.flow.pseudo_huber``): the squared error below this distance, linear beyond, so no frame's
     gradient exceeds 2 × this. Why it was tried: the squared path error of a walk that is metres off early in
-    training sends a heavy-tailed gradient that the gradient clip then cuts out of the main loss's update
-    (docs/generator-study.md). 0: squared error. Ours, not MFM's."""
+    training sends a heavy-tailed gradient that could crowd the main loss out of the clipped update. On the
+    synthetic preset at 0.1 m (weight 0.1, from scratch) it still cost the counts and no longer cured the drift
+    (docs/generator-study.md, "... with its tail bounded"). 0: squared error. Ours, not MFM's."""
     flow_terms_weighting: Literal["data", "loss"] = "data"
     """objective=flow: how the temporal, bone, trajectory and foot-contact terms are weighted over t
     (``mfm.flow.term_weight``): 'data' = the same at every t (as introduced); 'loss' = as the main loss weighs an x̂1

@@ -255,7 +255,8 @@ def flow_map_summary(amplification: Mapping[int, float]) -> dict[str, Any] | Non
 
 
 def report_flow_map(summary: Mapping[str, Any] | None) -> None:
-    """Log the teacher's flow-map amplification; a warning when reflow cannot fit it (:data:`mfm.solvers.ROUGH_AMPLIFICATION`)."""
+    """Log the teacher's flow-map amplification; a warning when reflow cannot fit it
+    (:data:`mfm.solvers.ROUGH_AMPLIFICATION`)."""
     if summary is None:
         return
     median, most, probes = summary["amplification_median"], summary["amplification_max"], summary["probes"]
