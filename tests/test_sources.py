@@ -729,6 +729,27 @@ def test_synthetic_is_deterministic_and_extends() -> None:
     assert not np.array_equal(other.joints, small.load("synth_000000").joints)  # another seed, another clip
 
 
+def test_synthetic_jump_forward_share_changes_only_which_jumps_travel() -> None:
+    """jump_forward_share 0: every jump is "up in place"; every clip that is not a forward jump is the same as with
+    the default share (the draw is still made); out-of-range shares are refused."""
+    default, in_place = SyntheticSource(num_clips=60), SyntheticSource(num_clips=60, jump_forward_share=0)
+    changed = 0
+    for item in default.list_items():
+        a, b = default.load(item), in_place.load(item)
+        assert (a.action, a.split, len(a.joints)) == (b.action, b.split, len(b.joints))
+        if a.action == "jump":
+            assert all("up in place" in c.text for c in b.captions)
+        if a.action == "jump" and "forward" in a.captions[0].text:
+            changed += 1
+            assert [c.text.replace("forward", "up in place") for c in a.captions] == [c.text for c in b.captions]
+        else:
+            np.testing.assert_array_equal(a.joints, b.joints)
+            assert a.captions == b.captions
+    assert changed > 0
+    with pytest.raises(ValueError, match="jump_forward_share"):
+        SyntheticSource(jump_forward_share=1.5)
+
+
 def test_synthetic_clips_are_well_formed() -> None:
     source = build_source("synthetic", None, num_clips=200, seed=0)
     clips = [source.load(item) for item in source.list_items()]

@@ -133,8 +133,10 @@ def run(rng: np.random.Generator, frames: int) -> MotionPlan:
     return plan
 
 
-def jump(rng: np.random.Generator, frames: int) -> MotionPlan:
-    count, forward = int(rng.integers(1, 4)), bool(rng.random() < 0.5)
+def jump(rng: np.random.Generator, frames: int, forward_share: float = 0.5) -> MotionPlan:
+    """``forward_share``: the probability that a jump travels forward rather than up in place; the draw is made
+    whatever it is, so changing it changes only which jumps travel, not any other clip."""
+    count, forward = int(rng.integers(1, 4)), bool(rng.random() < forward_share)
     plan = MotionPlan.still(frames)
     t = np.linspace(0, 1, frames) * count % 1.0
     crouch = np.where(t < 0.35, np.sin(math.pi * t / 0.35) ** 2, 0) + np.where(t > 0.75, np.sin(math.pi * (t - 0.75) / 0.25) ** 2, 0)
@@ -279,7 +281,9 @@ class SyntheticSource:
     """Procedural HumanML3D-skeleton clips (see the module docstring).
 
     Options: ``num_clips`` (default 100), ``seed`` (default 0), ``min_seconds``/``max_seconds`` (2/9.9),
-    ``actions`` (a subset of ACTIONS, default all), ``corrupt`` (kinds from CORRUPTIONS, default none).
+    ``actions`` (a subset of ACTIONS, default all), ``corrupt`` (kinds from CORRUPTIONS, default none),
+    ``jump_forward_share`` (the share of jumps that travel forward, default 0.5; 0: every jump is "up in place",
+    the set otherwise clip for clip the same: an ablation of what the forward jumps teach the in-place ones).
     """
 
     name = "synthetic"
@@ -295,6 +299,7 @@ class SyntheticSource:
         max_seconds: float | str = 9.9,
         actions: str | Sequence[str] | None = None,
         corrupt: str | Sequence[str] = (),
+        jump_forward_share: float | str = 0.5,
     ) -> None:
         if root is not None:
             raise ValueError(f"synthetic: takes no root folder (got {root!r}); it generates its clips")
@@ -305,6 +310,9 @@ class SyntheticSource:
             raise ValueError(f"synthetic: num_clips must be >= 0, got {num_clips!r}")
         if not 0.5 <= self.min_seconds <= self.max_seconds:
             raise ValueError(f"synthetic: need 0.5 <= min_seconds <= max_seconds, got {min_seconds!r}, {max_seconds!r}")
+        self.jump_forward_share = float(jump_forward_share)
+        if not 0.0 <= self.jump_forward_share <= 1.0:
+            raise ValueError(f"synthetic: jump_forward_share must be in [0, 1], got {jump_forward_share!r}")
         self.actions = as_name_list(actions) or tuple(ACTIONS)
         unknown = sorted(set(self.actions) - set(ACTIONS))
         if unknown:
@@ -327,7 +335,8 @@ class SyntheticSource:
         action = self.actions[int(rng.integers(len(self.actions)))]
         if seconds is None:
             seconds = float(rng.uniform(self.min_seconds, self.max_seconds))
-        plan = ACTIONS[action](rng, int(round(seconds * FPS)) + 1)
+        options = {"forward_share": self.jump_forward_share} if action == "jump" else {}
+        plan = ACTIONS[action](rng, int(round(seconds * FPS)) + 1, **options)
         return Clip(
             id=item,
             joints=plan_to_joints(plan).astype(np.float32),
