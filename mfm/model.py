@@ -274,6 +274,14 @@ class ModelConfig:
     where it sits between the motion's start and end as well as its distance from the start. A caption describes a
     whole clip ("kicks twice", "squats three times"): where its events fall scales with the clip's length, which
     absolute positions and a length token leave the network to work out by division. positional='absolute' only."""
+    frames_per_token: int = 1
+    """Ours, in no reference model (MFM, MDM, FLAME and FlowMDM give every frame its own token): the Transformer
+    sees each run of this many consecutive frames as one token, their features concatenated into
+    ``Linear(p·feature_dim → latent)``, and splits its output back into frames with ``Linear(latent → p·output)``
+    (a patch embedding over time, as DiT's over space). The sequence is p times shorter, so a step costs about 1/p
+    of the linear layers and 1/p² of the attention: more network per CPU minute. Frames past a motion's length are
+    zeroed before grouping, so padding never reaches a valid frame; a token with any valid frame is valid, and its
+    progress position is the token's. positional='absolute', conditioning 'prefix' or 'cross_attention' only."""
     wrapper_projections: bool = False
     """FlowMDM (x-transformers' ``ContinuousTransformerWrapper`` with ``dim_in = dim_out = latent_dim``): an extra
     Linear(latent, latent) after the input projection (before positions are added) and one after the final norm,
@@ -382,6 +390,14 @@ class ModelConfig:
         if not isinstance(self.shortcut_levels, int) or isinstance(self.shortcut_levels, bool) or not (
                 0 <= self.shortcut_levels <= 10):
             raise ValueError(f"ModelConfig.shortcut_levels must be an int in [0, 10], got {self.shortcut_levels!r}")
+        if (not isinstance(self.frames_per_token, int) or isinstance(self.frames_per_token, bool)
+                or self.frames_per_token < 1):
+            raise ValueError(f"ModelConfig.frames_per_token must be an int >= 1, got {self.frames_per_token!r}")
+        if self.frames_per_token > 1 and (self.positional != "absolute" or self.conditioning == "pccat"
+                                          or self.attend_padding):
+            raise ValueError("ModelConfig.frames_per_token > 1 needs positional='absolute', conditioning 'prefix' or "
+                             "'cross_attention' and attend_padding=False (BPE segments, PCCAT's per-frame texts and "
+                             "attended padding are per frame)")
         if self.progress_positions and self.positional != "absolute":
             raise ValueError("ModelConfig.progress_positions needs positional='absolute'")
         if self.length_embedding not in LENGTH_EMBEDDINGS:
@@ -940,7 +956,7 @@ class MotionFlowTransformer(nn.Module):
         super().__init__()
         self.config = config
         d = config.latent_dim
-        self.input_proj = nn.Linear(config.feature_dim, d)
+        self.input_proj = nn.Linear(config.feature_dim * config.frames_per_token, d)
         self.time_embedding = TimeEmbedding(d, config.time_grid)
         if config.shortcut_levels > 0:
             self.step_size_embedding = StepSizeEmbedding(d)
@@ -974,7 +990,7 @@ class MotionFlowTransformer(nn.Module):
         self.final_norm = FP32LayerNorm(d) if config.norm_first else nn.Identity()
         if config.wrapper_projections:
             self.project_out = nn.Linear(d, d)
-        self.output_proj = nn.Linear(d, config.output_size)
+        self.output_proj = nn.Linear(d, config.output_size * config.frames_per_token)
         if config.conditioning == "cross_attention":
             # FLAME: Linear(768 → 768) of RoBERTa's last hidden states, the cross-attention memory.
             self.text_proj = nn.Linear(config.text_token_dim, d)
@@ -1060,6 +1076,11 @@ class MotionFlowTransformer(nn.Module):
         if lengths is not None:
             lengths = lengths.to(x.device, non_blocking=True)
         frame_mask = None if lengths is None else valid_frame_mask(lengths, num_frames)
+        # Tokens: one per frames_per_token frames (one per frame by default).
+        per_token = config.frames_per_token
+        num_tokens = -(-num_frames // per_token)
+        token_lengths = None if lengths is None else -(-lengths // per_token)
+        token_mask = frame_mask if per_token == 1 or lengths is None else valid_frame_mask(token_lengths, num_tokens)
         if config.length_token and lengths is None:
             lengths = torch.full((batch,), num_frames, dtype=torch.long, device=x.device)
 
@@ -1073,9 +1094,9 @@ class MotionFlowTransformer(nn.Module):
         if config.prediction == "preconditioned":
             path_time = t.to(x.device).float().reshape(-1).expand(batch)
             c_in, c_skip, c_out = (c[:, None, None] for c in preconditioning(path_time))
-            motion = self.input_proj((x.float() * c_in).to(x.dtype))
+            motion = self.input_proj(self._group_frames((x.float() * c_in).to(x.dtype), frame_mask))
         else:
-            motion = self.input_proj(x)
+            motion = self.input_proj(self._group_frames(x, frame_mask))
         if config.wrapper_projections:
             motion = self.project_in(motion)
         tokens = torch.cat([token.unsqueeze(1).to(motion.dtype) for token in aux] + [motion], dim=1)
@@ -1099,11 +1120,11 @@ class MotionFlowTransformer(nn.Module):
             tokens = tokens + self._sequence_positions(tokens.shape[1])
             if config.progress_positions:
                 tokens = torch.cat([tokens[:, : len(aux)], tokens[:, len(aux) :] + self._progress_positions(
-                    lengths, batch, num_frames, x.device)], dim=1)
+                    token_lengths, batch, num_tokens, x.device)], dim=1)
             key_mask = None
-            if frame_mask is not None and not config.attend_padding:
+            if token_mask is not None and not config.attend_padding:
                 aux_valid = torch.ones(batch, len(aux), dtype=torch.bool, device=x.device)
-                key_mask = torch.cat([aux_valid, frame_mask], dim=1)[:, None, None, :]
+                key_mask = torch.cat([aux_valid, token_mask], dim=1)[:, None, None, :]
             attention = DenseAttention(key_mask)
         tokens = F.dropout(tokens, config.dropout, self.training)
 
@@ -1128,6 +1149,8 @@ class MotionFlowTransformer(nn.Module):
         # is one d x features product, a small share of a step's work.
         with torch.autocast(device_type=hidden.device.type, enabled=False):
             velocity = self.output_proj(hidden.to(self.output_proj.weight.dtype))
+        if per_token > 1:
+            velocity = velocity.reshape(batch, num_tokens * per_token, -1)[:, :num_frames]
         if config.prediction == "data":
             velocity = velocity_from_data(velocity.float(), x.float(), t.to(x.device).float())
         elif config.prediction == "preconditioned":
@@ -1136,6 +1159,17 @@ class MotionFlowTransformer(nn.Module):
         if frame_mask is not None and not config.attend_padding:
             velocity = velocity * frame_mask.unsqueeze(-1)
         return velocity.to(x.dtype)
+
+    def _group_frames(self, frames: Tensor, frame_mask: Tensor | None) -> Tensor:
+        """(B, T, D) frames → (B, ⌈T/p⌉, p·D) tokens of p = frames_per_token consecutive frames. Padded frames are
+        zeroed first: they share a token with the last valid frames, and their content must not reach them."""
+        per_token = self.config.frames_per_token
+        if per_token == 1:
+            return frames
+        if frame_mask is not None:
+            frames = frames * frame_mask.unsqueeze(-1).to(frames.dtype)
+        frames = F.pad(frames, (0, 0, 0, (-frames.shape[1]) % per_token))
+        return frames.reshape(frames.shape[0], frames.shape[1] // per_token, per_token * frames.shape[2])
 
     # -- conditioning ------------------------------------------------------------------------------------------
 
@@ -1287,9 +1321,11 @@ class MotionFlowTransformer(nn.Module):
             raise ValueError(f"x must be (B, T, {config.feature_dim}), got {tuple(x.shape)}")
         batch, num_frames, dim = x.shape
         # bpe positions restart at every segment: its own check bounds the longest segment instead.
-        if config.positional == "absolute" and num_frames + config.num_prefix_tokens > config.max_len:
+        num_tokens = -(-num_frames // config.frames_per_token)
+        if config.positional == "absolute" and num_tokens + config.num_prefix_tokens > config.max_len:
             raise ValueError(
-                f"{num_frames} frames + {config.num_prefix_tokens} prefix tokens exceed max_len={config.max_len}"
+                f"{num_frames} frames ({num_tokens} tokens) + {config.num_prefix_tokens} prefix tokens exceed "
+                f"max_len={config.max_len}"
             )
         if config.length_token and num_frames > config.max_frames:
             raise ValueError(f"{num_frames} frames exceed the length token's max_frames={config.max_frames}")

@@ -209,6 +209,7 @@ def test_config_option_is_validated():
 MODEL_VARIANTS = {
     "mfm": dict(),
     "progress_length_token_data": dict(progress_positions=True, length_token=True, prediction="data"),
+    "frames_per_token_2": dict(progress_positions=True, length_token=True, prediction="data", frames_per_token=2),
     "bpe_pccat": dict(positional="bpe", conditioning="pccat", attention_horizon=12),
     "cross_attention": dict(conditioning="cross_attention", length_token=True, prediction="preconditioned"),
 }

@@ -626,3 +626,47 @@ def test_progress_positions_tell_frames_where_they_lie_in_their_motion_whatever_
     assert not torch.allclose(plain(x, t, cond, torch.tensor([30])), alone, atol=1e-4)
     with pytest.raises(ValueError, match="progress_positions"):
         ModelConfig(progress_positions=True, positional="bpe")
+
+
+def test_frames_per_token_groups_consecutive_frames_into_one_token():
+    config = tiny_config(conditioning="cross_attention", length_token=True, progress_positions=True,
+                         prediction="data", frames_per_token=3)
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(config).eval()
+    assert model.input_proj.in_features == 3 * FEATURES and model.output_proj.out_features == 3 * FEATURES
+    frames = torch.arange(2 * 7 * FEATURES, dtype=torch.float32).reshape(2, 7, FEATURES)
+    grouped = model._group_frames(frames, valid_frame_mask(torch.tensor([7, 5]), 7))
+    assert grouped.shape == (2, 3, 3 * FEATURES)
+    assert torch.equal(grouped[0, 1], frames[0, 3:6].reshape(-1))
+    # Frame 6 shares its token with the padding beyond it (zeros); sample 1's frames 5-6 are padding, zeroed.
+    assert torch.equal(grouped[0, 2], torch.cat([frames[0, 6], torch.zeros(2 * FEATURES)]))
+    assert torch.equal(grouped[1, 1], torch.cat([frames[1, 3:5].reshape(-1), torch.zeros(FEATURES)]))
+
+    # The layers see ceil(T / 3) frame tokens after the auxiliary ones.
+    seen = []
+    model.layers[0].register_forward_hook(lambda module, args, out: seen.append(args[0].shape[1]))
+    x, t, cond = torch.randn(2, 20, FEATURES), torch.rand(2), torch.randn(2, COND)
+    lengths = torch.tensor([20, 13])
+    out = model(x, t, cond, lengths, **extra_inputs(model, 2))
+    assert out.shape == (2, 20, FEATURES) and seen == [7 + config.num_prefix_tokens]
+    assert torch.all(out[1, 13:] == 0) and torch.isfinite(out).all()
+
+    # Padding never reaches a valid frame, even inside a valid frame's token: other padding content, more padding.
+    repadded = x.clone()
+    repadded[1, 13:] = 100.0
+    extra = extra_inputs(model, 2)
+    same = model(repadded, t, cond, lengths, **extra)
+    longer = model(torch.cat([repadded, torch.randn(2, 4, FEATURES)], dim=1), t, cond, lengths, **extra)
+    reference = model(x, t, cond, lengths, **extra)
+    assert torch.allclose(same[1, :13], reference[1, :13], atol=1e-5)
+    assert torch.allclose(longer[:, :20], reference, atol=1e-5)
+    # Frame 12 is valid: changing it changes the outputs of its own token's frames.
+    moved = x.clone()
+    moved[1, 12] += 1.0
+    assert not torch.allclose(model(moved, t, cond, lengths, **extra)[1, 12], reference[1, 12], atol=1e-4)
+
+    for bad in (dict(frames_per_token=0), dict(frames_per_token=2, positional="bpe"),
+                dict(frames_per_token=2, conditioning="pccat"), dict(frames_per_token=2, attend_padding=True)):
+        with pytest.raises(ValueError, match="frames_per_token"):
+            tiny_config(**bad)
+
