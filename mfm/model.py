@@ -86,6 +86,7 @@ POSITIONAL_TABLES = ("computed", "stored")
 CONDITION_SCALINGS = ("none", "rms")
 ABSOLUTE_POSITIONS = ("sinusoidal", "scaled_sinusoidal")
 GUIDED_FEATURES = ("all", "pose")
+ADAPTIVE_NORMS = ("none", "adaln", "adaln_zero")
 
 # MFM feeds the sinusoidal table with t*1000 (its diffusion-step scale); keep the scale so the embedding matches.
 TIME_SCALE = 1000.0
@@ -282,6 +283,18 @@ class ModelConfig:
     of the linear layers and 1/p² of the attention: more network per CPU minute. Frames past a motion's length are
     zeroed before grouping, so padding never reaches a valid frame; a token with any valid frame is valid, and its
     progress position is the token's. positional='absolute', conditioning 'prefix' or 'cross_attention' only."""
+    adaptive_norm: str = "none"
+    """One of ADAPTIVE_NORMS. 'none' (MFM, MDM, FLAME, FlowMDM): the condition reaches the frames only through
+    attention, to the auxiliary tokens (and, with cross-attention, the text's token features). 'adaln_zero' (DiT's
+    adaLN-Zero, Peebles & Xie 2023; in none of the three reference models): the sum of the auxiliary tokens (time
+    embedding + pooled caption or action, + length token) also modulates every residual block of every token, as
+    ``h + gate · block(LayerNorm(h) · (1 + scale) + shift)``, with (shift, scale, gate) a zero-initialised
+    ``Linear(SiLU(c))`` per layer, and the final norm by its own (shift, scale). At initialisation every gate is 0,
+    so each block starts as the identity. 'adaln' (DiT's adaLN): the same without the gates,
+    ``h + block(LayerNorm(h) · (1 + scale) + shift)``; zero-initialised, the network starts as the one without the
+    option and the condition's path is learnt on top. The auxiliary tokens stay as they are. Pre-norm (norm_first),
+    positional='absolute' and conditioning 'prefix' or 'cross_attention' only (one condition per sample: BPE
+    composition and PCCAT give frames different texts)."""
     wrapper_projections: bool = False
     """FlowMDM (x-transformers' ``ContinuousTransformerWrapper`` with ``dim_in = dim_out = latent_dim``): an extra
     Linear(latent, latent) after the input projection (before positions are added) and one after the final norm,
@@ -398,6 +411,13 @@ class ModelConfig:
             raise ValueError("ModelConfig.frames_per_token > 1 needs positional='absolute', conditioning 'prefix' or "
                              "'cross_attention' and attend_padding=False (BPE segments, PCCAT's per-frame texts and "
                              "attended padding are per frame)")
+        if self.adaptive_norm not in ADAPTIVE_NORMS:
+            raise ValueError(f"ModelConfig.adaptive_norm must be one of {ADAPTIVE_NORMS}, got {self.adaptive_norm!r}")
+        if self.adaptive_norm != "none" and (not self.norm_first or self.positional != "absolute"
+                                             or self.conditioning == "pccat"):
+            raise ValueError("ModelConfig.adaptive_norm needs norm_first=True, positional='absolute' and conditioning "
+                             "'prefix' or 'cross_attention' (it modulates pre-norm blocks with one condition per "
+                             f"sample), got norm_first={self.norm_first}, {self.positional!r}, {self.conditioning!r}")
         if self.progress_positions and self.positional != "absolute":
             raise ValueError("ModelConfig.progress_positions needs positional='absolute'")
         if self.length_embedding not in LENGTH_EMBEDDINGS:
@@ -778,6 +798,16 @@ def _zero_bias(layer: nn.Linear) -> None:
         nn.init.zeros_(layer.bias)
 
 
+def zero_linear(in_features: int, out_features: int) -> nn.Linear:
+    """A zero-initialised Linear, built without drawing from the global RNG: adding one to a model leaves every
+    other parameter's initialisation (and so a training seed's run) as it was without it."""
+    with torch.random.fork_rng(devices=[]):
+        layer = nn.Linear(in_features, out_features)
+    nn.init.zeros_(layer.weight)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
 class EncoderLayer(nn.Module):
     """nn.TransformerEncoderLayer's computation, batch-first, with attention through
     ``F.scaled_dot_product_attention`` (fused kernels on GPU) and a boolean key-padding mask.
@@ -825,6 +855,11 @@ class EncoderLayer(nn.Module):
             self.norm_cross = FP32LayerNorm(d)
             _init_split_projection(self.cross_q, self.cross_kv)
             _zero_bias(self.cross_out)
+        self.num_blocks = 3 if cross_attention else 2
+        if config.adaptive_norm != "none":
+            # DiT's adaLN(-Zero): (shift, scale[, gate]) per residual block from SiLU(c), zero-initialised.
+            self.num_modulations = 3 if config.adaptive_norm == "adaln_zero" else 2
+            self.modulation = zero_linear(d, self.num_modulations * self.num_blocks * d)
 
     def _split_heads(self, x: Tensor, parts: int) -> tuple[Tensor, ...]:
         """(B, S, parts·a) → ``parts`` tensors (B, heads, S, a/heads), a = ModelConfig.attention_dim."""
@@ -869,22 +904,45 @@ class EncoderLayer(nn.Module):
         memory: Tensor | None = None,
         memory_mask: Tensor | None = None,
         skip: Tensor | None = None,
+        norm_condition: Tensor | None = None,
     ) -> torch.Tensor:
         """x: (B, S, d). attn_mask: (B, 1, 1, S) bool, True = key may be attended, or None (attend to all), or an
         attention plan (:class:`DenseAttention`, :class:`BlendedAttention`).
         condition: (B, S, d) per-token query condition (pose-centric layers). memory: (B, M, d) and memory_mask
         (B, 1, 1, M) bool (cross-attention layers).
         skip: (blocks,) bool, True = that residual block (attention, [cross-attention,] feed-forward) passes its
-        input through unchanged (layer dropout); None = every block runs."""
+        input through unchanged (layer dropout); None = every block runs.
+        norm_condition: (B, d) the per-sample condition c of adaptive-norm layers (ModelConfig.adaptive_norm)."""
         plans = (DenseAttention, BlendedAttention)
         attention = attn_mask if isinstance(attn_mask, plans) else DenseAttention(attn_mask)
         if self.has_cross_attention and memory is None:
             raise ValueError("a cross-attention layer needs the memory")
+        adaptive = hasattr(self, "modulation")
+        if adaptive != (norm_condition is not None):
+            raise ValueError("an adaptive-norm layer needs norm_condition, and only such a layer takes it")
+        if adaptive:
+            # (B, blocks, 2 or 3, 1, d): each block's shift, scale (and gate), broadcast over the tokens.
+            mods = self.modulation(F.silu(norm_condition)).view(
+                -1, self.num_blocks, self.num_modulations, 1, norm_condition.shape[-1])
+
+            def pre(index: int, normed: Tensor) -> Tensor:
+                return normed * (1 + mods[:, index, 1]) + mods[:, index, 0]
+
+            def post(index: int, out: Tensor) -> Tensor:
+                return mods[:, index, 2] * out if self.num_modulations == 3 else out
+        else:
+            def pre(index: int, normed: Tensor) -> Tensor:
+                return normed
+
+            def post(index: int, out: Tensor) -> Tensor:
+                return out
         if self.norm_first:
-            blocks = [lambda h: h + self._attention(self.norm1(h), attention, condition)]
+            blocks = [lambda h: h + post(0, self._attention(pre(0, self.norm1(h)), attention, condition))]
             if self.has_cross_attention:
-                blocks.append(lambda h: h + self._cross_attention(self.norm_cross(h), memory, memory_mask))
-            blocks.append(lambda h: h + self._feed_forward(self.norm2(h)))
+                blocks.append(lambda h: h + post(1, self._cross_attention(pre(1, self.norm_cross(h)), memory,
+                                                                          memory_mask)))
+            last = self.num_blocks - 1
+            blocks.append(lambda h: h + post(last, self._feed_forward(pre(last, self.norm2(h)))))
         else:
             blocks = [lambda h: self.norm1(h + self._attention(h, attention, condition))]
             if self.has_cross_attention:
@@ -991,6 +1049,9 @@ class MotionFlowTransformer(nn.Module):
         if config.wrapper_projections:
             self.project_out = nn.Linear(d, d)
         self.output_proj = nn.Linear(d, config.output_size * config.frames_per_token)
+        if config.adaptive_norm != "none":
+            # DiT's final layer: the last norm's (shift, scale) from SiLU(c), zero-initialised.
+            self.final_modulation = zero_linear(d, 2 * d)
         if config.conditioning == "cross_attention":
             # FLAME: Linear(768 → 768) of RoBERTa's last hidden states, the cross-attention memory.
             self.text_proj = nn.Linear(config.text_token_dim, d)
@@ -1138,10 +1199,16 @@ class MotionFlowTransformer(nn.Module):
         if block_drop_mask is None and self.training and config.layer_dropout > 0:
             block_drop_mask = draw_block_drop_mask(config.num_layers, config.blocks_per_layer, config.layer_dropout,
                                                    generator, x.device)
+        # adaLN's c: the sum of the auxiliary tokens, i.e. time + pooled condition (+ length), DiT's t + y.
+        norm_condition = torch.stack(aux).sum(0) if config.adaptive_norm != "none" else None
         for index, layer in enumerate(self.layers):
             skip = None if block_drop_mask is None else block_drop_mask[index].to(x.device)
-            tokens = layer(tokens, attention, condition=condition, memory=memory, memory_mask=memory_mask, skip=skip)
+            tokens = layer(tokens, attention, condition=condition, memory=memory, memory_mask=memory_mask, skip=skip,
+                           norm_condition=norm_condition)
         hidden = self.final_norm(tokens[:, len(aux) :])
+        if norm_condition is not None:
+            shift, scale = self.final_modulation(F.silu(norm_condition)).unsqueeze(1).chunk(2, dim=-1)
+            hidden = hidden * (1 + scale) + shift
         if config.wrapper_projections:
             hidden = self.project_out(hidden)
         # The output head runs outside autocast: a bf16 product has an 8-bit mantissa, and its rounding (about

@@ -6,12 +6,14 @@ import math
 
 import pytest
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from mfm.composition import BoundInputs
 from mfm.flow import flow_matching_loss
 from mfm.model import (
     BlendedAttention,
+    DenseAttention,
     ModelConfig,
     MotionFlowTransformer,
     apply_rotary,
@@ -34,6 +36,9 @@ VARIANTS = [
     dict(positional="bpe", conditioning="cross_attention", length_token=True),  # FLAME layout + BPE
     dict(positional="absolute", conditioning="cross_attention", length_token=True),  # FLAME's exact layout
     dict(positional="bpe", conditioning="prefix", norm_first=True),
+    dict(positional="absolute", conditioning="cross_attention", length_token=True, norm_first=True,
+         adaptive_norm="adaln_zero"),  # DiT's adaLN-Zero on FLAME's layout
+    dict(positional="absolute", conditioning="prefix", norm_first=True, adaptive_norm="adaln"),
 ]
 
 
@@ -50,7 +55,20 @@ def tiny_config(**overrides) -> ModelConfig:
 
 def tiny_model(seed: int = 0, **overrides) -> MotionFlowTransformer:
     torch.manual_seed(seed)
-    return MotionFlowTransformer(tiny_config(**overrides)).eval()
+    model = MotionFlowTransformer(tiny_config(**overrides)).eval()
+    if model.config.adaptive_norm != "none":
+        randomize_modulations(model, seed)
+    return model
+
+
+def randomize_modulations(model: MotionFlowTransformer, seed: int = 0) -> None:
+    """Give adaptive-norm modulations a trained model's non-zero weights: zero-initialised, the condition's path
+    through them (and, for adaLN-Zero, every block behind a zero gate) would go untested."""
+    generator = torch.Generator().manual_seed(seed + 100)
+    with torch.no_grad():
+        for name, parameter in model.named_parameters():
+            if "modulation" in name:
+                parameter.copy_(0.2 * torch.randn(parameter.shape, generator=generator))
 
 
 def extra_inputs(model: MotionFlowTransformer, batch: int, seed: int = 0, num_tokens: int = 6) -> dict:
@@ -122,6 +140,15 @@ def test_parameter_cost_of_each_option():
     cross = LAYERS * (4 * D * D + 4 * D + 2 * D) + TOKEN_DIM * D + D
     assert count_parameters(tiny_model(conditioning="cross_attention")) == base + cross
     assert count_parameters(tiny_model(output_dim=2 * FEATURES)) == base + FEATURES * D + FEATURES
+    # adaLN: per layer Linear(d -> 2 or 3 per residual block x d), plus the final norm's Linear(d -> 2d).
+    final = 2 * D * D + 2 * D
+    pre_norm = count_parameters(tiny_model(norm_first=True))  # adds the final LayerNorm
+    for adaptive_norm, per_block in (("adaln", 2), ("adaln_zero", 3)):
+        assert count_parameters(tiny_model(norm_first=True, adaptive_norm=adaptive_norm)) == (
+            pre_norm + LAYERS * 2 * per_block * (D * D + D) + final)
+        assert count_parameters(tiny_model(norm_first=True, adaptive_norm=adaptive_norm,
+                                           conditioning="cross_attention")) == (
+            pre_norm + cross + LAYERS * 3 * per_block * (D * D + D) + final)
 
 
 @pytest.mark.parametrize(
@@ -670,3 +697,85 @@ def test_frames_per_token_groups_consecutive_frames_into_one_token():
         with pytest.raises(ValueError, match="frames_per_token"):
             tiny_config(**bad)
 
+
+
+# ---------------------------------------------------------------------------------------------- adaptive norm (DiT)
+
+
+def test_adaptive_norm_starts_as_the_plain_network_or_with_identity_blocks():
+    plain = tiny_model(norm_first=True, conditioning="cross_attention", length_token=True)
+    x, t, cond = inputs(2, 9)
+    lengths = torch.tensor([9, 6])
+    extras = extra_inputs(plain, 2)
+    torch.manual_seed(0)
+    adaln = MotionFlowTransformer(tiny_config(norm_first=True, conditioning="cross_attention", length_token=True,
+                                              adaptive_norm="adaln")).eval()
+    # Built without drawing from the RNG: same seed, same weights for everything the plain network has.
+    shared = adaln.state_dict()
+    assert all(torch.equal(value, shared[name]) for name, value in plain.state_dict().items())
+    assert {name for name in shared if name not in plain.state_dict()} == (
+        {f"layers.{i}.modulation.{p}" for i in range(LAYERS) for p in ("weight", "bias")}
+        | {"final_modulation.weight", "final_modulation.bias"})
+    with torch.no_grad():
+        assert torch.equal(adaln(x, t, cond, lengths, **extras), plain(x, t, cond, lengths, **extras))
+
+    torch.manual_seed(0)
+    zero = MotionFlowTransformer(tiny_config(norm_first=True, conditioning="cross_attention", length_token=True,
+                                             adaptive_norm="adaln_zero")).eval()
+    seen = []
+    for layer in zero.layers:
+        layer.register_forward_hook(lambda module, args, out: seen.append(torch.equal(args[0], out)))
+    with torch.no_grad():
+        zero(x, t, cond, lengths, **extras)
+    assert seen == [True] * LAYERS  # every gate is 0: each layer passes its tokens through
+
+
+def test_adaln_zero_layer_modulates_each_block_with_shift_scale_and_gate():
+    model = tiny_model(norm_first=True, adaptive_norm="adaln_zero")
+    layer = model.layers[0]
+    h, c = torch.randn(2, 5, D), torch.randn(2, D)
+    mods = layer.modulation(F.silu(c)).view(2, 2, 3, 1, D)  # (blocks: attention, ff) x (shift, scale, gate)
+    with torch.no_grad():
+        attention = DenseAttention(None)
+        shift, scale, gate = mods[:, 0].unbind(1)
+        h1 = h + gate * layer._attention(layer.norm1(h) * (1 + scale) + shift, attention, None)
+        shift, scale, gate = mods[:, 1].unbind(1)
+        expected = h1 + gate * layer._feed_forward(layer.norm2(h1) * (1 + scale) + shift)
+        torch.testing.assert_close(layer(h, None, norm_condition=c), expected)
+        # Another condition, the same tokens: the block's output changes (the condition reaches every token).
+        assert not torch.allclose(layer(h, None, norm_condition=c + 1), expected, atol=1e-4)
+    with pytest.raises(ValueError, match="norm_condition"):
+        layer(h, None)
+    with pytest.raises(ValueError, match="norm_condition"):
+        tiny_model(norm_first=True).layers[0](h, None, norm_condition=c)
+
+
+@pytest.mark.parametrize("adaptive_norm", ["adaln", "adaln_zero"])
+def test_adaptive_norm_condition_is_time_plus_the_pooled_condition_and_drops_with_it(adaptive_norm):
+    model = tiny_model(norm_first=True, adaptive_norm=adaptive_norm, length_token=True)
+    x, t, cond = inputs(2, 8)
+    lengths = torch.tensor([8, 5])
+    seen = []
+    model.layers[0].register_forward_hook(
+        lambda module, args, kwargs, out: seen.append(kwargs["norm_condition"]), with_kwargs=True)
+    dropped = torch.tensor([True, False])
+    with torch.no_grad():
+        out = model(x, t, cond, lengths, cond_mask=dropped)
+        # A dropped caption modulates as the null condition (the zeroed embedding's projection), as its prefix token.
+        zeroed = cond.clone()
+        zeroed[0] = 0
+        torch.testing.assert_close(out, model(x, t, zeroed, lengths))
+        time = model.time_embedding(t)
+        expected = model.length_embedding(lengths) + time + model.cond_proj(model._scaled_text(zeroed))
+    torch.testing.assert_close(seen[0], expected)
+
+
+@pytest.mark.parametrize("overrides", [
+    dict(adaptive_norm="film"),
+    dict(adaptive_norm="adaln"),  # post-norm (norm_first=False)
+    dict(adaptive_norm="adaln", norm_first=True, positional="bpe"),
+    dict(adaptive_norm="adaln_zero", norm_first=True, conditioning="pccat"),
+])
+def test_adaptive_norm_is_refused_where_it_does_not_apply(overrides):
+    with pytest.raises(ValueError, match="adaptive_norm"):
+        tiny_config(**overrides)
