@@ -920,22 +920,15 @@ class EncoderLayer(nn.Module):
         adaptive = hasattr(self, "modulation")
         if adaptive != (norm_condition is not None):
             raise ValueError("an adaptive-norm layer needs norm_condition, and only such a layer takes it")
-        if adaptive:
-            # (B, blocks, 2 or 3, 1, d): each block's shift, scale (and gate), broadcast over the tokens.
-            mods = self.modulation(F.silu(norm_condition)).view(
-                -1, self.num_blocks, self.num_modulations, 1, norm_condition.shape[-1])
+        # (B, blocks, 2 or 3, 1, d): each block's shift, scale (and gate), broadcast over the tokens.
+        mods = None if not adaptive else self.modulation(F.silu(norm_condition)).view(
+            -1, self.num_blocks, self.num_modulations, 1, norm_condition.shape[-1])
 
-            def pre(index: int, normed: Tensor) -> Tensor:
-                return normed * (1 + mods[:, index, 1]) + mods[:, index, 0]
+        def pre(index: int, normed: Tensor) -> Tensor:
+            return normed if mods is None else normed * (1 + mods[:, index, 1]) + mods[:, index, 0]
 
-            def post(index: int, out: Tensor) -> Tensor:
-                return mods[:, index, 2] * out if self.num_modulations == 3 else out
-        else:
-            def pre(index: int, normed: Tensor) -> Tensor:
-                return normed
-
-            def post(index: int, out: Tensor) -> Tensor:
-                return out
+        def post(index: int, out: Tensor) -> Tensor:
+            return out if mods is None or self.num_modulations == 2 else mods[:, index, 2] * out
         if self.norm_first:
             blocks = [lambda h: h + post(0, self._attention(pre(0, self.norm1(h)), attention, condition))]
             if self.has_cross_attention:

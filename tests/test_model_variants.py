@@ -698,7 +698,6 @@ def test_frames_per_token_groups_consecutive_frames_into_one_token():
             tiny_config(**bad)
 
 
-
 # ---------------------------------------------------------------------------------------------- adaptive norm (DiT)
 
 
