@@ -160,6 +160,9 @@ def feat_bias_channel_weight(layout: FeatureLayout, feat_bias: float) -> tuple[f
 
 
 LOSS_SPACES = ("velocity", "data")
+ROOT_RATE_CHANNELS = (0, 1, 2)
+"""The root's heading rate and ground velocity in Guo features (``mfm.layout.FeatureLayout`` root_rot_vel and
+root_lin_vel: dims 0:3 for every skeleton)."""
 TERM_WEIGHTINGS = ("data", "loss")
 
 
@@ -233,21 +236,29 @@ def flow_matching_loss(
     trajectory_min_t: float = 0.0,
     trajectory_huber: float = 0.0,
     foot_contact_weight: float = 0.0,
+    root_mean_weight: float = 0.0,
+    root_rate_channels: tuple[int, ...] = ROOT_RATE_CHANNELS,
     geometry: MotionGeometry | None = None,
     time_sampling: tuple[str, float, float, int] = ("uniform", 0.0, 1.0, 0),
     terms_weighting: str = "data",
     velocity_weight_cap: float = 0.0,
     channel_weight: torch.Tensor | None = None,
+    input_perturbation: float = 0.0,
+    perturbation: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
     weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
     ``bone_weight`` × :func:`bone_length_loss`, ``trajectory_weight`` × :func:`trajectory_loss` and
-    ``foot_contact_weight`` × :func:`foot_contact_loss` (the three need ``geometry``).
+    ``foot_contact_weight`` × :func:`foot_contact_loss` (the three need ``geometry``), and ``root_mean_weight`` ×
+    :func:`root_rate_mean_loss` over the ``root_rate_channels``.
 
     x1: (B, T, D) normalised motion features, padded beyond ``lengths`` (B,).
     Random draws, in this order, all from ``generator`` if given (deterministic tests and resume):
-    t (B,), noise x0 (B, T, D), then the model's condition dropout (unless ``cond_mask`` is given). A compiled
-    training step should draw ``cond_mask`` itself (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
+    t (B,), noise x0 (B, T, D), the input perturbation ξ (B, T, D; only when ``input_perturbation`` > 0 and
+    ``perturbation`` is not given), then the model's condition dropout (unless ``cond_mask`` is given).
+    ``input_perturbation`` γ > 0: the model's input is built from the noise ``x0 + γ·ξ`` while the target stays
+    the velocity of ``x0`` (Ning et al. 2023's DDPM-IP on the flow path; ``perturbation``, when given, replaces
+    the draw of ξ). A compiled training step should draw ``cond_mask`` itself (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
     ``t`` (B,) and ``x0`` (B, T, D), when given, replace the draws (a data-parallel step slices them from the
     global batch's draws so that any world size computes the same thing). ``t``, drawn or given, is a uniform draw
     that ``time_sampling`` = (name, loc, scale, grid_steps) turns into the training time (:func:`warp_time`;
@@ -268,7 +279,12 @@ def flow_matching_loss(
     t = warp_time(t, *time_sampling)
     if x0 is None:
         x0 = sample_noise(x1, generator)
-    x_t = interpolate(x0, x1, t, sigma_min)
+    if input_perturbation > 0:
+        if perturbation is None:
+            perturbation = sample_noise(x1, generator)
+        x_t = interpolate(x0 + input_perturbation * perturbation, x1, t, sigma_min)
+    else:
+        x_t = interpolate(x0, x1, t, sigma_min)
     # With an explicit cond_mask the model draws nothing; not passing the generator then keeps a torch.compile'd
     # model free of a graph break (a Generator argument breaks the graph).
     model_generator = generator if cond_mask is None else None
@@ -278,6 +294,7 @@ def flow_matching_loss(
                          loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
                          trajectory_weight=trajectory_weight, trajectory_min_t=trajectory_min_t,
                          trajectory_huber=trajectory_huber, foot_contact_weight=foot_contact_weight,
+                         root_mean_weight=root_mean_weight, root_rate_channels=root_rate_channels,
                          geometry=geometry, terms_weighting=terms_weighting,
                          velocity_weight_cap=velocity_weight_cap, channel_weight=channel_weight)
     return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
@@ -298,6 +315,8 @@ def velocity_loss(
     trajectory_min_t: float = 0.0,
     trajectory_huber: float = 0.0,
     foot_contact_weight: float = 0.0,
+    root_mean_weight: float = 0.0,
+    root_rate_channels: tuple[int, ...] = ROOT_RATE_CHANNELS,
     geometry: MotionGeometry | None = None,
     terms_weighting: str = "data",
     velocity_weight_cap: float = 0.0,
@@ -307,12 +326,15 @@ def velocity_loss(
     MSE, plus the temporal term of the implied motion's error, the bone term, whose bones are ``x1``'s (the
     clip the path leads to), the trajectory term, whose path is ``x1``'s (counted only for the rows whose ``t`` is
     at least ``trajectory_min_t``; pseudo-Huber per frame beyond ``trajectory_huber`` m when > 0), and the
-    foot-contact term, whose contact labels are ``x1``'s."""
+    foot-contact term, whose contact labels are ``x1``'s, and the root-rate mean term."""
     weight = loss_space_weight(t, loss_space, sigma_min, velocity_weight_cap)
     loss = masked_mse(velocity, target, frame_mask, weight, channel_weight)
     terms = term_weight(t, loss_space, terms_weighting, sigma_min, velocity_weight_cap)
     if temporal_weight > 0:
         loss = loss + temporal_weight * temporal_loss(velocity, target, t, frame_mask, sigma_min, terms)
+    if root_mean_weight > 0:
+        error = implied_motion_error(velocity, target, t, sigma_min)
+        loss = loss + root_mean_weight * root_rate_mean_loss(error, frame_mask, root_rate_channels, terms)
     if bone_weight > 0 or trajectory_weight > 0 or foot_contact_weight > 0:
         if geometry is None:
             raise ValueError("bone_weight, trajectory_weight or foot_contact_weight > 0 needs the motion geometry "
@@ -327,6 +349,25 @@ def velocity_loss(
         if foot_contact_weight > 0:
             loss = loss + foot_contact_weight * foot_contact_loss(x1_hat, x1, frame_mask, geometry, terms)
     return loss
+
+
+def root_rate_mean_loss(x1_error: torch.Tensor, frame_mask: torch.Tensor,
+                        channels: tuple[int, ...] = ROOT_RATE_CHANNELS,
+                        sample_weight: torch.Tensor | None = None) -> torch.Tensor:
+    """The squared clip mean of an implied-motion error ``x̂1 − x1`` (B, T, D) over the valid frames, summed over the
+    root's rate ``channels`` (normalised units; per sample, then the batch mean).
+
+    Why: the features give the root as per-frame rates, and the clip mean of a rate is what the caption fixes
+    ("up in place": 0 m/s; "turns around": 180° over however many frames). The main MSE charges that mean error once
+    among every frame's and channel's error: on the synthetic preset a forward drift of 0.09 m/s of "jumps up in
+    place", which is 0.5 m over 173 frames, costs about a thousandth of the loss, and the network kept it in x̂1 at
+    t = 0 (docs/generator-study.md, "The root's clip mean"). This term charges it alone. Unlike
+    :func:`trajectory_loss` it does not grow with the clip's length or weigh the slow wander of a long walk's path,
+    only the one number per channel a caption can fix. Needs no geometry. Ours; not part of MFM."""
+    mask = frame_mask.unsqueeze(-1).float()
+    rates = x1_error[..., list(channels)].float() * mask
+    mean = rates.sum(dim=1) / mask.sum(dim=1).clamp_min(1.0)
+    return _weighted_mean(mean.square().sum(dim=-1), sample_weight)
 
 
 def implied_motion_error(
@@ -511,6 +552,12 @@ class FlowMatchingObjective:
     trajectory_huber: float = 0.0
     """The trajectory term's per-frame error is pseudo-Huber beyond this distance in m (0: squared error)."""
     foot_contact_weight: float = 0.0
+    root_mean_weight: float = 0.0
+    """Weight of :func:`root_rate_mean_loss` (0: off, MFM)."""
+    input_perturbation: float = 0.0
+    """γ of the input perturbation (Ning et al. 2023, DDPM-IP): the model's input is built from the noise
+    ``x0 + γ·ξ`` and the target stays the velocity of ``x0``, so the network also learns to steer states a little
+    off the training paths back to them, as sampling's own errors put it (0: off, MFM)."""
     geometry: MotionGeometry | None = None
     time_sampling: str = "uniform"
     time_loc: float = 0.0
@@ -552,6 +599,10 @@ class FlowMatchingObjective:
                 self.geometry is None or self.geometry.skeleton is None)):
             raise ValueError(f"FlowMatchingObjective.foot_contact_weight must be >= 0 and needs a geometry with its "
                              f"skeleton when > 0, got {self.foot_contact_weight!r}")
+        if self.input_perturbation < 0:
+            raise ValueError(f"FlowMatchingObjective.input_perturbation must be >= 0, got {self.input_perturbation!r}")
+        if self.root_mean_weight < 0:
+            raise ValueError(f"FlowMatchingObjective.root_mean_weight must be >= 0, got {self.root_mean_weight!r}")
         if self.temporal_weight < 0:
             raise ValueError(f"FlowMatchingObjective.temporal_weight must be >= 0, got {self.temporal_weight!r}")
         if not 0.0 <= self.sigma_min < 1.0:
@@ -584,9 +635,10 @@ class FlowMatchingObjective:
             temporal_weight=self.temporal_weight, bone_weight=self.bone_weight,
             trajectory_weight=self.trajectory_weight, trajectory_min_t=self.trajectory_min_t,
             trajectory_huber=self.trajectory_huber, foot_contact_weight=self.foot_contact_weight,
-            geometry=self.geometry,
+            root_mean_weight=self.root_mean_weight, geometry=self.geometry,
             time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,
             channel_weight=self.channel_weight_on(x1.device),
+            input_perturbation=self.input_perturbation,
         )

@@ -311,6 +311,17 @@ class TrainLoopConfig:
     """objective=flow: weight of ``mfm.flow.foot_contact_loss`` (the squared error of the implied motion's foot
     displacements against the clip's, m² per frame, over the frames whose clip labels that foot in contact), added
     to the flow loss. In the spirit of MDM's foot-contact loss (``lambda_fc``); ours, 0 = MFM."""
+    flow_root_mean_weight: float = 0.0
+    """objective=flow: weight of ``mfm.flow.root_rate_mean_loss`` (the squared clip-mean error of the implied
+    motion's root rates: heading rate and ground velocity, normalised units), added to the flow loss. Why: the clip
+    mean of a root rate is what a caption fixes ("up in place", "turns around"), and the main MSE charges its error
+    about a thousandth of the loss (docs/generator-study.md, "The root's clip mean"). Ours; 0 = MFM."""
+    flow_input_perturbation: float = 0.0
+    """objective=flow: γ of the input perturbation (Ning et al. 2023, "Input Perturbation Reduces Exposure Bias in
+    Diffusion Models", γ 0.1 there; for DDPM, here on the flow path): the network's input is built from the noise
+    ``x0 + γ·ξ`` (ξ a second draw) while its target stays the velocity of ``x0``. Why: a sampler's states leave the
+    training paths by the network's own errors, and the synthetic preset's in-place jumps drift where they do
+    (docs/generator-study.md, "The root's clip mean"). 0 = MFM."""
     flow_trajectory_start_step: int = 0
     """objective=flow: the trajectory term counts only in the updates after the first this many (0: in all). Why:
     from the first step its heavy-tailed gradient, clipped with the main loss's, slows the main loss; late in a
@@ -385,6 +396,10 @@ class TrainLoopConfig:
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
         _require(self.flow_trajectory_weight >= 0,
                  f"train.flow_trajectory_weight must be >= 0, got {self.flow_trajectory_weight}")
+        _require(self.flow_input_perturbation >= 0,
+                 f"train.flow_input_perturbation must be >= 0, got {self.flow_input_perturbation}")
+        _require(self.flow_root_mean_weight >= 0,
+                 f"train.flow_root_mean_weight must be >= 0, got {self.flow_root_mean_weight}")
         _require(self.flow_foot_contact_weight >= 0,
                  f"train.flow_foot_contact_weight must be >= 0, got {self.flow_foot_contact_weight}")
         _require(0 <= self.flow_trajectory_start_step < self.max_steps,

@@ -128,6 +128,8 @@ def test_unknown_override_key_names_key_and_valid_keys(override, fragments):
         ("optim.ema_start=-1", "optim.ema_start must be >= 0"),
         ("train.flow_feat_bias=0", "train.flow_feat_bias must be > 0"),
         ("train.flow_trajectory_weight=-1", "train.flow_trajectory_weight must be >= 0"),
+        ("train.flow_root_mean_weight=-1", "train.flow_root_mean_weight must be >= 0"),
+        ("train.flow_input_perturbation=-0.1", "train.flow_input_perturbation must be >= 0"),
         ("train.flow_foot_contact_weight=-1", "train.flow_foot_contact_weight must be >= 0"),
         ("train.flow_trajectory_min_t=1", "train.flow_trajectory_min_t must be in [0, 1)"),
         ("train.flow_trajectory_huber=-0.1", "train.flow_trajectory_huber must be >= 0"),

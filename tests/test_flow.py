@@ -568,3 +568,96 @@ def test_flow_objective_applies_its_channel_weight():
     velocity = model(interpolate(x0, x1, t), t, cond, lengths)
     first = masked_mse(velocity[..., :1], target_velocity(x0, x1)[..., :1], valid_frame_mask(lengths, 5)) / 6
     torch.testing.assert_close(got, plain + 8 * first, rtol=1e-5, atol=1e-6)
+
+
+def test_root_rate_mean_loss_charges_the_clip_mean_of_the_root_rates_only_and_ignores_padding():
+    """A persistent bias δ of the forward rate costs δ² whatever the clip's length; an error that comes and goes
+    (+a, −a) costs nothing however large; channels outside the root's rates (its height, the pose) cost nothing;
+    each channel's squared mean adds; padding frames do not count; the batch mean is over samples."""
+    from mfm.flow import ROOT_RATE_CHANNELS, root_rate_mean_loss
+
+    assert ROOT_RATE_CHANNELS == (0, 1, 2)
+    mask = valid_frame_mask(torch.tensor([10, 4]), 10)
+    error = torch.zeros(2, 10, 263)
+    assert root_rate_mean_loss(error, mask).item() == 0.0
+    biased = error.clone()
+    biased[..., 2] = 0.3
+    biased[1, 4:] = 50.0  # padding of sample 1
+    assert root_rate_mean_loss(biased, mask).item() == pytest.approx(0.09, rel=1e-6)
+    alternating = error.clone()
+    alternating[..., 1] = torch.tensor([1.0, -1.0]).repeat(5)
+    assert root_rate_mean_loss(alternating, mask).item() == pytest.approx(0.0, abs=1e-7)
+    elsewhere = error.clone()
+    elsewhere[..., 3:] = 1.0  # the root's height and everything after it
+    assert root_rate_mean_loss(elsewhere, mask).item() == 0.0
+    both = error.clone()
+    both[0, :, 0], both[0, :, 2] = 0.5, -0.5  # sample 0 only: 0.25 + 0.25, the batch mean over 2 samples
+    assert root_rate_mean_loss(both, mask).item() == pytest.approx(0.25, rel=1e-6)
+    assert root_rate_mean_loss(both, mask, channels=(2,)).item() == pytest.approx(0.125, rel=1e-6)
+    weighted = root_rate_mean_loss(biased, mask, sample_weight=torch.tensor([2.0, 0.0]))
+    assert weighted.item() == pytest.approx(0.09, rel=1e-6)
+
+
+def test_the_root_mean_term_adds_its_weight_times_the_implied_motions_clip_mean_error():
+    """flow_matching_loss with root_mean_weight w = the loss without it + w × root_rate_mean_loss(x̂1 − x1) on the same
+    draws, without any geometry; the gradient reaches the model; the objective refuses a negative weight."""
+    from mfm.flow import implied_motion_error, root_rate_mean_loss
+
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(ModelConfig(feature_dim=263, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
+    x1, cond, lengths = 0.1 * torch.randn(2, 12, 263), torch.randn(2, 4), torch.tensor([12, 7])
+    t, x0 = torch.tensor([0.3, 0.8]), torch.randn(2, 12, 263)
+    plain, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0)
+    with_term, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, root_mean_weight=2.0)
+    velocity = model(interpolate(x0, x1, t), t, cond, lengths)
+    value = root_rate_mean_loss(implied_motion_error(velocity, target_velocity(x0, x1), t),
+                                valid_frame_mask(lengths, 12))
+    assert value.item() > 0
+    assert with_term.item() == pytest.approx(plain.item() + 2.0 * value.item(), rel=1e-5)
+    with_term.backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+    objective = FlowMatchingObjective(root_mean_weight=1.0)
+    assert objective.loss(model, x1, cond, lengths, t=t, x0=x0)[0].item() == pytest.approx(
+        plain.item() + value.item(), rel=1e-5)
+    with pytest.raises(ValueError, match="root_mean_weight"):
+        FlowMatchingObjective(root_mean_weight=-1.0)
+
+
+def test_input_perturbation_builds_the_input_from_perturbed_noise_and_keeps_the_target():
+    """γ > 0: the model sees interpolate(x0 + γ·ξ, x1, t) and is charged against the velocity of x0, exactly; ξ is
+    drawn after t and x0 from the same generator (or given); γ 0 draws nothing more, so a run without the option
+    keeps its random stream; the objective refuses γ < 0."""
+    from mfm.flow import masked_mse, sample_noise, sample_time
+
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(ModelConfig(feature_dim=263, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
+    x1, cond, lengths = torch.randn(2, 12, 263), torch.randn(2, 4), torch.tensor([12, 7])
+    t, x0, xi = torch.tensor([0.3, 0.8]), torch.randn(2, 12, 263), torch.randn(2, 12, 263)
+    mask = valid_frame_mask(lengths, 12)
+    perturbed, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, input_perturbation=0.1, perturbation=xi)
+    velocity = model(interpolate(x0 + 0.1 * xi, x1, t), t, cond, lengths)
+    assert perturbed.item() == pytest.approx(masked_mse(velocity, target_velocity(x0, x1), mask).item(), rel=1e-6)
+    plain, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0)
+    assert perturbed.item() != pytest.approx(plain.item(), rel=1e-4)
+    ignored, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, perturbation=xi)  # γ 0: ξ unused
+    assert ignored.item() == plain.item()
+
+    drawn_here = torch.Generator().manual_seed(5)
+    drawn, _ = flow_matching_loss(model, x1, cond, lengths, generator=drawn_here, input_perturbation=0.1)
+    replay = torch.Generator().manual_seed(5)
+    t_draw, x0_draw = sample_time(2, replay), sample_noise(x1, replay)
+    xi_draw = sample_noise(x1, replay)
+    expected, _ = flow_matching_loss(model, x1, cond, lengths, t=t_draw, x0=x0_draw, input_perturbation=0.1,
+                                     perturbation=xi_draw)
+    assert drawn.item() == pytest.approx(expected.item(), rel=1e-6)
+    assert torch.equal(drawn_here.get_state(), replay.get_state())
+    without, with_zero = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    flow_matching_loss(model, x1, cond, lengths, generator=without)
+    flow_matching_loss(model, x1, cond, lengths, generator=with_zero, input_perturbation=0.0)
+    assert torch.equal(without.get_state(), with_zero.get_state())
+    assert FlowMatchingObjective(input_perturbation=0.1).loss(
+        model, x1, cond, lengths, t=t, x0=x0, generator=torch.Generator().manual_seed(5))[0].item() > 0
+    with pytest.raises(ValueError, match="input_perturbation"):
+        FlowMatchingObjective(input_perturbation=-0.1)

@@ -1156,3 +1156,17 @@ def test_build_objective_gives_the_trajectory_term_its_minimum_time_and_pseudo_h
     assert (objective.trajectory_weight, objective.trajectory_min_t, objective.trajectory_huber) == (0.1, 0.5, 0.2)
     default = build_objective(load_config(TrainConfig, "tiny"), manifest)
     assert (default.trajectory_min_t, default.trajectory_huber) == (0.0, 0.0)
+
+
+def test_build_objective_gives_the_root_mean_term_and_the_input_perturbation_their_settings():
+    from types import SimpleNamespace
+
+    from pipeline.training.trainer import build_objective
+
+    manifest = SimpleNamespace(data={"feature_spec": {"skeleton": "humanml3d"},
+                                     "normalization": {"mean": [0.0] * 263, "std": [1.0] * 263}})
+    objective = build_objective(load_config(TrainConfig, "tiny", ["train.flow_root_mean_weight=1.5",
+                                                                  "train.flow_input_perturbation=0.1"]), manifest)
+    assert (objective.root_mean_weight, objective.input_perturbation) == (1.5, 0.1)
+    default = build_objective(load_config(TrainConfig, "tiny"), manifest)
+    assert (default.root_mean_weight, default.input_perturbation) == (0.0, 0.0)
