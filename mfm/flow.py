@@ -258,7 +258,8 @@ def flow_matching_loss(
     ``perturbation`` is not given), then the model's condition dropout (unless ``cond_mask`` is given).
     ``input_perturbation`` γ > 0: the model's input is built from the noise ``x0 + γ·ξ`` while the target stays
     the velocity of ``x0`` (Ning et al. 2023's DDPM-IP on the flow path; ``perturbation``, when given, replaces
-    the draw of ξ). A compiled training step should draw ``cond_mask`` itself (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
+    the draw of ξ). A compiled training step should draw ``cond_mask`` itself
+    (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
     ``t`` (B,) and ``x0`` (B, T, D), when given, replace the draws (a data-parallel step slices them from the
     global batch's draws so that any world size computes the same thing). ``t``, drawn or given, is a uniform draw
     that ``time_sampling`` = (name, loc, scale, grid_steps) turns into the training time (:func:`warp_time`;

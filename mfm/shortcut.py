@@ -89,6 +89,9 @@ class ShortcutObjective:
             raise ValueError(f"ShortcutObjective.bootstrap_fraction must be in (0, 1), got {self.bootstrap_fraction!r}")
         if self.guidance < 0:
             raise ValueError(f"ShortcutObjective.guidance must be >= 0, got {self.guidance!r}")
+        if self.flow.input_perturbation > 0:  # its self-consistency targets are the model's own steps from x_t
+            raise ValueError("ShortcutObjective: the flow objective's input_perturbation is not supported with "
+                             "shortcut levels (train.flow_input_perturbation=0 with model.shortcut_levels > 0)")
 
     def bootstrap_rows(self, batch: int) -> int:
         """How many of a batch's rows are self-consistency rows (the others are flow rows; a batch of one is all
@@ -153,8 +156,8 @@ class ShortcutObjective:
         terms = dict(sigma_min=sigma_min, loss_space=flow.loss_space, temporal_weight=flow.temporal_weight,
                      bone_weight=flow.bone_weight, trajectory_weight=flow.trajectory_weight,
                      trajectory_min_t=flow.trajectory_min_t, trajectory_huber=flow.trajectory_huber,
-                     foot_contact_weight=flow.foot_contact_weight, geometry=flow.geometry,
-                     terms_weighting=flow.terms_weighting,
+                     foot_contact_weight=flow.foot_contact_weight, root_mean_weight=flow.root_mean_weight,
+                     geometry=flow.geometry, terms_weighting=flow.terms_weighting,
                      velocity_weight_cap=flow.velocity_weight_cap,
                      channel_weight=flow.channel_weight_on(x1.device))
         boot_loss = velocity_loss(velocity[boot], boot_target, x1[boot], boot_t, frame_mask[boot], **terms)

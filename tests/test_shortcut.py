@@ -275,3 +275,18 @@ def test_a_shortcut_student_trains_on_two_ranks(shortcut_launches):
     proc = started.result()
     assert proc.returncode == 0, output_of(proc)
     assert ckpt.list_complete(ckpt.checkpoints_dir(out))[-1][0] == 2
+
+
+def test_the_shortcut_objective_refuses_input_perturbation_and_carries_the_root_mean_term():
+    """The flow rows' loss is the flow objective's velocity loss with its terms (the root-mean term included);
+    input perturbation, which the self-consistency targets do not take, is refused with the setting named."""
+    with pytest.raises(ValueError, match="input_perturbation"):
+        ShortcutObjective(flow=FlowMatchingObjective(input_perturbation=0.1), levels=1)
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(small_config(1, cond_drop_prob=0.0))
+    x1, cond, lengths = torch.randn(4, 12, 8), torch.randn(4, 4), torch.tensor([12, 12, 9, 6])
+    plain = ShortcutObjective(flow=FlowMatchingObjective(), levels=1, bootstrap_fraction=0.5)
+    with_term = ShortcutObjective(flow=FlowMatchingObjective(root_mean_weight=5.0), levels=1, bootstrap_fraction=0.5)
+    losses = [objective.loss(model, x1, cond, lengths, generator=torch.Generator().manual_seed(3))[0].item()
+              for objective in (plain, with_term)]
+    assert losses[1] > losses[0]
