@@ -20,7 +20,9 @@ import json
 import numpy as np
 import torch
 
+from mfm.solvers import sample
 from pipeline.generation.inference import load_trained_model
+from pipeline.generation.sampling import PromptConditions, conditioned_model
 
 CAPTIONS = ("a person jumps up in place 3 times.", "a person jumps up in place twice.", "a person jumps forward 3 times.",
             "a person turns around to the left.")
@@ -42,28 +44,22 @@ def main(argv: list[str] | None = None) -> None:
     fps = trained.fps
     texts = args.text or list(CAPTIONS)
     seeds = [int(s) for s in args.seeds.split(",")]
+    conditions = PromptConditions(*trained.condition_inputs(texts=texts))
+    model = conditioned_model(trained, conditions)  # the solvers' call signature, as launch/sample.py drives it
     for frames in (int(n) for n in args.lengths.split(",")):
-        cond, inputs = trained.condition_inputs(texts=texts)
         lengths = torch.full((len(texts),), frames)
         forward, heading = np.zeros((len(seeds), steps + 1, len(texts))), np.zeros((len(seeds), steps + 1, len(texts)))
         for s, seed in enumerate(seeds):
-            x = torch.randn(len(texts), frames, trained.model_config.feature_dim,
-                            generator=torch.Generator().manual_seed(seed))
-            for i in range(steps + 1):
-                t = i / steps
-                if i < steps:
-                    with torch.no_grad():
-                        velocity = trained.model(x, torch.full((len(texts),), t), cond, lengths, **inputs)
-                    estimate = x + (1 - t) * velocity
-                else:
-                    estimate = x  # the sample itself
-                raw = trained.denormalize(estimate)
-                forward[s, i] = (raw[..., 2].mean(dim=1) * fps).numpy()
-                # The features' rate is half the heading's (HumanML3D's root quaternion is (cos a, 0, sin a, 0));
-                # negative a turns left, and the caption checks count a left turn positive.
-                heading[s, i] = -2 * np.degrees(raw[..., 0].sum(dim=1).numpy())
-                if i < steps:
-                    x = x + velocity / steps
+            noise = torch.randn(len(texts), frames, trained.model_config.feature_dim,
+                                generator=torch.Generator().manual_seed(seed))
+            with torch.no_grad():
+                solved = sample(model, conditions.cond, lengths, num_frames=frames, steps=steps, guidance=1.0,
+                                noise=noise, return_trajectory=True)
+            raw = trained.denormalize(torch.cat([solved.x1_hat, solved.x1[None]]))  # every step's x̂1, the sample
+            forward[s] = (raw[..., 2].mean(dim=2) * fps).numpy()
+            # The features' rate is half the heading's (HumanML3D's root quaternion is (cos a, 0, sin a, 0));
+            # negative a turns left, and the caption checks count a left turn positive.
+            heading[s] = -2 * np.degrees(raw[..., 0].sum(dim=2).numpy())
         for k, text in enumerate(texts):
             print(json.dumps({
                 "checkpoint": str(trained.checkpoint), "step": trained.step, "text": text, "frames": frames,

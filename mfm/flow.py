@@ -280,12 +280,10 @@ def flow_matching_loss(
     t = warp_time(t, *time_sampling)
     if x0 is None:
         x0 = sample_noise(x1, generator)
-    if input_perturbation > 0:
-        if perturbation is None:
-            perturbation = sample_noise(x1, generator)
-        x_t = interpolate(x0 + input_perturbation * perturbation, x1, t, sigma_min)
-    else:
-        x_t = interpolate(x0, x1, t, sigma_min)
+    if input_perturbation > 0 and perturbation is None:
+        perturbation = sample_noise(x1, generator)
+    input_noise = x0 + input_perturbation * perturbation if input_perturbation > 0 else x0  # the target keeps x0
+    x_t = interpolate(input_noise, x1, t, sigma_min)
     # With an explicit cond_mask the model draws nothing; not passing the generator then keeps a torch.compile'd
     # model free of a graph break (a Generator argument breaks the graph).
     model_generator = generator if cond_mask is None else None
@@ -333,14 +331,15 @@ def velocity_loss(
     terms = term_weight(t, loss_space, terms_weighting, sigma_min, velocity_weight_cap)
     if temporal_weight > 0:
         loss = loss + temporal_weight * temporal_loss(velocity, target, t, frame_mask, sigma_min, terms)
+    geometric = bone_weight > 0 or trajectory_weight > 0 or foot_contact_weight > 0
+    if geometric and geometry is None:
+        raise ValueError("bone_weight, trajectory_weight or foot_contact_weight > 0 needs the motion geometry "
+                         "(normalisation and skeleton)")
+    error = implied_motion_error(velocity, target, t, sigma_min) if geometric or root_mean_weight > 0 else None
     if root_mean_weight > 0:
-        error = implied_motion_error(velocity, target, t, sigma_min)
         loss = loss + root_mean_weight * root_rate_mean_loss(error, frame_mask, root_rate_channels, terms)
-    if bone_weight > 0 or trajectory_weight > 0 or foot_contact_weight > 0:
-        if geometry is None:
-            raise ValueError("bone_weight, trajectory_weight or foot_contact_weight > 0 needs the motion geometry "
-                             "(normalisation and skeleton)")
-        x1_hat = x1.float() + implied_motion_error(velocity, target, t, sigma_min)
+    if geometric:
+        x1_hat = x1.float() + error
         if bone_weight > 0:
             loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms)
         if trajectory_weight > 0:

@@ -118,6 +118,21 @@ def load_launch_script(name: str):
     return module
 
 
+def load_benchmark(name: str):
+    """``benchmarks/<name>.py`` as a module, with benchmarks/ on sys.path as when it runs as a script (the scripts
+    import their siblings, e.g. length_sweep)."""
+    import importlib.util
+    import sys
+
+    folder = str(REPO_ROOT / "benchmarks")
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def flip_byte(path: Path, offset: int) -> None:
     """Invert one byte of ``path`` at ``offset``: a same-size corruption that only a hash can see."""
     data = bytearray(path.read_bytes())

@@ -3,23 +3,19 @@ readings are the caption checks' of the motions launch/sample.py makes with the 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO_ROOT
+from conftest import load_benchmark
 from test_sample_cli import sample, text_run  # noqa: F401  (the session's tiny checkpoint, a fixture)
 
 from mfm.caption_checks import check_caption
 
 
 def length_sweep():
-    spec = importlib.util.spec_from_file_location("length_sweep", REPO_ROOT / "benchmarks" / "length_sweep.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("length_sweep")
 
 
 @pytest.mark.usefixtures("single_thread")

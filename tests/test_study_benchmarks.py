@@ -3,23 +3,12 @@ session's tiny text checkpoint."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 
 import numpy as np
 import pytest
-from conftest import REPO_ROOT
+from conftest import load_benchmark
 from test_sample_cli import text_run  # noqa: F401  (the session's tiny checkpoint, a fixture)
-
-
-def benchmark(name: str):
-    if str(REPO_ROOT / "benchmarks") not in sys.path:  # the judge imports length_sweep as its sibling
-        sys.path.insert(0, str(REPO_ROOT / "benchmarks"))
-    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.usefixtures("single_thread")
@@ -27,7 +16,7 @@ def test_the_judge_summarises_its_sheets_and_sweeps(text_run, tmp_path, capsys):
     """The summary's sheet figures are the sheets' own (one seed: equal); the jump sweep counts 3 captions × 2
     lengths, and its travel is the root's ground distance in the longest "3 times" motion as sampling makes it in
     the same batch."""
-    judge = benchmark("synthetic_judge")
+    judge = load_benchmark("synthetic_judge")
     from length_sweep import sample_joints
 
     out = tmp_path / "judge"
@@ -55,7 +44,7 @@ def test_the_judge_summarises_its_sheets_and_sweeps(text_run, tmp_path, capsys):
 def test_the_root_mean_probe_ends_on_the_last_euler_estimate(text_run, capsys):  # noqa: F811
     """With Euler steps the sample is the last step's x̂1 (x + (1 − t)·v), so the last two readings agree, at one
     step (the sample is x̂1 at t = 0) and at three; one line per caption with a reading per step and the sample."""
-    probe = benchmark("root_mean_probe")
+    probe = load_benchmark("root_mean_probe")
     for steps in (1, 3):
         capsys.readouterr()
         probe.main(["--checkpoint", str(text_run), "--text", "a person jumps up in place twice.", "--text",
