@@ -14,6 +14,8 @@ checkpoint's motions show against the test split's clips and the captions' check
   each seed (the clips: 0 m; the check allows 0.3 m).
 * ``length_sweep``: benchmarks/length_sweep.py's default captions and lengths at seeds 0-2, the share passing, and
   the heading change of its turns at its shortest and longest length.
+
+``--steps`` and ``--guidance`` replace the checkpoint's own solver steps and guidance scale in all four.
 """
 
 from __future__ import annotations
@@ -35,12 +37,13 @@ IN_PLACE_JUMPS = ("a person jumps up in place once.", "a person jumps up in plac
 CHECKS = ("count", "place", "turn_angle", "all")
 
 
-def sheet_figures(checkpoint: str, out: Path, rows: int, seeds: list[int], steps: int | None) -> dict:
+def sheet_figures(checkpoint: str, out: Path, rows: int, seeds: list[int], steps: int | None,
+                  guidance: float | None = None) -> dict:
     sheets = []
     for seed in seeds:
         sheet = run_contact_sheet(ContactSheetRequest(out=out / f"sheet-s{seed}.png", checkpoint=checkpoint,
                                                       captions_from_manifest="test", max_rows=rows, seed=seed,
-                                                      steps=steps, device="cpu"))
+                                                      steps=steps, guidance=guidance, device="cpu"))
         (out / f"sheet-s{seed}.json").write_text(json.dumps(sheet, indent=1))
         sheets.append(sheet)
     against = [s["against_dataset_clips"] for s in sheets]
@@ -68,13 +71,14 @@ def sheet_figures(checkpoint: str, out: Path, rows: int, seeds: list[int], steps
     return {"sheet": figures, "in_place_rows": {"passed": passed, "of": total}}
 
 
-def jump_sweep(checkpoint: str, lengths: list[int], seeds: list[int], steps: int | None) -> dict:
+def jump_sweep(checkpoint: str, lengths: list[int], seeds: list[int], steps: int | None,
+               guidance: float | None = None) -> dict:
     cells = [(text, n) for text in IN_PLACE_JUMPS for n in lengths]
     longest = (IN_PLACE_JUMPS[-1], max(lengths))
     passed, travel = 0, []
     for seed in seeds:
         motions = sample_joints(checkpoint, [t for t, _ in cells], [n for _, n in cells], seed,
-                                {"device": "cpu", "weights": "ema", "steps": steps})
+                                {"device": "cpu", "weights": "ema", "steps": steps, "guidance": guidance})
         for cell, joints in zip(cells, motions):
             passed += all(check_caption(joints, cell[0])["checks"].values())
             if cell == longest:
@@ -92,17 +96,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jump-lengths", default="77,111,162,173", help="frames of the jump sweep, comma-separated")
     p.add_argument("--sweep-lengths", default="40,60,90,130,196", help="frames of the length sweep")
     p.add_argument("--steps", type=int, help="solver steps (default: the model's)")
+    p.add_argument("--guidance", type=float, help="guidance scale (default: the model's)")
     args = p.parse_args(argv)
 
     args.out.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
-    summary = {"checkpoint": args.checkpoint, "seeds": seeds,
-               **sheet_figures(args.checkpoint, args.out, args.rows, seeds, args.steps),
+    summary = {"checkpoint": args.checkpoint, "seeds": seeds, "guidance": args.guidance,
+               **sheet_figures(args.checkpoint, args.out, args.rows, seeds, args.steps, args.guidance),
                "jump_sweep": jump_sweep(args.checkpoint, [int(n) for n in args.jump_lengths.split(",")], seeds,
-                                        args.steps)}
+                                        args.steps, args.guidance)}
     sweep_out = args.out / "length_sweep.json"
     sweep_args = ["--checkpoint", args.checkpoint, "--lengths", args.sweep_lengths, "--out", str(sweep_out)]
-    length_sweep_main(sweep_args + (["--steps", str(args.steps)] if args.steps else []))
+    length_sweep_main(sweep_args + (["--steps", str(args.steps)] if args.steps else [])
+                      + (["--guidance", str(args.guidance)] if args.guidance is not None else []))
     rows = json.loads(sweep_out.read_text())["rows"]
     shortest, longest = min(r["frames"] for r in rows), max(r["frames"] for r in rows)
     summary["length_sweep"] = {

@@ -39,6 +39,7 @@ import torch
 from torch import Tensor, nn
 
 from mfm.flow import SIGMA_MIN
+from mfm.path import data_from_velocity
 from mfm.solvers import FIXED_STEP_SOLVERS, SolveResult, guided_velocity, initial_noise, solve
 
 logger = logging.getLogger(__name__)
@@ -161,6 +162,12 @@ class BoundInputs:
     attention_chunk: passed to the model as is.
     step_size: a shortcut model's step size d (``mfm.shortcut.sampler_step_size``), passed to every call; None for a
         flow model.
+
+    A self-conditioned model (``config.self_condition_prob`` > 0) gets, as ``self_condition``, the x̂1 that its
+    previous call implied for the same rows (:func:`mfm.path.data_from_velocity`): along one solve that is the
+    previous step's estimate, each half of a guided pass its own. A call at a time not later than the previous one
+    (a new solve, or an adaptive solver's retried step) or with another batch shape starts again from zeros, as the
+    first step of a solve does. So one object must not drive two solves at once.
     """
 
     def __init__(
@@ -182,6 +189,9 @@ class BoundInputs:
         self.batch = batches.pop() if batches else None
         self.switch_time = switch_time
         self.attention_chunk = attention_chunk
+        self.self_conditioning = float(getattr(getattr(model, "config", None), "self_condition_prob", 0.0)) > 0
+        self._estimate: Tensor | None = None  # the previous call's x̂1 (self-conditioning)
+        self._estimate_time = -math.inf
 
     @property
     def config(self):
@@ -211,14 +221,25 @@ class BoundInputs:
             kwargs["attention_chunk"] = self.attention_chunk
         if self.step_size is not None:
             kwargs["step_size"] = self.step_size
-        return self.model(x, t, cond, lengths, cond_mask=cond_mask, **kwargs)
+        if not self.self_conditioning:
+            return self.model(x, t, cond, lengths, cond_mask=cond_mask, **kwargs)
+        time = float(torch.as_tensor(t).max())
+        previous = self._estimate
+        if previous is not None and (previous.shape != x.shape or time <= self._estimate_time):
+            previous = None  # a new solve (or a retried step): start from no estimate, as training's zero rows
+        velocity = self.model(x, t, cond, lengths, cond_mask=cond_mask, self_condition=previous, **kwargs)
+        times = torch.as_tensor(t, device=x.device).float().reshape(-1).expand(x.shape[0])
+        self._estimate = data_from_velocity(velocity.float(), x.float(), times).to(x.dtype)
+        self._estimate_time = time
+        return velocity
 
 
 def bind_inputs(model: nn.Module, extras: Mapping[str, Tensor] | None = None, *,
                 step_size: float | None = None) -> nn.Module | BoundInputs:
     """``model`` with per-sample ``extras`` and a shortcut model's ``step_size`` bound (:class:`BoundInputs`), or
     ``model`` itself when there is nothing to bind."""
-    if not extras and step_size is None:
+    if not extras and step_size is None and float(getattr(getattr(model, "config", None), "self_condition_prob",
+                                                           0.0)) == 0:
         return model
     return BoundInputs(model, dict(extras or {}), step_size=step_size)
 

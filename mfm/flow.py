@@ -21,7 +21,7 @@ import torch
 from mfm.features import root_path
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
-from mfm.path import MIN_NOISE_SCALE, SIGMA_MIN
+from mfm.path import MIN_NOISE_SCALE, SIGMA_MIN, data_from_velocity
 
 
 class VelocityModel(Protocol):
@@ -245,6 +245,8 @@ def flow_matching_loss(
     channel_weight: torch.Tensor | None = None,
     input_perturbation: float = 0.0,
     perturbation: torch.Tensor | None = None,
+    self_condition_prob: float = 0.0,
+    self_condition_rows: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
     weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
@@ -255,7 +257,13 @@ def flow_matching_loss(
     x1: (B, T, D) normalised motion features, padded beyond ``lengths`` (B,).
     Random draws, in this order, all from ``generator`` if given (deterministic tests and resume):
     t (B,), noise x0 (B, T, D), the input perturbation ξ (B, T, D; only when ``input_perturbation`` > 0 and
-    ``perturbation`` is not given), then the model's condition dropout (unless ``cond_mask`` is given).
+    ``perturbation`` is not given), the self-conditioned rows (B,; only when ``self_condition_prob`` > 0), then the
+    model's condition dropout (unless ``cond_mask`` is given).
+    ``self_condition_prob`` p > 0 (a self-conditioned model, ``ModelConfig.self_condition_prob``; Chen et al.
+    2022): a share p of the rows first runs through the model without gradient, and the x̂1 that pass implies
+    (:func:`mfm.path.data_from_velocity`) is the second, trained pass's ``self_condition`` input; the other rows get
+    zeros. Needs ``cond_mask`` (both passes must drop the same conditions). ``self_condition_rows`` (B,) bool, when
+    given, replaces the draw of those rows.
     ``input_perturbation`` γ > 0: the model's input is built from the noise ``x0 + γ·ξ`` while the target stays
     the velocity of ``x0`` (Ning et al. 2023's DDPM-IP on the flow path; ``perturbation``, when given, replaces
     the draw of ξ). A compiled training step should draw ``cond_mask`` itself
@@ -287,7 +295,14 @@ def flow_matching_loss(
     # With an explicit cond_mask the model draws nothing; not passing the generator then keeps a torch.compile'd
     # model free of a graph break (a Generator argument breaks the graph).
     model_generator = generator if cond_mask is None else None
-    velocity = model(x_t, t, cond, lengths, cond_mask=cond_mask, generator=model_generator, **(model_kwargs or {}))
+    model_kwargs = dict(model_kwargs or {})
+    if self_condition_prob > 0:
+        chosen = self_condition_rows
+        if chosen is None:
+            chosen = draw_self_condition_rows(x1.shape[0], self_condition_prob, generator, x1.device)
+        model_kwargs["self_condition"] = self_condition_estimate(model, x_t, t, cond, lengths, cond_mask, chosen,
+                                                                 model_kwargs, sigma_min)
+    velocity = model(x_t, t, cond, lengths, cond_mask=cond_mask, generator=model_generator, **model_kwargs)
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
     loss = velocity_loss(velocity, target_velocity(x0, x1, sigma_min), x1, t, frame_mask, sigma_min=sigma_min,
                          loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
@@ -538,6 +553,43 @@ def _weighted_mean(per_sample: torch.Tensor, sample_weight: torch.Tensor | None)
     return (per_sample if sample_weight is None else per_sample * sample_weight.to(per_sample.dtype)).mean()
 
 
+PER_SAMPLE_MODEL_INPUTS = ("segments", "frame_cond", "text_tokens", "text_token_len", "positional_mode")
+"""The model's keyword inputs that hold one row per sample (sliced with the batch); the others (block_drop_mask,
+attention_chunk) apply to the whole pass."""
+
+
+def draw_self_condition_rows(batch: int, prob: float, generator: torch.Generator | None = None,
+                             device: torch.device | None = None) -> torch.Tensor:
+    """(B,) bool: which rows a self-conditioned training pass feeds the network's own estimate (share ``prob``)."""
+    return torch.rand(batch, generator=generator, device=_draw_device(generator, device)).to(device) < prob
+
+
+def self_condition_estimate(model: VelocityModel, x_t: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
+                            lengths: torch.Tensor, cond_mask: torch.Tensor | None, chosen: torch.Tensor,
+                            model_kwargs: Mapping[str, Any], sigma_min: float = SIGMA_MIN) -> torch.Tensor:
+    """Self-conditioning's input for a training pass (Chen et al. 2022): for the ``chosen`` (B,) rows, the x̂1 that
+    a gradient-free pass of ``model`` at the same ``x_t``, ``t`` and dropped conditions implies; zeros for the
+    others. Only the chosen rows run, so the extra cost is their share of a forward pass. When no row is chosen the
+    first row runs anyway and is discarded: every data-parallel rank then makes the same number of model calls
+    (DDP broadcasts buffers at each forward, a collective that must meet its partners on every rank)."""
+    if cond_mask is None:
+        raise ValueError("self-conditioning needs an explicit cond_mask, so that the estimate's pass and the trained "
+                         "pass drop the same conditions (draw it with mfm.model.draw_cond_drop_mask)")
+    estimate = torch.zeros_like(x_t)
+    any_chosen = bool(chosen.any())
+    rows = chosen.nonzero().squeeze(1) if any_chosen else torch.zeros(1, dtype=torch.long, device=x_t.device)
+    kwargs = {name: (value.index_select(0, rows) if name in PER_SAMPLE_MODEL_INPUTS and torch.is_tensor(value)
+                     else value) for name, value in model_kwargs.items()}
+    with torch.no_grad():
+        velocity = model(x_t.index_select(0, rows), t.index_select(0, rows), cond.index_select(0, rows),
+                         lengths.index_select(0, rows), cond_mask=cond_mask.index_select(0, rows), **kwargs)
+        if not any_chosen:
+            return estimate
+        estimate[rows] = data_from_velocity(velocity.float(), x_t.index_select(0, rows).float(),
+                                            t.index_select(0, rows).float(), sigma_min=sigma_min).to(x_t.dtype)
+    return estimate
+
+
 @dataclass(frozen=True)
 class FlowMatchingObjective:
     """:func:`flow_matching_loss` as an :class:`Objective`."""
@@ -558,6 +610,9 @@ class FlowMatchingObjective:
     """γ of the input perturbation (Ning et al. 2023, DDPM-IP): the model's input is built from the noise
     ``x0 + γ·ξ`` and the target stays the velocity of ``x0``, so the network also learns to steer states a little
     off the training paths back to them, as sampling's own errors put it (0: off, MFM)."""
+    self_condition_prob: float = 0.0
+    """The share of rows trained with the model's own estimate as input (``ModelConfig.self_condition_prob``, which
+    the model must have; :func:`self_condition_estimate`). 0: off (MFM)."""
     geometry: MotionGeometry | None = None
     time_sampling: str = "uniform"
     time_loc: float = 0.0
@@ -601,6 +656,9 @@ class FlowMatchingObjective:
                              f"skeleton when > 0, got {self.foot_contact_weight!r}")
         if self.input_perturbation < 0:
             raise ValueError(f"FlowMatchingObjective.input_perturbation must be >= 0, got {self.input_perturbation!r}")
+        if not 0.0 <= self.self_condition_prob <= 1.0:
+            raise ValueError(f"FlowMatchingObjective.self_condition_prob must be in [0, 1], got "
+                             f"{self.self_condition_prob!r}")
         if self.root_mean_weight < 0:
             raise ValueError(f"FlowMatchingObjective.root_mean_weight must be >= 0, got {self.root_mean_weight!r}")
         if self.temporal_weight < 0:
@@ -628,6 +686,7 @@ class FlowMatchingObjective:
         t: torch.Tensor | None = None,
         x0: torch.Tensor | None = None,
         model_kwargs: Mapping[str, Any] | None = None,
+        self_condition_rows: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         return flow_matching_loss(
             model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask,
@@ -641,4 +700,5 @@ class FlowMatchingObjective:
             velocity_weight_cap=self.velocity_weight_cap,
             channel_weight=self.channel_weight_on(x1.device),
             input_perturbation=self.input_perturbation,
+            self_condition_prob=self.self_condition_prob, self_condition_rows=self_condition_rows,
         )

@@ -295,6 +295,17 @@ class ModelConfig:
     option and the condition's path is learnt on top. The auxiliary tokens stay as they are. Pre-norm (norm_first),
     positional='absolute' and conditioning 'prefix' or 'cross_attention' only (one condition per sample: BPE
     composition and PCCAT give frames different texts)."""
+    self_condition_prob: float = 0.0
+    """Self-conditioning (Chen et al. 2022, "Analog Bits", 0.5 there; in none of the three reference models). > 0:
+    the network also sees an earlier estimate of the motion, ``x̂1``, through a zero-initialised
+    ``Linear(p·feature_dim → latent)`` added to the frames' input projection (``forward(self_condition=...)``;
+    None = zeros, the network without an estimate). Training (mfm.flow) feeds this share of the rows the network's
+    own x̂1 from a first, gradient-free pass at the same x_t and zeros to the others; a sampler
+    (:class:`mfm.composition.BoundInputs`, :func:`mfm.composition.bind_inputs`) feeds the x̂1 of its previous
+    evaluation; the model called unbound gets zeros. Why: along a sampled path the
+    network meets states shaped by its own earlier estimates, which no training path has (exposure bias); with
+    the estimate as an input those states are ones it was trained on (docs/generator-study.md, "Self-conditioning").
+    0: off (MFM). Flow objective only, not with shortcut levels."""
     wrapper_projections: bool = False
     """FlowMDM (x-transformers' ``ContinuousTransformerWrapper`` with ``dim_in = dim_out = latent_dim``): an extra
     Linear(latent, latent) after the input projection (before positions are added) and one after the final norm,
@@ -418,6 +429,11 @@ class ModelConfig:
             raise ValueError("ModelConfig.adaptive_norm needs norm_first=True, positional='absolute' and conditioning "
                              "'prefix' or 'cross_attention' (it modulates pre-norm blocks with one condition per "
                              f"sample), got norm_first={self.norm_first}, {self.positional!r}, {self.conditioning!r}")
+        if not (isinstance(self.self_condition_prob, (int, float)) and 0.0 <= self.self_condition_prob <= 1.0):
+            raise ValueError(f"ModelConfig.self_condition_prob must be in [0, 1], got {self.self_condition_prob!r}")
+        if self.self_condition_prob > 0 and self.shortcut_levels > 0:
+            raise ValueError("ModelConfig.self_condition_prob > 0 is not supported with shortcut levels (the "
+                             "shortcut objective's own passes feed no estimate)")
         if self.progress_positions and self.positional != "absolute":
             raise ValueError("ModelConfig.progress_positions needs positional='absolute'")
         if self.length_embedding not in LENGTH_EMBEDDINGS:
@@ -1008,6 +1024,9 @@ class MotionFlowTransformer(nn.Module):
         self.config = config
         d = config.latent_dim
         self.input_proj = nn.Linear(config.feature_dim * config.frames_per_token, d)
+        if config.self_condition_prob > 0:
+            # Zero-initialised: the network starts as the one without the input, and learns to use the estimate.
+            self.self_condition_proj = zero_linear(config.feature_dim * config.frames_per_token, d)
         self.time_embedding = TimeEmbedding(d, config.time_grid)
         if config.shortcut_levels > 0:
             self.step_size_embedding = StepSizeEmbedding(d)
@@ -1086,6 +1105,7 @@ class MotionFlowTransformer(nn.Module):
         attention_chunk: int | None = None,
         block_drop_mask: torch.Tensor | None = None,
         step_size: torch.Tensor | float | None = None,
+        self_condition: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Velocity at ``x`` (B, T, D) and times ``t`` (B,) in [0, 1].
 
@@ -1112,6 +1132,8 @@ class MotionFlowTransformer(nn.Module):
             dropout, in any mode). None: drawn in training when ``layer_dropout`` > 0, no block skipped otherwise.
         step_size: shortcut models only (``shortcut_levels`` > 0): (B,) or one step size d in [0, 1]; the output is
             the average velocity over [t, t + d]. None = 0, the flow-matching field.
+        self_condition: self-conditioned models only (``self_condition_prob`` > 0): (B, T, feature_dim) an earlier
+            estimate x̂1 of the motion (normalised features); None = zeros (no estimate).
         Returns (B, T, output_size) in ``x``'s dtype (fp32 under bf16 autocast, for the ODE solver).
         """
         config = self.config
@@ -1151,6 +1173,16 @@ class MotionFlowTransformer(nn.Module):
             motion = self.input_proj(self._group_frames((x.float() * c_in).to(x.dtype), frame_mask))
         else:
             motion = self.input_proj(self._group_frames(x, frame_mask))
+        if config.self_condition_prob > 0:
+            if self_condition is None:
+                self_condition = torch.zeros_like(x)
+            elif self_condition.shape != x.shape:
+                raise ValueError(f"self_condition must have x's shape {tuple(x.shape)}, got "
+                                 f"{tuple(self_condition.shape)}")
+            motion = motion + self.self_condition_proj(self._group_frames(self_condition.to(x.dtype), frame_mask))
+        elif self_condition is not None:
+            raise ValueError("self_condition is an input of self-conditioned models only "
+                             "(ModelConfig.self_condition_prob > 0)")
         if config.wrapper_projections:
             motion = self.project_in(motion)
         tokens = torch.cat([token.unsqueeze(1).to(motion.dtype) for token in aux] + [motion], dim=1)

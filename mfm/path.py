@@ -49,3 +49,19 @@ def velocity_from_data(
     t = t.reshape(-1, *([1] * (x_t.dim() - 1))).to(x_t.dtype)
     noise_scale = (1 - (1 - sigma_min) * t).clamp_min(min_noise_scale)
     return (x1_hat - (1 - sigma_min) * x_t) / noise_scale
+
+
+def data_from_velocity(
+    velocity: torch.Tensor,
+    x_t: torch.Tensor,
+    t: torch.Tensor,
+    *,
+    sigma_min: float = SIGMA_MIN,
+    min_noise_scale: float = MIN_NOISE_SCALE,
+) -> torch.Tensor:
+    """The data point ``x̂1`` a velocity at ``x_t`` and times ``t`` (B,) or scalar leads to: the inverse of
+    :func:`velocity_from_data` with the same floor, so it recovers a data-predicting network's x̂1 exactly (beyond
+    the floor, near t = 1, it scales a velocity network's step by the floored noise scale instead of the true one)."""
+    t = torch.as_tensor(t, device=x_t.device).reshape(-1, *([1] * (x_t.dim() - 1))).to(x_t.dtype)
+    noise_scale = (1 - (1 - sigma_min) * t).clamp_min(min_noise_scale)
+    return (1 - sigma_min) * x_t + noise_scale * velocity

@@ -544,6 +544,10 @@ class TrainConfig:
             "sets its own target (train.diffusion): use model.prediction=velocity",
         )
         _require(
+            self.model.self_condition_prob == 0 or self.train.objective == "flow",
+            "model.self_condition_prob > 0 (self-conditioning) trains with train.objective=flow",
+        )
+        _require(
             self.model.shortcut_levels == 0 or self.train.objective == "flow",
             "model.shortcut_levels > 0 (a shortcut model) trains with train.objective=flow",
         )

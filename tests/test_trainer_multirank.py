@@ -141,11 +141,20 @@ def misc_scenarios(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dic
     equivalence = {"kind": "equivalence", "out": str(root / "equivalence"), "steps": EQUIVALENCE_STEPS,
                    "overrides": [f"data.manifest={dataset}", f"train.out_dir={root / 'equivalence' / 'run'}",
                                  "model.dropout=0.0"]}
+    self_conditioned = {"kind": "equivalence", "out": str(root / "self-conditioned"), "steps": EQUIVALENCE_STEPS,
+                        "overrides": self_conditioned_overrides(dataset, root)}
     validate = {"kind": "validate", "out": str(root / "validate"), "overrides": validation_overrides(dataset, root)}
     skip = fit_scenario(root / "skip", [f"data.manifest={dataset}", f"train.out_dir={root / 'skip' / 'run'}",
                                         "train.log_every=1", "train.max_steps=5"],
                         nan_at=[1, [NAN_STEP]], snapshot_at=[NAN_STEP, 5])
-    return [equivalence, validate, skip], {"root": root, "dataset": dataset}
+    return [equivalence, self_conditioned, validate, skip], {"root": root, "dataset": dataset}
+
+
+def self_conditioned_overrides(dataset: Path, root: Path) -> list[str]:
+    """A self-conditioned model (model.self_condition_prob): each rank runs the estimate's pass on its own chosen
+    rows, a number that differs between ranks."""
+    return [f"data.manifest={dataset}", f"train.out_dir={root / 'self-conditioned' / 'run'}", "model.dropout=0.0",
+            "model.self_condition_prob=0.5"]
 
 
 def nonfinite_stop_scenario(dataset: Path, out: Path) -> dict[str, Any]:
@@ -178,6 +187,24 @@ def test_two_ranks_match_one_process_on_the_same_global_batches(misc_launch, tmp
     with Dist(mixed_precision="no") as dist:
         single = trainer_worker.run_equivalence(Trainer(cfg, dist), batches)
     assert_equivalent(ranks[0], single)
+
+
+def test_self_conditioned_two_ranks_match_one_process(misc_launch, tmp_path):
+    """The estimate's extra pass runs on each rank's chosen rows (or one discarded row when it has none), so the
+    ranks make the same collectives and the step is the one-process step on the same global batches and draws."""
+    import trainer_worker
+
+    root, dataset = misc_launch["root"], misc_launch["dataset"]
+    assert (root / "self-conditioned" / "result-rank0.json").exists(), output_of(misc_launch["proc"])
+    ranks = [torch.load(root / "self-conditioned" / f"equivalence-rank{r}.pt") for r in (0, 1)]
+    assert_identical(ranks[0]["model"], ranks[1]["model"], "rank 0 vs rank 1 weights")
+    cfg = load_config(TrainConfig, "tiny", self_conditioned_overrides(dataset, tmp_path))
+    batches = trainer_worker.global_batches(cfg, EQUIVALENCE_STEPS, 2 * cfg.data.batch_size)
+    assert all(draws.self_condition_rows is not None for _, draws in batches)
+    with Dist(mixed_precision="no") as dist:
+        single = trainer_worker.run_equivalence(Trainer(cfg, dist), batches)
+    assert_equivalent(ranks[0], single)
+    assert any(ranks[0]["model"][k].abs().sum() > 0 for k in ranks[0]["model"] if "self_condition_proj" in k)
 
 
 def test_two_ranks_give_the_validation_loss_of_one_process(misc_launch, tmp_path):

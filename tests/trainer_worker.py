@@ -179,7 +179,8 @@ def global_batches(cfg: TrainConfig, steps: int, global_batch: int) -> list[tupl
     out = []
     for _ in range(steps):
         batch = next(batches)
-        out.append((batch, draw_for_batch(batch, cfg.model.cond_drop_prob, generator)))
+        draws = draw_for_batch(batch, cfg.model.cond_drop_prob, generator, cfg.model.self_condition_prob)
+        out.append((batch, draws))
     return out
 
 
@@ -188,13 +189,18 @@ def slice_batch(batch: Mapping[str, Any], draws: Draws, part: int, parts: int) -
     size = draws.t.shape[0] // parts
     rows = slice(part * size, (part + 1) * size)
     sliced = {k: v[rows] for k, v in batch.items()}
-    return sliced, Draws(draws.t[rows], draws.x0[rows], draws.cond_mask[rows])
+    return sliced, _rows_of(draws, rows)
+
+
+def _rows_of(draws: Draws, rows: slice) -> Draws:
+    chosen = None if draws.self_condition_rows is None else draws.self_condition_rows[rows]
+    return Draws(draws.t[rows], draws.x0[rows], draws.cond_mask[rows], self_condition_rows=chosen)
 
 
 def empty_slice(batch: Mapping[str, Any], draws: Draws) -> tuple[dict[str, Any], Draws]:
     """No row of a batch: what the loader yields when every record of a batch was skipped (tolerant mode)."""
     none = slice(0, 0)
-    return {k: v[none] for k, v in batch.items()}, Draws(draws.t[none], draws.x0[none], draws.cond_mask[none])
+    return {k: v[none] for k, v in batch.items()}, _rows_of(draws, none)
 
 
 def run_equivalence(trainer: Trainer, batches: list[tuple[dict[str, Any], Draws]], micro_batches: int = 1,

@@ -73,7 +73,7 @@ from tqdm.auto import tqdm
 
 from mfm.compilation import compiled_for_training, compiles  # train.compile's rule, shared with sampling's
 from mfm.diffusion import diffusion_from_preset
-from mfm.flow import FlowMatchingObjective, MotionGeometry, feat_bias_channel_weight
+from mfm.flow import FlowMatchingObjective, MotionGeometry, draw_self_condition_rows, feat_bias_channel_weight
 from mfm.guidance import guided_feature_mask
 from mfm.layout import FeatureLayout
 from mfm.model import (
@@ -357,21 +357,26 @@ class Draws:
     x0: torch.Tensor  # (B, T, D)
     cond_mask: torch.Tensor  # (B,) bool
     positional_mode: torch.Tensor | None = None  # (B,) bool, True = relative (BPE models only)
+    self_condition_rows: torch.Tensor | None = None  # (B,) bool, True = fed the estimate (self-conditioned models)
 
     def to(self, device: torch.device) -> "Draws":
         mode = None if self.positional_mode is None else self.positional_mode.to(device)
-        return Draws(self.t.to(device), self.x0.to(device), self.cond_mask.to(device), mode)
+        rows = None if self.self_condition_rows is None else self.self_condition_rows.to(device)
+        return Draws(self.t.to(device), self.x0.to(device), self.cond_mask.to(device), mode, rows)
 
 
-def draw_for_batch(batch: Mapping[str, Any], cond_drop_prob: float, generator: torch.Generator) -> Draws:
-    """Flow-matching draws for ``batch`` from ``generator`` (t, x0, cond_mask), for injecting with train_step."""
+def draw_for_batch(batch: Mapping[str, Any], cond_drop_prob: float, generator: torch.Generator,
+                   self_condition_prob: float = 0.0) -> Draws:
+    """Flow-matching draws for ``batch`` from ``generator`` (t, x0, cond_mask, and the self-conditioned rows when
+    ``self_condition_prob`` > 0), for injecting with train_step."""
     features = batch["features"]
     b = features.shape[0]
     device = generator.device
     t = torch.rand(b, generator=generator, device=device)
     x0 = torch.randn(features.shape, generator=generator, device=device)
     cond_mask = draw_cond_drop_mask(b, cond_drop_prob, generator, device)
-    return Draws(t, x0, cond_mask)
+    rows = draw_self_condition_rows(b, self_condition_prob, generator, device) if self_condition_prob > 0 else None
+    return Draws(t, x0, cond_mask, self_condition_rows=rows)
 
 
 def recorded_noise(seeds: torch.Tensor, lengths: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -440,7 +445,8 @@ def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bo
                                      trajectory_huber=cfg.train.flow_trajectory_huber,
                                      foot_contact_weight=cfg.train.flow_foot_contact_weight,
                                      root_mean_weight=cfg.train.flow_root_mean_weight,
-                                     input_perturbation=cfg.train.flow_input_perturbation, geometry=geometry,
+                                     input_perturbation=cfg.train.flow_input_perturbation,
+                                     self_condition_prob=cfg.model.self_condition_prob, geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
                                      time_grid_steps=cfg.train.flow_time_grid_steps,
@@ -633,6 +639,8 @@ class Trainer:
         else:
             draws = draws.to(device)
             cond_mask, overrides = draws.cond_mask, {"t": draws.t, "x0": draws.x0}
+            if draws.self_condition_rows is not None:
+                overrides["self_condition_rows"] = draws.self_condition_rows
             if draws.positional_mode is not None:
                 model_kwargs["positional_mode"] = draws.positional_mode
         objective = (self.objective if self.step >= self.cfg.train.flow_trajectory_start_step
