@@ -165,9 +165,10 @@ class BoundInputs:
 
     A self-conditioned model (``config.self_condition_prob`` > 0) gets, as ``self_condition``, the x̂1 that its
     previous call implied for the same rows (:func:`mfm.path.data_from_velocity`): along one solve that is the
-    previous step's estimate, each half of a guided pass its own. A call at a time not later than the previous one
-    (a new solve, or an adaptive solver's retried step) or with another batch shape starts again from zeros, as the
-    first step of a solve does. So one object must not drive two solves at once.
+    previous evaluation's estimate (a Runge-Kutta stage's included), each half of a guided pass its own. A call at
+    a time earlier than the previous one (a new solve, or an adaptive solver's retried step) or with another batch
+    shape starts again from zeros, as the first step of a solve does. So one object must not drive two solves at
+    once.
     """
 
     def __init__(
@@ -225,7 +226,7 @@ class BoundInputs:
             return self.model(x, t, cond, lengths, cond_mask=cond_mask, **kwargs)
         time = float(torch.as_tensor(t).max())
         previous = self._estimate
-        if previous is not None and (previous.shape != x.shape or time <= self._estimate_time):
+        if previous is not None and (previous.shape != x.shape or time < self._estimate_time):
             previous = None  # a new solve (or a retried step): start from no estimate, as training's zero rows
         velocity = self.model(x, t, cond, lengths, cond_mask=cond_mask, self_condition=previous, **kwargs)
         times = torch.as_tensor(t, device=x.device).float().reshape(-1).expand(x.shape[0])

@@ -162,6 +162,10 @@ def test_the_sampler_feeds_each_row_its_previous_estimate_and_starts_every_solve
         assert torch.allclose(after["self_condition"], expected, atol=1e-6)
     solve(velocity, x0, solver="euler", steps=3)  # a new solve starts from no estimate
     assert recording.calls[3]["self_condition"] is None
+    solve(velocity, x0, solver="heun", steps=2)  # times 0, 0.5, 0.5, 1: a stage at the same time keeps it
+    heun = recording.calls[6:]
+    assert [float(c["t"].max()) for c in heun] == [0.0, 0.5, 0.5, 1.0]
+    assert heun[0]["self_condition"] is None and all(c["self_condition"] is not None for c in heun[1:])
     plain = Recording(dataclasses.replace(CONFIG))
     assert bind_inputs(plain) is plain
     bound_plain = BoundInputs(plain, {"text_token_len": torch.tensor([1, 1])})
