@@ -190,7 +190,7 @@ class BoundInputs:
         self.batch = batches.pop() if batches else None
         self.switch_time = switch_time
         self.attention_chunk = attention_chunk
-        self.self_conditioning = float(getattr(getattr(model, "config", None), "self_condition_prob", 0.0)) > 0
+        self.self_conditioning = self_conditioned(model)
         self._estimate: Tensor | None = None  # the previous call's x̂1 (self-conditioning)
         self._estimate_time = -math.inf
 
@@ -235,12 +235,16 @@ class BoundInputs:
         return velocity
 
 
+def self_conditioned(model: nn.Module) -> bool:
+    """Whether ``model`` takes an estimate of the motion as an input (``config.self_condition_prob`` > 0)."""
+    return float(getattr(getattr(model, "config", None), "self_condition_prob", 0.0)) > 0
+
+
 def bind_inputs(model: nn.Module, extras: Mapping[str, Tensor] | None = None, *,
                 step_size: float | None = None) -> nn.Module | BoundInputs:
     """``model`` with per-sample ``extras`` and a shortcut model's ``step_size`` bound (:class:`BoundInputs`), or
     ``model`` itself when there is nothing to bind."""
-    if not extras and step_size is None and float(getattr(getattr(model, "config", None), "self_condition_prob",
-                                                           0.0)) == 0:
+    if not extras and step_size is None and not self_conditioned(model):
         return model
     return BoundInputs(model, dict(extras or {}), step_size=step_size)
 

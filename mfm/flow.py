@@ -580,13 +580,13 @@ def self_condition_estimate(model: VelocityModel, x_t: torch.Tensor, t: torch.Te
     rows = chosen.nonzero().squeeze(1) if any_chosen else torch.zeros(1, dtype=torch.long, device=x_t.device)
     kwargs = {name: (value.index_select(0, rows) if name in PER_SAMPLE_MODEL_INPUTS and torch.is_tensor(value)
                      else value) for name, value in model_kwargs.items()}
+    x_rows, t_rows = x_t.index_select(0, rows), t.index_select(0, rows)
     with torch.no_grad():
-        velocity = model(x_t.index_select(0, rows), t.index_select(0, rows), cond.index_select(0, rows),
-                         lengths.index_select(0, rows), cond_mask=cond_mask.index_select(0, rows), **kwargs)
-        if not any_chosen:
-            return estimate
-        estimate[rows] = data_from_velocity(velocity.float(), x_t.index_select(0, rows).float(),
-                                            t.index_select(0, rows).float(), sigma_min=sigma_min).to(x_t.dtype)
+        velocity = model(x_rows, t_rows, cond.index_select(0, rows), lengths.index_select(0, rows),
+                         cond_mask=cond_mask.index_select(0, rows), **kwargs)
+    if any_chosen:
+        estimate[rows] = data_from_velocity(velocity.float(), x_rows.float(), t_rows.float(),
+                                            sigma_min=sigma_min).to(x_t.dtype)
     return estimate
 
 

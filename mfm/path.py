@@ -46,9 +46,7 @@ def velocity_from_data(
     min_noise_scale: float = MIN_NOISE_SCALE,
 ) -> torch.Tensor:
     """Velocity of the path through ``x_t`` at time ``t`` (B,) that ends at the predicted data ``x1_hat``."""
-    t = t.reshape(-1, *([1] * (x_t.dim() - 1))).to(x_t.dtype)
-    noise_scale = (1 - (1 - sigma_min) * t).clamp_min(min_noise_scale)
-    return (x1_hat - (1 - sigma_min) * x_t) / noise_scale
+    return (x1_hat - (1 - sigma_min) * x_t) / _noise_scale(t, x_t, sigma_min, min_noise_scale)
 
 
 def data_from_velocity(
@@ -62,6 +60,11 @@ def data_from_velocity(
     """The data point ``x̂1`` a velocity at ``x_t`` and times ``t`` (B,) or scalar leads to: the inverse of
     :func:`velocity_from_data` with the same floor, so it recovers a data-predicting network's x̂1 exactly (beyond
     the floor, near t = 1, it scales a velocity network's step by the floored noise scale instead of the true one)."""
+    return (1 - sigma_min) * x_t + _noise_scale(t, x_t, sigma_min, min_noise_scale) * velocity
+
+
+def _noise_scale(t: torch.Tensor, x_t: torch.Tensor, sigma_min: float, min_noise_scale: float) -> torch.Tensor:
+    """``1 − (1 − σ_min)·t`` floored at ``min_noise_scale``, shaped to broadcast over ``x_t``: one floor for both
+    directions of the data/velocity conversion, so that each inverts the other exactly."""
     t = torch.as_tensor(t, device=x_t.device).reshape(-1, *([1] * (x_t.dim() - 1))).to(x_t.dtype)
-    noise_scale = (1 - (1 - sigma_min) * t).clamp_min(min_noise_scale)
-    return (1 - sigma_min) * x_t + noise_scale * velocity
+    return (1 - (1 - sigma_min) * t).clamp_min(min_noise_scale)

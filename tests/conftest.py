@@ -108,29 +108,29 @@ def selected_tests(request: pytest.FixtureRequest) -> set[str]:
     return {item.originalname for item in request.session.items if item.module is request.module}
 
 
-def load_launch_script(name: str):
-    """``launch/<name>.py`` as a module (the launch scripts are run as files, not imported as a package)."""
+def _module_from_file(module_name: str, path: Path):
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location(f"launch_{name}", REPO_ROOT / "launch" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(module_name, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def load_launch_script(name: str):
+    """``launch/<name>.py`` as a module (the launch scripts are run as files, not imported as a package)."""
+    return _module_from_file(f"launch_{name}", REPO_ROOT / "launch" / f"{name}.py")
 
 
 def load_benchmark(name: str):
     """``benchmarks/<name>.py`` as a module, with benchmarks/ on sys.path as when it runs as a script (the scripts
     import their siblings, e.g. length_sweep)."""
-    import importlib.util
     import sys
 
     folder = str(REPO_ROOT / "benchmarks")
     if folder not in sys.path:
         sys.path.insert(0, folder)
-    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "benchmarks" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return _module_from_file(name, REPO_ROOT / "benchmarks" / f"{name}.py")
 
 
 def flip_byte(path: Path, offset: int) -> None:
