@@ -297,7 +297,7 @@ class ModelConfig:
     composition and PCCAT give frames different texts)."""
     self_condition_prob: float = 0.0
     """Self-conditioning (Chen et al. 2022, "Analog Bits", 0.5 there; in none of the three reference models). > 0:
-    the network also sees an earlier estimate of the motion, ``x̂1``, through a zero-initialised
+    the network also sees an earlier estimate of the motion, ``x̂1``, through a zero-initialised, bias-free
     ``Linear(p·feature_dim → latent)`` added to the frames' input projection (``forward(self_condition=...)``;
     None = zeros, the network without an estimate). Training (mfm.flow) feeds this share of the rows the network's
     own x̂1 from a first, gradient-free pass at the same x_t and zeros to the others; a sampler
@@ -814,13 +814,14 @@ def _zero_bias(layer: nn.Linear) -> None:
         nn.init.zeros_(layer.bias)
 
 
-def zero_linear(in_features: int, out_features: int) -> nn.Linear:
+def zero_linear(in_features: int, out_features: int, bias: bool = True) -> nn.Linear:
     """A zero-initialised Linear, built without drawing from the global RNG: adding one to a model leaves every
     other parameter's initialisation (and so a training seed's run) as it was without it."""
     with torch.random.fork_rng(devices=[]):
-        layer = nn.Linear(in_features, out_features)
+        layer = nn.Linear(in_features, out_features, bias=bias)
     nn.init.zeros_(layer.weight)
-    nn.init.zeros_(layer.bias)
+    if bias:
+        nn.init.zeros_(layer.bias)
     return layer
 
 
@@ -1026,7 +1027,10 @@ class MotionFlowTransformer(nn.Module):
         self.input_proj = nn.Linear(config.feature_dim * config.frames_per_token, d)
         if config.self_condition_prob > 0:
             # Zero-initialised: the network starts as the one without the input, and learns to use the estimate.
-            self.self_condition_proj = zero_linear(config.feature_dim * config.frames_per_token, d)
+            # No bias: the estimate joins the input as more input weights (Chen et al. concatenate it to x_t), so
+            # zeros (no estimate) add exactly nothing and get no gradient, and a run that starts the estimate pass
+            # late (train.self_condition_start_step) is, until then, the run without the option, bit for bit.
+            self.self_condition_proj = zero_linear(config.feature_dim * config.frames_per_token, d, bias=False)
         self.time_embedding = TimeEmbedding(d, config.time_grid)
         if config.shortcut_levels > 0:
             self.step_size_embedding = StepSizeEmbedding(d)

@@ -186,6 +186,12 @@ def test_self_conditioning_is_a_flow_objective_option_that_build_objective_passe
     assert build_objective(load_config(TrainConfig, "tiny"), manifest).self_condition_prob == 0.0
     with pytest.raises(ConfigError, match="self_condition_prob"):
         load_config(TrainConfig, "tiny", ["model.self_condition_prob=0.5", "train.objective=diffusion"])
+    with pytest.raises(ConfigError, match="needs model.self_condition_prob > 0"):
+        load_config(TrainConfig, "tiny", ["train.self_condition_start_step=2"])
+    with pytest.raises(ConfigError, match="self_condition_start_step must be in"):
+        load_config(TrainConfig, "tiny", ["model.self_condition_prob=0.5", "train.self_condition_start_step=-1"])
+    late = load_config(TrainConfig, "tiny", ["model.self_condition_prob=0.5", "train.self_condition_start_step=2"])
+    assert build_objective(late, manifest, self_conditioning=False).self_condition_prob == 0.0
 
 
 @pytest.mark.slow
@@ -213,3 +219,36 @@ def test_self_conditioned_training_resumes_exactly_and_samples(tmp_path_factory,
     trained = load_trained_model(tmp_path / "straight")
     assert trained.model_config.self_condition_prob == 0.5
     assert trained.model.self_condition_proj.weight.abs().sum() > 0  # trained: the estimate reaches the network
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("single_thread")
+def test_a_late_start_leaves_the_run_before_it_unchanged(tmp_path_factory, tmp_path):
+    """train.self_condition_start_step=2: the estimate projection has no bias, so until the estimate pass starts
+    the self-conditioned model adds exactly zero and the run is the run without the option, bit for bit (losses,
+    weights, EMA); from step 3 the estimate pass runs and the estimate's weights train."""
+    from test_trainer import assert_identical, build_dataset_once, metrics_by_step, train_entry
+
+    from pipeline import checkpoint as ckpt
+
+    manifest = build_dataset_once(tmp_path_factory)
+
+    def run(out, *extra):
+        overrides = [f"data.manifest={manifest}", f"train.out_dir={out}", "train.max_steps=3", "train.save_every=1",
+                     "train.log_every=1", "train.keep_last=0", *extra]
+        assert train_entry.main(["--config", "tiny", *overrides]) == 0
+        return {step: record["loss"] for step, record in metrics_by_step(out).items()}
+
+    plain = run(tmp_path / "plain")
+    late = run(tmp_path / "late", "model.self_condition_prob=0.5", "train.self_condition_start_step=2")
+    assert [late[s] for s in (1, 2)] == [plain[s] for s in (1, 2)]
+    step_2 = ckpt.step_dir_name(2)
+    plain_model, plain_ema, _ = ckpt.load_checkpoint(ckpt.checkpoints_dir(tmp_path / "plain") / step_2)
+    late_model, late_ema, _ = ckpt.load_checkpoint(ckpt.checkpoints_dir(tmp_path / "late") / step_2)
+    for name, estimate_weights in (("model", late_model), ("ema", late_ema)):
+        assert not estimate_weights.pop("self_condition_proj.weight").any(), f"{name}: trained before its start"
+    assert_identical(plain_model, late_model, "model")
+    assert_identical(plain_ema, late_ema, "ema")
+    assert late[3] != plain[3]
+    late_model_3, _, _ = ckpt.load_checkpoint(ckpt.checkpoints_dir(tmp_path / "late") / ckpt.step_dir_name(3))
+    assert late_model_3["self_condition_proj.weight"].abs().sum() > 0

@@ -152,9 +152,10 @@ def misc_scenarios(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dic
 
 def self_conditioned_overrides(dataset: Path, root: Path) -> list[str]:
     """A self-conditioned model (model.self_condition_prob): each rank runs the estimate's pass on its own chosen
-    rows, a number that differs between ranks."""
+    rows, a number that differs between ranks, from the second step (train.self_condition_start_step: the first
+    drops the estimate's zero gradient on every rank)."""
     return [f"data.manifest={dataset}", f"train.out_dir={root / 'self-conditioned' / 'run'}", "model.dropout=0.0",
-            "model.self_condition_prob=0.5"]
+            "model.self_condition_prob=0.5", "train.self_condition_start_step=1"]
 
 
 def nonfinite_stop_scenario(dataset: Path, out: Path) -> dict[str, Any]:

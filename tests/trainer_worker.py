@@ -43,6 +43,7 @@ exit code from fit ends the process with that code, as launch/train.py does.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -88,10 +89,10 @@ class Faults:
         self.pause_at = _step_for_rank(scenario.get("pause_at"), rank)
         self.out, self.rank = Path(scenario["out"]), rank
         self.step_in_progress = 0
-        self.real_loss = None  # the objective's real loss, set when the trainer builds its objective
 
-    def loss(self, *args: Any, **kwargs: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        loss, stats = self.real_loss(*args, **kwargs)
+    def loss(self, real_loss, *args: Any, **kwargs: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """``real_loss`` (the objective's own, bound by build_faulty_objective) with this step's fault."""
+        loss, stats = real_loss(*args, **kwargs)
         step = self.step_in_progress
         if step == self.kill_at:
             os.kill(os.getpid(), signal.SIGKILL)
@@ -249,9 +250,9 @@ def run_scenario(scenario: Mapping[str, Any], dist: Dist) -> int:
     result_file = out / f"result-rank{dist.rank}.json"
     faults = Faults(scenario, dist.rank)
 
-    def build_faulty_objective(config: TrainConfig, manifest) -> HookedObjective:
-        faults.real_loss = REAL_BUILD_OBJECTIVE(config, manifest).loss
-        return HookedObjective(faults.loss)
+    def build_faulty_objective(config: TrainConfig, manifest, **phase) -> HookedObjective:
+        # One per objective the trainer builds (a start step gives it one per phase), each with its own real loss.
+        return HookedObjective(functools.partial(faults.loss, REAL_BUILD_OBJECTIVE(config, manifest, **phase).loss))
 
     trainer_module.build_objective = build_faulty_objective
     try:

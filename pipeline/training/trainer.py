@@ -426,9 +426,12 @@ def load_initial_weights(model: torch.nn.Module, checkpoint: str) -> None:
                           ) from None
 
 
-def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bool = True):
+def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bool = True,
+                    self_conditioning: bool = True):
     """The training objective the config names (both have the same ``loss(...)`` call). ``trajectory_term=False``:
-    the flow objective without train.flow_trajectory_weight's term (before train.flow_trajectory_start_step)."""
+    the flow objective without train.flow_trajectory_weight's term (before train.flow_trajectory_start_step);
+    ``self_conditioning=False``: without the estimate pass of model.self_condition_prob (before
+    train.self_condition_start_step)."""
     if cfg.train.objective == "flow":
         geometry = None
         skeleton = get_skeleton(manifest.data["feature_spec"]["skeleton"])
@@ -446,7 +449,8 @@ def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bo
                                      foot_contact_weight=cfg.train.flow_foot_contact_weight,
                                      root_mean_weight=cfg.train.flow_root_mean_weight,
                                      input_perturbation=cfg.train.flow_input_perturbation,
-                                     self_condition_prob=cfg.model.self_condition_prob, geometry=geometry,
+                                     self_condition_prob=cfg.model.self_condition_prob if self_conditioning else 0.0,
+                                     geometry=geometry,
                                      time_sampling=cfg.train.flow_time_sampling, time_loc=cfg.train.flow_time_loc,
                                      time_scale=cfg.train.flow_time_scale,
                                      time_grid_steps=cfg.train.flow_time_grid_steps,
@@ -494,11 +498,13 @@ class Trainer:
         bad_shards, self.shard_report = self._verified_bad_shards("train")
         check_noise_source(cfg, self.manifest)
         self.objective = build_objective(cfg, self.manifest)
-        # train.flow_trajectory_start_step: the same objective without the term for the first updates (the term
-        # draws nothing, so the draws and the run up to then are the run without it).
-        self.objective_before_trajectory = (
-            build_objective(cfg, self.manifest, trajectory_term=False)
-            if cfg.train.objective == "flow" and cfg.train.flow_trajectory_start_step > 0 else self.objective)
+        # train.flow_trajectory_start_step / train.self_condition_start_step: the same objective without the term
+        # or the estimate pass for the first updates. Neither draws before it starts, so the run up to then is the
+        # run without it.
+        self.objectives_by_phase = {
+            phase: self.objective if all(phase) else build_objective(
+                cfg, self.manifest, trajectory_term=phase[0], self_conditioning=phase[1])
+            for phase in {self._objective_phase(step) for step in self._phase_starts()}}
         self.model_config = model_config_for(
             self.manifest, cfg.model, learned_variance=getattr(self.objective, "learn_sigma", False))
 
@@ -643,12 +649,23 @@ class Trainer:
                 overrides["self_condition_rows"] = draws.self_condition_rows
             if draws.positional_mode is not None:
                 model_kwargs["positional_mode"] = draws.positional_mode
-        objective = (self.objective if self.step >= self.cfg.train.flow_trajectory_start_step
-                     else self.objective_before_trajectory)  # self.step: the updates before this one
+        objective = self.objectives_by_phase[self._objective_phase(self.step)]  # self.step: the updates before
         loss, _ = objective.loss(self.model if model is None else model, features, self._condition(batch),
                                  lengths, generator=generator,
                                  cond_mask=cond_mask, model_kwargs=model_kwargs, **overrides)
         return loss
+
+    def _phase_starts(self) -> list[int]:
+        """The steps at which the objective changes (0 first)."""
+        if self.cfg.train.objective != "flow":
+            return [0]
+        return [0, self.cfg.train.flow_trajectory_start_step, self.cfg.train.self_condition_start_step]
+
+    def _objective_phase(self, step: int) -> tuple[bool, bool]:
+        """(trajectory term on, estimate pass on) for the update after ``step`` updates."""
+        if self.cfg.train.objective != "flow":
+            return (True, True)
+        return (step >= self.cfg.train.flow_trajectory_start_step, step >= self.cfg.train.self_condition_start_step)
 
     def _stand_in(self, empty: Mapping[str, Any]) -> dict[str, Any]:
         """What an empty micro-batch runs through the model (with weight 0) so that its rank takes part in the
@@ -729,6 +746,11 @@ class Trainer:
         # fp16: the gradients back to their true size before they are measured, clipped or applied, and this
         # rank's overflow flag (0 without fp16)
         found_inf = self.loss_scaler.unscale_(self.optimizer)
+        if not self._objective_phase(self.step)[1] and self.model_config.self_condition_prob > 0:
+            # Before train.self_condition_start_step the estimate's input is zeros, so its weights' gradient is
+            # exactly zero; dropping it keeps the norm's and AdamW's arithmetic that of the run without the option
+            # (a zero in the norm's sum still changes its rounding), bit for bit.
+            self.dist.unwrap(model).self_condition_proj.weight.grad = None
         if self.cfg.optim.grad_clip > 0:
             grad_norm = self.dist.clip_grad_norm_(model.parameters(), self.cfg.optim.grad_clip)
         else:
