@@ -2,6 +2,8 @@
 pass that feeds it the network's own x̂1, and the sampler's wrapper that feeds it the previous evaluation's."""
 
 import dataclasses
+import logging
+import shutil
 
 import pytest
 import torch
@@ -223,25 +225,34 @@ def test_self_conditioned_training_resumes_exactly_and_samples(tmp_path_factory,
 
 @pytest.mark.slow
 @pytest.mark.usefixtures("single_thread")
-def test_a_late_start_leaves_the_run_before_it_unchanged(tmp_path_factory, tmp_path):
+def test_a_late_start_leaves_the_run_before_it_unchanged(tmp_path_factory, tmp_path, caplog):
     """train.self_condition_start_step=2: the estimate projection has no bias, so until the estimate pass starts
     the self-conditioned model adds exactly zero and the run is the run without the option, bit for bit (losses,
-    weights, EMA); from step 3 the estimate pass runs and the estimate's weights train."""
+    gradient norms, weights, EMA); from step 3 the estimate pass runs and the estimate's weights train. A run
+    resumed at the start step (its optimizer has no state for the estimate's weights yet) logs the same losses."""
     from test_trainer import assert_identical, build_dataset_once, metrics_by_step, train_entry
 
     from pipeline import checkpoint as ckpt
 
     manifest = build_dataset_once(tmp_path_factory)
+    late_start = ["model.self_condition_prob=0.5", "train.self_condition_start_step=2"]
 
     def run(out, *extra):
-        overrides = [f"data.manifest={manifest}", f"train.out_dir={out}", "train.max_steps=3", "train.save_every=1",
-                     "train.log_every=1", "train.keep_last=0", *extra]
+        overrides = [f"data.manifest={manifest}", f"train.out_dir={out}", "train.max_steps=3",
+                     "train.save_every=1", "train.log_every=1", "train.keep_last=0", *extra]
         assert train_entry.main(["--config", "tiny", *overrides]) == 0
-        return {step: record["loss"] for step, record in metrics_by_step(out).items()}
+        return {step: (record["loss"], record["grad_norm"]) for step, record in metrics_by_step(out).items()}
 
     plain = run(tmp_path / "plain")
-    late = run(tmp_path / "late", "model.self_condition_prob=0.5", "train.self_condition_start_step=2")
+    late = run(tmp_path / "late", *late_start)
     assert [late[s] for s in (1, 2)] == [plain[s] for s in (1, 2)]
+    resumed = tmp_path / "resumed"  # the late run with its last checkpoint lost: it resumes from step 2
+    shutil.copytree(tmp_path / "late", resumed)
+    shutil.rmtree(ckpt.checkpoints_dir(resumed) / ckpt.step_dir_name(3))
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="pipeline.distributed"):
+        assert run(resumed, *late_start) == late
+    assert "resumed from" in caplog.text and "at step 2" in caplog.text, caplog.text
     step_2 = ckpt.step_dir_name(2)
     plain_model, plain_ema, _ = ckpt.load_checkpoint(ckpt.checkpoints_dir(tmp_path / "plain") / step_2)
     late_model, late_ema, _ = ckpt.load_checkpoint(ckpt.checkpoints_dir(tmp_path / "late") / step_2)
