@@ -499,12 +499,11 @@ class Trainer:
         check_noise_source(cfg, self.manifest)
         self.objective = build_objective(cfg, self.manifest)
         # train.flow_trajectory_start_step / train.self_condition_start_step: the same objective without the term
-        # or the estimate pass for the first updates. Neither draws before it starts, so the run up to then is the
-        # run without it.
-        self.objectives_by_phase = {
-            phase: self.objective if all(phase) else build_objective(
-                cfg, self.manifest, trajectory_term=phase[0], self_conditioning=phase[1])
-            for phase in {self._objective_phase(step) for step in self._phase_starts()}}
+        # or the estimate pass for the first updates (self.objective from when both have started). Neither draws
+        # before it starts, so the run up to then is the run without it.
+        self.objectives_before_start = {
+            phase: build_objective(cfg, self.manifest, trajectory_term=phase[0], self_conditioning=phase[1])
+            for phase in {self._objective_phase(step) for step in self._phase_starts()} if not all(phase)}
         self.model_config = model_config_for(
             self.manifest, cfg.model, learned_variance=getattr(self.objective, "learn_sigma", False))
 
@@ -649,7 +648,8 @@ class Trainer:
                 overrides["self_condition_rows"] = draws.self_condition_rows
             if draws.positional_mode is not None:
                 model_kwargs["positional_mode"] = draws.positional_mode
-        objective = self.objectives_by_phase[self._objective_phase(self.step)]  # self.step: the updates before
+        phase = self._objective_phase(self.step)  # self.step: the updates before this one
+        objective = self.objective if all(phase) else self.objectives_before_start[phase]
         loss, _ = objective.loss(self.model if model is None else model, features, self._condition(batch),
                                  lengths, generator=generator,
                                  cond_mask=cond_mask, model_kwargs=model_kwargs, **overrides)
