@@ -408,12 +408,10 @@ class TrainLoopConfig:
                  f"train.flow_root_mean_weight must be >= 0, got {self.flow_root_mean_weight}")
         _require(self.flow_foot_contact_weight >= 0,
                  f"train.flow_foot_contact_weight must be >= 0, got {self.flow_foot_contact_weight}")
-        _require(0 <= self.flow_trajectory_start_step < self.max_steps,
-                 f"train.flow_trajectory_start_step must be in [0, train.max_steps={self.max_steps}), "
-                 f"got {self.flow_trajectory_start_step}")
-        _require(0 <= self.self_condition_start_step < self.max_steps,
-                 f"train.self_condition_start_step must be in [0, train.max_steps={self.max_steps}), "
-                 f"got {self.self_condition_start_step}")
+        for name in ("flow_trajectory_start_step", "self_condition_start_step"):
+            start = getattr(self, name)
+            _require(0 <= start < self.max_steps,
+                     f"train.{name} must be in [0, train.max_steps={self.max_steps}), got {start}")
         _require(0 <= self.flow_trajectory_min_t < 1,
                  f"train.flow_trajectory_min_t must be in [0, 1), got {self.flow_trajectory_min_t}")
         _require(self.flow_trajectory_huber >= 0,

@@ -39,6 +39,16 @@ def used_estimate(model: MotionFlowTransformer) -> MotionFlowTransformer:
     return model
 
 
+def train_tiny(manifest, out, *overrides: str) -> dict:
+    """``launch/train.py --config tiny`` on ``manifest`` into ``out``, logging every step and keeping every
+    checkpoint; its metrics.jsonl records by step."""
+    from test_trainer import metrics_by_step, train_entry
+
+    assert train_entry.main(["--config", "tiny", f"data.manifest={manifest}", f"train.out_dir={out}",
+                             "train.log_every=1", "train.keep_last=0", *overrides]) == 0
+    return metrics_by_step(out)
+
+
 class Recording:
     """A model stand-in that records each call's inputs and returns a fixed function of x."""
 
@@ -202,17 +212,15 @@ def test_self_conditioned_training_resumes_exactly_and_samples(tmp_path_factory,
     """The self-conditioned rows come from the trainer's per-rank generator (saved in the checkpoint), so a run
     resumed half-way logs the same losses as one run straight through; they differ from a run without the option;
     the checkpoint samples through launch/sample.py."""
-    from test_trainer import build_dataset_once, metrics_by_step, train_entry
+    from test_trainer import build_dataset_once
 
     from pipeline.generation.inference import load_trained_model
 
     manifest = build_dataset_once(tmp_path_factory)
 
     def run(out, steps, *extra):
-        overrides = [f"data.manifest={manifest}", f"train.out_dir={out}", f"train.max_steps={steps}",
-                     "train.save_every=2", "train.log_every=1", "train.keep_last=0", *extra]
-        assert train_entry.main(["--config", "tiny", *overrides]) == 0
-        return {step: record["loss"] for step, record in metrics_by_step(out).items()}
+        metrics = train_tiny(manifest, out, f"train.max_steps={steps}", "train.save_every=2", *extra)
+        return {step: record["loss"] for step, record in metrics.items()}
 
     straight = run(tmp_path / "straight", 4, "model.self_condition_prob=0.5")
     run(tmp_path / "resumed", 2, "model.self_condition_prob=0.5")
@@ -230,7 +238,7 @@ def test_a_late_start_leaves_the_run_before_it_unchanged(tmp_path_factory, tmp_p
     the self-conditioned model adds exactly zero and the run is the run without the option, bit for bit (losses,
     gradient norms, weights, EMA); from step 3 the estimate pass runs and the estimate's weights train. A run
     resumed at the start step (its optimizer has no state for the estimate's weights yet) logs the same losses."""
-    from test_trainer import assert_identical, build_dataset_once, metrics_by_step, train_entry
+    from test_trainer import assert_identical, build_dataset_once
 
     from pipeline import checkpoint as ckpt
 
@@ -238,10 +246,8 @@ def test_a_late_start_leaves_the_run_before_it_unchanged(tmp_path_factory, tmp_p
     late_start = ["model.self_condition_prob=0.5", "train.self_condition_start_step=2"]
 
     def run(out, *extra):
-        overrides = [f"data.manifest={manifest}", f"train.out_dir={out}", "train.max_steps=3",
-                     "train.save_every=1", "train.log_every=1", "train.keep_last=0", *extra]
-        assert train_entry.main(["--config", "tiny", *overrides]) == 0
-        return {step: (record["loss"], record["grad_norm"]) for step, record in metrics_by_step(out).items()}
+        metrics = train_tiny(manifest, out, "train.max_steps=3", "train.save_every=1", *extra)
+        return {step: (record["loss"], record["grad_norm"]) for step, record in metrics.items()}
 
     plain = run(tmp_path / "plain")
     late = run(tmp_path / "late", *late_start)
