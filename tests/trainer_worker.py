@@ -61,7 +61,7 @@ import torch.distributed as torch_dist
 import pipeline.training.trainer as trainer_module
 from pipeline.config import TrainConfig, load_config
 from pipeline.data.stream import LoaderOptions, MotionLoader
-from pipeline.distributed import Dist
+from pipeline.distributed import Dist, ends_rank_processes
 from pipeline.training.trainer import Draws, Trainer, draw_for_batch
 
 REAL_BUILD_OBJECTIVE = trainer_module.build_objective
@@ -298,6 +298,7 @@ def wait_for_other_ranks(dist: Dist, after_error: bool) -> bool:
     return True
 
 
+@ends_rank_processes  # as the entry points end: tests/test_rank_exit.py
 def main(spec_path: str) -> int:
     scenarios = json.loads(Path(spec_path).read_text())
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

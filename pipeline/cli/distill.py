@@ -57,7 +57,7 @@ from pipeline.checkpoint import CheckpointError, ResumeConflictError
 from pipeline.cli.train import fail
 from pipeline.config import ConfigError, DistillConfig, TrainConfig, describe_config, load_config, parse_override
 from pipeline.data.stages import DataError
-from pipeline.distributed import Dist, MixedPrecisionError
+from pipeline.distributed import Dist, MixedPrecisionError, ends_rank_processes
 from pipeline.generation.inference import TrainedModel, load_trained_model
 from pipeline.generation.pairs import FLOW_MAP_KEY, PairSetError, make_pairs, pairs_dir
 from pipeline.training.run_folder import RunFolderLock, check_run_folder, write_run_marker
@@ -133,6 +133,7 @@ def prepare_out_dir(out: Path, dist: Dist) -> None:
     dist.barrier()
 
 
+@ends_rank_processes
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--teacher", required=True, help="the teacher: a step-XXXXXXXX folder or a run folder (its "

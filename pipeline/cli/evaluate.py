@@ -50,7 +50,7 @@ import signal
 import sys
 
 from pipeline.config import ConfigError, describe_config
-from pipeline.distributed import Dist
+from pipeline.distributed import Dist, ends_rank_processes
 from pipeline.evaluation.config import (
     PROTOCOL_PRESETS,
     load_eval_config,
@@ -66,6 +66,7 @@ from pipeline.evaluation.spaces import EvaluationError, EvaluatorUnavailable
 from pipeline.evaluation.store import EvalFolderError, MixedTestSetError
 
 
+@ends_rank_processes
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     target = parser.add_mutually_exclusive_group()

@@ -30,7 +30,7 @@ from pipeline.config import (
     load_config,
 )
 from pipeline.data.stages import DataError
-from pipeline.distributed import Dist, MixedPrecisionError
+from pipeline.distributed import Dist, MixedPrecisionError, ends_rank_processes
 from pipeline.training.trainer import CheckpointSaveError, Trainer
 from preprocess.shards import BuildConfig, ManifestError, OutputFolderError, build_dataset, default_out_dir
 
@@ -48,6 +48,7 @@ def ensure_embedded_dataset(manifest: str, dist: Dist) -> None:
             build_dataset(BuildConfig(out=EMBEDDED_MANIFEST.parent))
 
 
+@ends_rank_processes
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", default="default",

@@ -17,7 +17,7 @@ import logging
 import sys
 
 from pipeline.config import ConfigError, describe_config, load_config
-from pipeline.distributed import Dist
+from pipeline.distributed import Dist, ends_rank_processes
 from pipeline.evaluation.evaluator_training import EvaluatorTrainConfig, train_evaluator
 from preprocess.shards import ManifestError
 
@@ -34,6 +34,7 @@ def format_report(report: dict) -> str:
     return "\n".join(lines)
 
 
+@ends_rank_processes
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", help="a YAML file of settings (defaults: pipeline/evaluation/evaluator_training.py)")
