@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from tests import rank_exit_worker
 from tests.test_trainer import REPO_ROOT, clean_env
 
 WORKER = REPO_ROOT / "tests" / "rank_exit_worker.py"
@@ -57,10 +58,5 @@ def test_a_single_process_returns_its_code(tmp_path, monkeypatch):
     """In-process (every single-process test calls main() this way) nothing exits: the code is returned."""
     for name in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
         monkeypatch.delenv(name, raising=False)
-    sys.path.insert(0, str(REPO_ROOT / "tests"))
-    try:
-        import rank_exit_worker
-    finally:
-        sys.path.remove(str(REPO_ROOT / "tests"))
     assert rank_exit_worker.main(tmp_path, 5) == 5
     assert json.loads((tmp_path / "threads-rank0.json").read_text())["world_size"] == 1
