@@ -15,7 +15,8 @@ checkpoint's motions show against the test split's clips and the captions' check
 * ``length_sweep``: benchmarks/length_sweep.py's default captions and lengths at seeds 0-2, the share passing, and
   the heading change of its turns at its shortest and longest length.
 
-``--steps`` and ``--guidance`` replace the checkpoint's own solver steps and guidance scale in all four.
+``--steps`` and ``--guidance`` replace the checkpoint's own solver steps and guidance scale in all four;
+``--model-weights model`` samples all four with the raw training weights instead of the EMA.
 """
 
 from __future__ import annotations
@@ -38,12 +39,13 @@ CHECKS = ("count", "place", "turn_angle", "all")
 
 
 def sheet_figures(checkpoint: str, out: Path, rows: int, seeds: list[int], steps: int | None,
-                  guidance: float | None = None) -> dict:
+                  guidance: float | None = None, weights: str = "ema") -> dict:
     sheets = []
     for seed in seeds:
         sheet = run_contact_sheet(ContactSheetRequest(out=out / f"sheet-s{seed}.png", checkpoint=checkpoint,
                                                       captions_from_manifest="test", max_rows=rows, seed=seed,
-                                                      steps=steps, guidance=guidance, device="cpu"))
+                                                      steps=steps, guidance=guidance, device="cpu",
+                                                      weights=weights))
         (out / f"sheet-s{seed}.json").write_text(json.dumps(sheet, indent=1))
         sheets.append(sheet)
     against = [s["against_dataset_clips"] for s in sheets]
@@ -72,13 +74,13 @@ def sheet_figures(checkpoint: str, out: Path, rows: int, seeds: list[int], steps
 
 
 def jump_sweep(checkpoint: str, lengths: list[int], seeds: list[int], steps: int | None,
-               guidance: float | None = None) -> dict:
+               guidance: float | None = None, weights: str = "ema") -> dict:
     cells = [(text, n) for text in IN_PLACE_JUMPS for n in lengths]
     longest = (IN_PLACE_JUMPS[-1], max(lengths))
     passed, travel = 0, []
     for seed in seeds:
         motions = sample_joints(checkpoint, [t for t, _ in cells], [n for _, n in cells], seed,
-                                {"device": "cpu", "weights": "ema", "steps": steps, "guidance": guidance})
+                                {"device": "cpu", "weights": weights, "steps": steps, "guidance": guidance})
         for cell, joints in zip(cells, motions):
             passed += all(check_caption(joints, cell[0])["checks"].values())
             if cell == longest:
@@ -97,16 +99,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sweep-lengths", default="40,60,90,130,196", help="frames of the length sweep")
     p.add_argument("--steps", type=int, help="solver steps (default: the model's)")
     p.add_argument("--guidance", type=float, help="guidance scale (default: the model's)")
+    p.add_argument("--model-weights", choices=("ema", "model"), default="ema",
+                   help="the checkpoint's EMA weights (default) or its raw training weights")
     args = p.parse_args(argv)
 
     args.out.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
     summary = {"checkpoint": args.checkpoint, "seeds": seeds, "guidance": args.guidance,
-               **sheet_figures(args.checkpoint, args.out, args.rows, seeds, args.steps, args.guidance),
+               "model_weights": args.model_weights,
+               **sheet_figures(args.checkpoint, args.out, args.rows, seeds, args.steps, args.guidance,
+                               args.model_weights),
                "jump_sweep": jump_sweep(args.checkpoint, [int(n) for n in args.jump_lengths.split(",")], seeds,
-                                        args.steps, args.guidance)}
+                                        args.steps, args.guidance, args.model_weights)}
     sweep_out = args.out / "length_sweep.json"
-    sweep_args = ["--checkpoint", args.checkpoint, "--lengths", args.sweep_lengths, "--out", str(sweep_out)]
+    sweep_args = ["--checkpoint", args.checkpoint, "--lengths", args.sweep_lengths, "--out", str(sweep_out),
+                  "--model-weights", args.model_weights]
     length_sweep_main(sweep_args + (["--steps", str(args.steps)] if args.steps else [])
                       + (["--guidance", str(args.guidance)] if args.guidance is not None else []))
     rows = json.loads(sweep_out.read_text())["rows"]

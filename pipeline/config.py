@@ -161,11 +161,16 @@ class OptimConfig:
 
     lr: float = 1e-4
     """Peak learning rate (reached after warmup_steps; then constant or decayed, see ``schedule``)."""
-    schedule: Literal["constant", "cosine"] = "constant"
+    schedule: Literal["constant", "cosine", "wsd"] = "constant"
     """After warm-up: 'constant' (MFM) or 'cosine' decay from lr to ``min_lr_ratio``·lr at train.max_steps (not MFM:
-    a short run that must end fitted, like the CPU default, gains most in its last, low-lr steps)."""
+    a short run that must end fitted, like the CPU default, gains most in its last, low-lr steps), or 'wsd'
+    (warmup-stable-decay: constant lr, then a linear decay to ``min_lr_ratio``·lr over the last ``decay_fraction``
+    of the steps after warm-up; Hu et al. 2024, MiniCPM; Hägele et al. 2024. Not in MFM, FLAME or FlowMDM: it keeps
+    the peak lr where cosine has already lowered it, for what a short run learns late; docs/generator-study.md)."""
     min_lr_ratio: float = 0.0
-    """cosine: the final learning rate as a fraction of lr."""
+    """cosine and wsd: the final learning rate as a fraction of lr."""
+    decay_fraction: float = 0.2
+    """wsd: the share of the steps after warm-up spent in the final linear decay (1: linear decay from warm-up on)."""
     weight_decay: float = 0.0
     betas: tuple[float, float] = (0.9, 0.999)
     warmup_steps: int = 0
@@ -194,6 +199,8 @@ class OptimConfig:
         _require(all(0.0 <= b < 1.0 for b in self.betas), f"optim.betas must lie in [0, 1), got {self.betas}")
         _require(self.warmup_steps >= 0, f"optim.warmup_steps must be >= 0, got {self.warmup_steps}")
         _require(0.0 <= self.min_lr_ratio <= 1.0, f"optim.min_lr_ratio must lie in [0, 1], got {self.min_lr_ratio}")
+        _require(0.0 < self.decay_fraction <= 1.0,
+                 f"optim.decay_fraction must lie in (0, 1], got {self.decay_fraction}")
         _require(self.grad_clip >= 0.0, f"optim.grad_clip must be >= 0 (0 disables), got {self.grad_clip}")
         _require(self.grad_accum >= 1, f"optim.grad_accum must be >= 1, got {self.grad_accum}")
         _require(0.0 <= self.ema_decay < 1.0, f"optim.ema_decay must lie in [0, 1), got {self.ema_decay}")

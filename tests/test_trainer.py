@@ -619,7 +619,8 @@ def test_tolerant_verification_skips_the_shard_and_reports_it(corrupted_dataset,
 
 
 def test_learning_rate_schedules():
-    """Warm-up is linear to 1; 'constant' stays there (MFM), 'cosine' falls to min_ratio exactly at total_steps."""
+    """Warm-up is linear to 1; 'constant' stays there (MFM), 'cosine' falls to min_ratio exactly at total_steps, 'wsd'
+    holds 1 and then falls in a straight line over its decay_fraction."""
     from pipeline.training.trainer import lr_lambda
 
     constant = lr_lambda(4, "constant", total_steps=100)
@@ -630,6 +631,20 @@ def test_learning_rate_schedules():
     assert cosine(104) == pytest.approx(0.1) and cosine(500) == pytest.approx(0.1)
     values = [cosine(s) for s in range(4, 105)]
     assert all(a >= b for a, b in zip(values, values[1:]))
+    # wsd: the peak until the last quarter (25) of the 100 steps after warm-up, from step 79 a straight line to 0.1
+    wsd = lr_lambda(4, "wsd", total_steps=104, min_ratio=0.1, decay_fraction=0.25)
+    assert [wsd(s) for s in range(4)] == [0.25, 0.5, 0.75, 1.0]
+    assert all(wsd(s) == 1.0 for s in range(4, 80))
+    assert wsd(90) == pytest.approx(1.0 - 0.9 * 11 / 25) and wsd(104) == pytest.approx(0.1)
+    assert wsd(500) == pytest.approx(0.1)
+    decay = [wsd(s) for s in range(79, 105)]
+    assert all(a > b for a, b in zip(decay, decay[1:]))
+    assert len({round(a - b, 12) for a, b in zip(decay, decay[1:])}) == 1  # linear
+    # the wsd knob leaves cosine as it was
+    assert [lr_lambda(4, "cosine", 104, 0.1, decay_fraction=0.25)(s) for s in range(110)] == [
+        cosine(s) for s in range(110)]
+    with pytest.raises(Exception, match="decay_fraction"):
+        load_config(TrainConfig, "tiny", ["optim.schedule=wsd", "optim.decay_fraction=0"])
     with pytest.raises(Exception, match="min_lr_ratio"):
         load_config(TrainConfig, "tiny", ["optim.min_lr_ratio=1.5"])
     with pytest.raises(Exception, match="schedule"):

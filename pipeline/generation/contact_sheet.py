@@ -199,10 +199,11 @@ def run_contact_sheet(request: ContactSheetRequest) -> dict[str, Any]:
         run = Path(results["checkpoint"]).parents[1].name  # checkpoints live in RUN/checkpoints/step-XXXXXXXX
         header = (f"generated: {run} step {results['step']}, {results['solver']} {results['steps']} steps, "
                   f"guidance {results['guidance']:g}{' of the pose' if results['guided_features'] == 'pose' else ''}, "
-                  f"seed {results['seed']}")
-        info = {"mode": "generated", **{key: results[key] for key in ("checkpoint", "step", "solver", "steps",
-                                                                        "guidance", "guided_features", "seed",
-                                                                        "smoothing_sigma", "smoothing_keeps_bones")}}
+                  f"seed {results['seed']}{', raw weights' if results['weights'] == 'model' else ''}")
+        info = {"mode": "generated", **{key: results[key] for key in ("checkpoint", "step", "weights", "solver",
+                                                                        "steps", "guidance", "guided_features",
+                                                                        "seed", "smoothing_sigma",
+                                                                        "smoothing_keeps_bones")}}
         if captions and not request.seconds:
             clips = [DECODERS[request.decode](c.features[: len(m)], skeleton) for c, m in zip(captions, motions)]
             info["against_dataset_clips"] = compare_with_clips(motions, clips, skeleton,

@@ -268,16 +268,21 @@ class EMA:
         self.num_updates = num_updates
 
 
-def lr_lambda(warmup_steps: int, schedule: str = "constant", total_steps: int = 0, min_ratio: float = 0.0):
+def lr_lambda(warmup_steps: int, schedule: str = "constant", total_steps: int = 0, min_ratio: float = 0.0,
+              decay_fraction: float = 1.0):
     """LR multiplier per optimizer step: linear warm-up from ~0 to 1 over ``warmup_steps``, then constant (MFM: a
-    constant 1e-4, no warm-up) or a cosine from 1 down to ``min_ratio`` at ``total_steps``."""
+    constant 1e-4, no warm-up), a cosine from 1 down to ``min_ratio`` at ``total_steps``, or 'wsd': 1 until the
+    last ``decay_fraction`` of the steps after warm-up, then linear down to ``min_ratio`` at ``total_steps``."""
+    decay_steps = (total_steps - warmup_steps) * (decay_fraction if schedule == "wsd" else 1.0)
 
     def multiplier(step: int) -> float:
         if step < warmup_steps:
             return (step + 1) / warmup_steps
         if schedule == "constant" or total_steps <= warmup_steps:
             return 1.0
-        progress = min(1.0, (step - warmup_steps) / (total_steps - warmup_steps))
+        progress = min(1.0, max(0.0, (step - (total_steps - decay_steps)) / decay_steps))
+        if schedule == "wsd":
+            return 1.0 - (1.0 - min_ratio) * progress
         return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
 
     return multiplier
@@ -521,7 +526,8 @@ class Trainer:
         )
         scheduler = torch.optim.lr_scheduler.LambdaLR(
             optimizer,
-            lr_lambda(cfg.optim.warmup_steps, cfg.optim.schedule, cfg.train.max_steps, cfg.optim.min_lr_ratio),
+            lr_lambda(cfg.optim.warmup_steps, cfg.optim.schedule, cfg.train.max_steps, cfg.optim.min_lr_ratio,
+                      cfg.optim.decay_fraction),
         )
         if compiles(cfg.train.compile, dist.device):
             model = compiled_for_training(model, cfg.train.compile_mode, batch_widths=(
