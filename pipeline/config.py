@@ -165,8 +165,9 @@ class OptimConfig:
     """After warm-up: 'constant' (MFM) or 'cosine' decay from lr to ``min_lr_ratio``·lr at train.max_steps (not MFM:
     a short run that must end fitted, like the CPU default, gains most in its last, low-lr steps), or 'wsd'
     (warmup-stable-decay: constant lr, then a linear decay to ``min_lr_ratio``·lr over the last ``decay_fraction``
-    of the steps after warm-up; Hu et al. 2024, MiniCPM; Hägele et al. 2024. Not in MFM, FLAME or FlowMDM: it keeps
-    the peak lr where cosine has already lowered it, for what a short run learns late; docs/generator-study.md)."""
+    of the steps after warm-up; Hu et al. 2024, MiniCPM; Hägele et al. 2024. Not in MFM, FLAME or FlowMDM. It keeps
+    the peak lr where cosine has already lowered it; on the synthetic preset that lost the counts, which are learnt
+    while the cosine's lr is low: docs/generator-study.md, "... warmup-stable-decay")."""
     min_lr_ratio: float = 0.0
     """cosine and wsd: the final learning rate as a fraction of lr."""
     decay_fraction: float = 0.2
