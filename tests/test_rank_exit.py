@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from tests import rank_exit_worker
-from tests.test_trainer import REPO_ROOT, clean_env
+from tests.test_trainer import LAUNCH_VARS, REPO_ROOT, clean_env
 
 WORKER = REPO_ROOT / "tests" / "rank_exit_worker.py"
 
@@ -56,7 +56,7 @@ def test_a_rank_ends_with_its_code_after_its_atexit_handlers_and_flushed_output(
 
 def test_a_single_process_returns_its_code(tmp_path, monkeypatch):
     """In-process (every single-process test calls main() this way) nothing exits: the code is returned."""
-    for name in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+    for name in LAUNCH_VARS:
         monkeypatch.delenv(name, raising=False)
     assert rank_exit_worker.main(tmp_path, 5) == 5
     assert json.loads((tmp_path / "threads-rank0.json").read_text())["world_size"] == 1
