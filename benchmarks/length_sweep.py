@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from mfm.caption_checks import check_caption
-from pipeline.generation.request import SampleRequest
+from pipeline.generation.request import SampleRequest, bone_keeping_setting
 from pipeline.generation.sampling import run_sampling
 
 DEFAULT_TEXTS = (
@@ -63,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--guidance", type=float)
     p.add_argument("--guided-features", choices=("all", "pose"))
     p.add_argument("--smoothing", type=float)
+    p.add_argument("--smoothing-keeps-bones", type=bone_keeping_setting, metavar="{true,false,smoothed}")
     p.add_argument("--device", default="cpu")
     p.add_argument("--model-weights", choices=("ema", "model"), default="ema",
                    help="the checkpoint's EMA weights (default) or its raw ones")
@@ -73,7 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     lengths = [int(n) for n in args.lengths.split(",")]
     seeds = [int(s) for s in args.seeds.split(",")]
     options = dict(steps=args.steps, guidance=args.guidance, guided_features=args.guided_features,
-                   smoothing=args.smoothing, device=args.device, weights=args.model_weights)
+                   smoothing=args.smoothing, smoothing_keeps_bones=args.smoothing_keeps_bones, device=args.device,
+                   weights=args.model_weights)
     cells = [(text, n) for text in texts for n in lengths]
     checks: dict[tuple[str, int], list[dict]] = {cell: [] for cell in cells}
     for seed in seeds:

@@ -16,7 +16,8 @@ checkpoint's motions show against the test split's clips and the captions' check
   the heading change of its turns at its shortest and longest length.
 
 ``--steps`` and ``--guidance`` replace the checkpoint's own solver steps and guidance scale in all four;
-``--model-weights model`` samples all four with the raw training weights instead of the EMA.
+``--model-weights model`` samples all four with the raw training weights instead of the EMA;
+``--smoothing-keeps-bones`` sets how the output smoothing keeps the bones in all four.
 """
 
 from __future__ import annotations
@@ -32,20 +33,21 @@ from length_sweep import main as length_sweep_main  # benchmarks/, on sys.path w
 from length_sweep import sample_joints
 from mfm.caption_checks import check_caption
 from pipeline.generation.contact_sheet import ContactSheetRequest, run_contact_sheet
+from pipeline.generation.request import bone_keeping_setting
 
 IN_PLACE_JUMPS = ("a person jumps up in place once.", "a person jumps up in place twice.",
                   "a person jumps up in place 3 times.")
 CHECKS = ("count", "place", "turn_angle", "all")
 
 
-def sheet_figures(checkpoint: str, out: Path, rows: int, seeds: list[int], steps: int | None,
-                  guidance: float | None = None, weights: str = "ema") -> dict:
+def sheet_figures(checkpoint: str, out: Path, rows: int, seeds: list[int], sampling: dict) -> dict:
+    """``sampling``: the sampler settings every part of the judge shares (steps, guidance, weights,
+    smoothing_keeps_bones; None: the model's)."""
     sheets = []
     for seed in seeds:
         sheet = run_contact_sheet(ContactSheetRequest(out=out / f"sheet-s{seed}.png", checkpoint=checkpoint,
                                                       captions_from_manifest="test", max_rows=rows, seed=seed,
-                                                      steps=steps, guidance=guidance, device="cpu",
-                                                      weights=weights))
+                                                      device="cpu", **sampling))
         (out / f"sheet-s{seed}.json").write_text(json.dumps(sheet, indent=1))
         sheets.append(sheet)
     against = [s["against_dataset_clips"] for s in sheets]
@@ -73,14 +75,13 @@ def sheet_figures(checkpoint: str, out: Path, rows: int, seeds: list[int], steps
     return {"sheet": figures, "in_place_rows": {"passed": passed, "of": total}}
 
 
-def jump_sweep(checkpoint: str, lengths: list[int], seeds: list[int], steps: int | None,
-               guidance: float | None = None, weights: str = "ema") -> dict:
+def jump_sweep(checkpoint: str, lengths: list[int], seeds: list[int], sampling: dict) -> dict:
     cells = [(text, n) for text in IN_PLACE_JUMPS for n in lengths]
     longest = (IN_PLACE_JUMPS[-1], max(lengths))
     passed, travel = 0, []
     for seed in seeds:
         motions = sample_joints(checkpoint, [t for t, _ in cells], [n for _, n in cells], seed,
-                                {"device": "cpu", "weights": weights, "steps": steps, "guidance": guidance})
+                                {"device": "cpu", **sampling})
         for cell, joints in zip(cells, motions):
             passed += all(check_caption(joints, cell[0])["checks"].values())
             if cell == longest:
@@ -101,21 +102,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--guidance", type=float, help="guidance scale (default: the model's)")
     p.add_argument("--model-weights", choices=("ema", "model"), default="ema",
                    help="the checkpoint's EMA weights (default) or its raw training weights")
+    p.add_argument("--smoothing-keeps-bones", type=bone_keeping_setting, metavar="{true,false,smoothed}",
+                   help="how the output smoothing keeps the bones (default: the model's; as launch/sample.py)")
     args = p.parse_args(argv)
 
     args.out.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
+    sampling = {"steps": args.steps, "guidance": args.guidance, "weights": args.model_weights,
+                "smoothing_keeps_bones": args.smoothing_keeps_bones}
     summary = {"checkpoint": args.checkpoint, "seeds": seeds, "guidance": args.guidance,
-               "model_weights": args.model_weights,
-               **sheet_figures(args.checkpoint, args.out, args.rows, seeds, args.steps, args.guidance,
-                               args.model_weights),
+               "model_weights": args.model_weights, "smoothing_keeps_bones": args.smoothing_keeps_bones,
+               **sheet_figures(args.checkpoint, args.out, args.rows, seeds, sampling),
                "jump_sweep": jump_sweep(args.checkpoint, [int(n) for n in args.jump_lengths.split(",")], seeds,
-                                        args.steps, args.guidance, args.model_weights)}
+                                        sampling)}
     sweep_out = args.out / "length_sweep.json"
     sweep_args = ["--checkpoint", args.checkpoint, "--lengths", args.sweep_lengths, "--out", str(sweep_out),
                   "--model-weights", args.model_weights]
     length_sweep_main(sweep_args + (["--steps", str(args.steps)] if args.steps else [])
-                      + (["--guidance", str(args.guidance)] if args.guidance is not None else []))
+                      + (["--guidance", str(args.guidance)] if args.guidance is not None else [])
+                      + (["--smoothing-keeps-bones", str(args.smoothing_keeps_bones).lower()]
+                         if args.smoothing_keeps_bones is not None else []))
     rows = json.loads(sweep_out.read_text())["rows"]
     shortest, longest = min(r["frames"] for r in rows), max(r["frames"] for r in rows)
     summary["length_sweep"] = {

@@ -27,7 +27,7 @@ import logging
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -36,9 +36,9 @@ from torch import Tensor
 from mfm.diffusion import DenoisedRange, GaussianDiffusion
 from mfm.guidance import classifier_free_guidance
 from mfm.editing import as_bool_mask
-from mfm.features import restore_bone_lengths
+from mfm.features import ric_bone_lengths, set_ric_bone_lengths
 from mfm.layout import FeatureLayout
-from mfm.model import valid_frame_mask
+from mfm.model import BONE_KEEPING, is_bone_keeping, valid_frame_mask
 from mfm.skeleton import Skeleton
 from mfm.solvers import (
     NoiseGenerators,
@@ -360,11 +360,34 @@ def copy_reference_root(x: Tensor, reference: Tensor, keep: Tensor | np.ndarray,
 class BoneKeeping:
     """What :func:`smooth_over_time` needs to give every bone back its length after the filter
     (``ModelConfig.output_smoothing_keeps_bones``): the skeleton and the dataset's Mean/Std, since the bone
-    lengths are those of the raw features."""
+    lengths are those of the raw features, and which lengths: each frame's own before the filter ("frame"), or
+    those lengths smoothed over time with the filter's σ ("smoothed")."""
 
     skeleton: Skeleton
     mean: Tensor
     std: Tensor
+    lengths: Literal["frame", "smoothed"] = "frame"
+
+    @classmethod
+    def for_setting(cls, setting: bool | str, skeleton: Skeleton, mean: Tensor, std: Tensor) -> "BoneKeeping | None":
+        """The bone keeping a setting of :data:`mfm.model.BONE_KEEPING` asks for (None: the plain filter)."""
+        if not is_bone_keeping(setting):
+            raise ValueError(f"output_smoothing_keeps_bones must be one of {BONE_KEEPING}, got {setting!r}")
+        if setting is False:
+            return None
+        return cls(skeleton, mean, std, "smoothed" if setting == "smoothed" else "frame")
+
+
+def _filter_valid_frames(array: np.ndarray, lengths: Sequence[int], sigma: float) -> np.ndarray:
+    """``array`` (B, T, ...) with each sample's first ``lengths[b]`` frames Gaussian-filtered over time as FLAME's
+    ``gaussian_filter1d(motion, sigma, axis=1)`` (scipy: reflected edges, kernel truncated at 4σ); padded frames as
+    they are."""
+    from scipy.ndimage import gaussian_filter1d
+
+    out = array.copy()
+    for b, length in enumerate(lengths):
+        out[b, :length] = gaussian_filter1d(array[b, :length], sigma=sigma, axis=0)
+    return out
 
 
 def smooth_over_time(x: Tensor, lengths: Sequence[int] | Tensor, sigma: float,
@@ -373,21 +396,23 @@ def smooth_over_time(x: Tensor, lengths: Sequence[int] | Tensor, sigma: float,
     ``gaussian_filter1d(motion, sigma, axis=1)`` (scipy: reflected edges, kernel truncated at 4σ); padded frames
     stay as they are. Smoothing commutes with a per-channel affine normalisation, so normalised and raw features
     give the same motion. With ``keep_bones`` (``x`` normalised by its mean/std) every bone of the smoothed ric
-    positions then gets back the length it had in ``x`` in that frame (:func:`mfm.features.restore_bone_lengths`;
-    ours, not FLAME's)."""
+    positions then gets back a length of ``x``'s along its smoothed direction (:func:`mfm.features.
+    set_ric_bone_lengths`; ours, not FLAME's): the one it had in that frame ("frame"), or its lengths over the
+    frames smoothed with the same σ ("smoothed": the filter then acts on each bone's length as a number instead of
+    shortening it along its arc, and a frame's length jitter is not put back)."""
     if sigma <= 0:
         return x
-    from scipy.ndimage import gaussian_filter1d
-
     lengths = check_lengths(lengths, x.shape[1])
-    array = x.detach().cpu().double().numpy().copy()
-    for b, length in enumerate(lengths.tolist()):
-        array[b, :length] = gaussian_filter1d(array[b, :length], sigma=sigma, axis=0)
-    smoothed = torch.from_numpy(array).to(dtype=x.dtype, device=x.device)
+    frames = lengths.tolist()
+    smoothed = torch.from_numpy(_filter_valid_frames(x.detach().cpu().double().numpy(), frames, sigma))
+    smoothed = smoothed.to(dtype=x.dtype, device=x.device)
     if keep_bones is None:
         return smoothed
     mean = keep_bones.mean.to(x.device, torch.float64)
     std = keep_bones.std.to(x.device, torch.float64)
-    restored = restore_bone_lengths(smoothed.double() * std + mean, x.double() * std + mean, keep_bones.skeleton)
+    bone_lengths = ric_bone_lengths(x.double() * std + mean, keep_bones.skeleton)  # (B, T, J-1)
+    if keep_bones.lengths == "smoothed":
+        bone_lengths = torch.from_numpy(_filter_valid_frames(bone_lengths.cpu().numpy(), frames, sigma))
+    restored = set_ric_bone_lengths(smoothed.double() * std + mean, bone_lengths.to(x.device), keep_bones.skeleton)
     valid = valid_frame_mask(lengths.to(x.device), x.shape[1]).unsqueeze(-1)
     return torch.where(valid, ((restored - mean) / std).to(x.dtype), smoothed)

@@ -499,35 +499,51 @@ def _integrate_root(features: Tensor) -> tuple[Tensor, Parts, Tensor]:
     return angle, r_rot, position
 
 
-def restore_bone_lengths(features: Tensor, reference: Tensor, skeleton: Skeleton) -> Tensor:
-    """``features`` (..., T, D; raw, not normalised) with its ric block moved so that, in every frame, every bone
-    has the length it has in ``reference`` (the same motion before a filter), along the direction it has in
+def _ric_positions(features: Tensor, skeleton: Skeleton) -> tuple[Tensor, tuple[int, ...]]:
+    """The pelvis at (0, root height, 0) and the ric joints of ``features`` (..., T, D; raw), components first
+    (3, J, N, T), and the leading shape."""
+    layout = FeatureLayout(skeleton)
+    pelvis = torch.zeros(features.shape[:-1] + (1, 3), dtype=features.dtype, device=features.device)
+    pelvis[..., 0, 1] = features[..., layout.slices["root_height"]][..., 0]
+    ric = features[..., layout.slices["ric"]].unflatten(-1, (skeleton.num_joints - 1, 3))
+    return _components_first(torch.cat([pelvis, ric], dim=-2))
+
+
+def ric_bone_lengths(features: Tensor, skeleton: Skeleton) -> Tensor:
+    """(..., T, J-1): the length of every bone (parent -> joint j, for j = 1..J-1) of the ric positions of
+    ``features`` (..., T, D; raw, not normalised), in every frame."""
+    positions, lead = _ric_positions(features, skeleton)
+    lengths = torch.sqrt(_squared_norm(_bones_cf(positions, _topology_of(skeleton, chains_from_root=True))))
+    return lengths.permute(1, 2, 0).reshape(lead + (positions.shape[3], positions.shape[1] - 1))
+
+
+def set_ric_bone_lengths(features: Tensor, bone_lengths: Tensor, skeleton: Skeleton) -> Tensor:
+    """``features`` (..., T, D; raw) with its ric block moved so that, in every frame, every bone has the length
+    ``bone_lengths`` (..., T, J-1, as :func:`ric_bone_lengths`) gives it, along the direction it has in
     ``features``. Joints are placed from the root outwards (the pelvis at (0, root height, 0) of the ric frame), so
-    a parent's correction carries its children along. The other channels are ``features``' own.
+    a parent's correction carries its children along. The other channels are ``features``' own."""
+    topo = _topology_of(skeleton, chains_from_root=True)  # either: only parents/ancestors are used
+    moved, lead = _ric_positions(features, skeleton)
+    bones = _bones_cf(moved, topo)
+    length = bone_lengths.to(features.dtype).reshape((-1,) + tuple(bone_lengths.shape[-2:])).permute(2, 0, 1)
+    rescaled = bones * (length / torch.sqrt(_squared_norm(bones)).clamp_min(1e-12))
+    placed = _components_last(_sum_bones_cf(moved[:, 0], rescaled, topo), lead)  # (..., T, J, 3)
+    out = features.clone()
+    out[..., FeatureLayout(skeleton).slices["ric"]] = placed[..., 1:, :].flatten(-2)
+    return out
+
+
+def restore_bone_lengths(features: Tensor, reference: Tensor, skeleton: Skeleton) -> Tensor:
+    """``features`` (..., T, D; raw, not normalised) with every bone given, in every frame, the length it has in
+    ``reference`` (the same motion before a filter), along the direction it has in ``features``
+    (:func:`set_ric_bone_lengths`).
 
     Why: a Gaussian filter over time averages each joint's position along its arc, and the average of points on an
     arc lies inside it. Where a limb swings fast the filtered bone is shorter: on the synthetic set's runs σ 0.9
     took a shin from 43 to 27 cm (docs/generator-study.md, "Smoothing shortens a swinging limb"). Restoring the
     lengths keeps what the filter is for (the jitter of each bone's direction) and leaves the bone-length figures
     those of the network's output."""
-    layout = FeatureLayout(skeleton)
-    ric, joints = layout.slices["ric"], skeleton.num_joints
-
-    def positions(f: Tensor) -> tuple[Tensor, tuple[int, ...]]:
-        """The pelvis at (0, height, 0) and the ric joints, components first (3, J, N, T)."""
-        pelvis = torch.zeros(f.shape[:-1] + (1, 3), dtype=f.dtype, device=f.device)
-        pelvis[..., 0, 1] = f[..., layout.slices["root_height"]][..., 0]
-        return _components_first(torch.cat([pelvis, f[..., ric].unflatten(-1, (joints - 1, 3))], dim=-2))
-
-    topo = _topology_of(skeleton, chains_from_root=True)  # either: only parents/ancestors are used
-    (moved, lead), (original, _) = positions(features), positions(reference.to(features.dtype))
-    bones = _bones_cf(moved, topo)
-    length = torch.sqrt(_squared_norm(_bones_cf(original, topo)))
-    rescaled = bones * (length / torch.sqrt(_squared_norm(bones)).clamp_min(1e-12))
-    placed = _components_last(_sum_bones_cf(moved[:, 0], rescaled, topo), lead)  # (..., T, J, 3)
-    out = features.clone()
-    out[..., ric] = placed[..., 1:, :].flatten(-2)
-    return out
+    return set_ric_bone_lengths(features, ric_bone_lengths(reference.to(features.dtype), skeleton), skeleton)
 
 
 def features_to_joints(features: ArrayLike, skeleton: Skeleton) -> ArrayLike:

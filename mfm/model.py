@@ -68,6 +68,7 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -87,6 +88,16 @@ CONDITION_SCALINGS = ("none", "rms")
 ABSOLUTE_POSITIONS = ("sinusoidal", "scaled_sinusoidal")
 GUIDED_FEATURES = ("all", "pose")
 ADAPTIVE_NORMS = ("none", "adaln", "adaln_zero")
+BONE_KEEPING = (False, True, "smoothed")
+"""``ModelConfig.output_smoothing_keeps_bones`` and its overrides: after the output smoothing the bones keep no
+length of their own (False: FLAME's plain filter), each frame's length before the filter (True), or each bone's
+lengths before the filter, smoothed over time with the same σ ("smoothed")."""
+
+
+def is_bone_keeping(value: object) -> bool:
+    """Whether ``value`` is one of :data:`BONE_KEEPING` (a bool, not 0 or 1)."""
+    return isinstance(value, bool) or value == "smoothed"
+
 
 # MFM feeds the sinusoidal table with t*1000 (its diffusion-step scale); keep the scale so the embedding matches.
 TIME_SCALE = 1000.0
@@ -233,12 +244,16 @@ class ModelConfig:
     otherwise (``launch/sample.py --smoothing``, the evaluator, the contact sheet, MotionPipeline); 0 = none (MFM).
     FLAME smooths its samples this way with σ = 1 (its diffusion preset's own setting,
     mfm.diffusion_sampling.BASELINE_SAMPLING, still wins for such checkpoints). Not used in training."""
-    output_smoothing_keeps_bones: bool = False
-    """After the output smoothing, give every bone of the ric positions back the length it had before the filter
-    in that frame (mfm.features.restore_bone_lengths): the filter then smooths the bones' directions only. Ours,
-    not FLAME's (False: its plain filter). A Gaussian filter shortens a limb that swings fast (the average of points
-    on an arc lies inside it): σ 0.9 took a synthetic run's shin from 43 to 27 cm. Applies wherever the smoothing
-    does (sampler, evaluator, contact sheet, training previews)."""
+    output_smoothing_keeps_bones: bool | Literal["smoothed"] = False
+    """After the output smoothing, give every bone of the ric positions back a length it had before the filter,
+    along its filtered direction (mfm.features.set_ric_bone_lengths): true, the length it had in that frame;
+    "smoothed", its lengths over the frames smoothed with the same σ (the filter then acts on a bone's length as a
+    number instead of along its arc). Ours, not FLAME's (false: its plain filter). A Gaussian filter shortens a
+    limb that swings fast (the average of points on an arc lies inside it): σ 0.9 took a synthetic run's shin from
+    43 to 27 cm. Each frame's own length puts back that frame's length jitter, and it adds up along a leg to the
+    foot: on the synthetic preset the feet went lower and slid more than with the plain filter
+    (docs/generator-study.md, "Bone lengths smoothed, not per frame"). Applies wherever the smoothing does
+    (sampler, evaluator, contact sheet, training previews)."""
     sampling_guidance: float = 2.5
     """The classifier-free guidance scale samplers use for this model unless told otherwise (``launch/sample.py
     --guidance``, the contact sheet, MotionPipeline; the evaluator keeps its protocol's ``sampling.guidance``).
@@ -401,8 +416,8 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.null_tokens must be an int >= 0, got {self.null_tokens!r}")
         if not (isinstance(self.output_smoothing, (int, float)) and self.output_smoothing >= 0):
             raise ValueError(f"ModelConfig.output_smoothing must be a σ >= 0 (frames), got {self.output_smoothing!r}")
-        if not isinstance(self.output_smoothing_keeps_bones, bool):
-            raise ValueError("ModelConfig.output_smoothing_keeps_bones must be true or false, got "
+        if not is_bone_keeping(self.output_smoothing_keeps_bones):
+            raise ValueError("ModelConfig.output_smoothing_keeps_bones must be true, false or smoothed, got "
                              f"{self.output_smoothing_keeps_bones!r}")
         if self.guided_features not in GUIDED_FEATURES:
             raise ValueError(f"ModelConfig.guided_features must be one of {GUIDED_FEATURES}, got {self.guided_features!r}")

@@ -163,7 +163,7 @@ def test_an_explicit_output_smoothing_is_what_every_checkpoint_samples_with_and_
 def test_smoothing_that_keeps_the_bones_reaches_the_evaluator_its_records_and_its_keys():
     """sampling.output_smoothing_keeps_bones (unset: each checkpoint's model.output_smoothing_keeps_bones, False
     here): the smoothed motion with every bone given back its length before the filter."""
-    from mfm.diffusion_sampling import smooth_over_time
+    from mfm.diffusion_sampling import BoneKeeping, smooth_over_time
     from mfm.features import restore_bone_lengths
 
     flow, point = tiny_model(objective="flow", preset=None), SamplingPoint("euler", 2, 2.5)
@@ -184,7 +184,14 @@ def test_smoothing_that_keeps_the_bones_reaches_the_evaluator_its_records_and_it
             Path("s"), ids, point).key
 
     assert key() == key("sampling.output_smoothing_keeps_bones=null") != key(
-        "sampling.output_smoothing_keeps_bones=true")
+        "sampling.output_smoothing_keeps_bones=true") != key("sampling.output_smoothing_keeps_bones=smoothed")
+    smoothed = sample(flow, SamplingConfig(output_smoothing=1.0, output_smoothing_keeps_bones="smoothed"), point)
+    expected = smooth_over_time(raw, lengths, 1.0, BoneKeeping(flow.skeleton, flow.mean, flow.std, "smoothed"))
+    torch.testing.assert_close(smoothed, expected * valid, atol=1e-5, rtol=1e-5)
+    assert baseline_record(flow, SamplingConfig(output_smoothing_keeps_bones="smoothed"))[
+        "smoothing_keeps_bones"] == "smoothed"
+    with pytest.raises(ValueError, match="output_smoothing_keeps_bones"):
+        SamplingConfig(output_smoothing_keeps_bones="maybe")
 
 
 def test_pose_guidance_is_each_flow_checkpoints_own_unless_the_sweep_sets_it_and_results_record_it():

@@ -97,9 +97,10 @@ def test_cli_reads_the_bone_keeping_switch_as_launch_sample_does(capsys):
     assert read(["--out", "x.png"]).smoothing_keeps_bones is None  # the model's own
     assert read(["--out", "x.png", "--smoothing-keeps-bones", "on"]).smoothing_keeps_bones is True
     assert read(["--out", "x.png", "--smoothing-keeps-bones", "FALSE"]).smoothing_keeps_bones is False
+    assert read(["--out", "x.png", "--smoothing-keeps-bones", "smoothed"]).smoothing_keeps_bones == "smoothed"
     with pytest.raises(SystemExit):
         read(["--out", "x.png", "--smoothing-keeps-bones", "maybe"])
-    assert "true or false, got 'maybe'" in capsys.readouterr().err
+    assert "true, false or smoothed, got 'maybe'" in capsys.readouterr().err
 
 
 @pytest.mark.slow

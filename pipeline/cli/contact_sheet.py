@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 from pipeline.generation.contact_sheet import ContactSheetRequest, run_contact_sheet
-from pipeline.generation.request import JOINT_DECODES, SamplingError, on_off, read_prompts
+from pipeline.generation.request import JOINT_DECODES, SamplingError, bone_keeping_setting, read_prompts
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -45,8 +45,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     add("--seed", type=int, default=0)
     add("--guided-features", choices=("all", "pose"), help="channels guidance mixes (as launch/sample.py)")
     add("--smoothing", type=float, help="Gaussian smoothing of the output over time, σ in frames (as launch/sample.py)")
-    add("--smoothing-keeps-bones", type=on_off, metavar="{true,false}",
-        help="after the smoothing, every bone gets back its length (default: the model's; as launch/sample.py)")
+    add("--smoothing-keeps-bones", type=bone_keeping_setting, metavar="{true,false,smoothed}",
+        help="after the smoothing, every bone gets back its length, each frame's own (true) or its lengths smoothed "
+             "over time (smoothed) (default: the model's; as launch/sample.py)")
     add("--decode", choices=sorted(JOINT_DECODES), default="ric", help="joints as recovered from the ric block "
                                                                       "(default) or fitted onto fixed bone lengths")
     add("--device", default="auto", help="auto (cuda when available), cpu, cuda, ...")

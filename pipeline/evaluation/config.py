@@ -13,6 +13,7 @@ from typing import Any, Literal
 
 from mfm.composition import BABEL_SWITCH, HUMANML3D_SWITCH
 from mfm.editing import EDIT_SETTINGS
+from mfm.model import is_bone_keeping
 from mfm.solvers import is_adaptive
 from pipeline.config import ConfigError, coerce_fields, load_config, parse_yaml
 
@@ -194,8 +195,9 @@ class SamplingConfig:
     network's raw output. None (default): each checkpoint's own (its ``model.output_smoothing``; a baseline's
     authors' σ with ``baseline_defaults``, FLAME's 1; else none). Results record the σ that ran
     (``smoothing_sigma``)."""
-    output_smoothing_keeps_bones: bool | None = None
-    """After the output smoothing, every bone gets back the length it had before the filter (ours, not FLAME's;
+    output_smoothing_keeps_bones: bool | Literal["smoothed"] | None = None
+    """After the output smoothing, every bone gets back a length it had before the filter, each frame's own (true)
+    or its lengths smoothed over time with the same σ (smoothed) (ours, not FLAME's;
     mfm.model.ModelConfig.output_smoothing_keeps_bones), for every checkpoint. None (default): each checkpoint's
     own. Results record what ran (``smoothing_keeps_bones``); an explicit setting goes into the unit keys."""
     guided_features: str | None = None
@@ -240,8 +242,9 @@ class SamplingConfig:
         _require(self.batch_size >= 1, f"sampling.batch_size must be >= 1, got {self.batch_size}")
         _require(self.guided_features in (None, "all", "pose"),
                  f"sampling.guided_features must be all, pose or null (each checkpoint's own), got {self.guided_features!r}")
-        _require(self.output_smoothing_keeps_bones in (None, True, False),
-                 "sampling.output_smoothing_keeps_bones must be true, false or null (each checkpoint's own), got "
+        _require(self.output_smoothing_keeps_bones is None or is_bone_keeping(self.output_smoothing_keeps_bones),
+                 "sampling.output_smoothing_keeps_bones must be true, false, smoothed or null (each checkpoint's "
+                 "own), got "
                  f"{self.output_smoothing_keeps_bones!r}")
         _require(self.output_smoothing is None or self.output_smoothing >= 0,
                  f"sampling.output_smoothing must be >= 0 (or null: each checkpoint's own), got {self.output_smoothing}")

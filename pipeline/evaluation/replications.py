@@ -709,8 +709,8 @@ def output_smoothing(trained: TrainedModel, sampling: SamplingConfig) -> float:
     return trained.default_smoothing if sampling.baseline_defaults else 0.0
 
 
-def smoothing_keeps_bones(trained: TrainedModel, sampling: SamplingConfig) -> bool:
-    """Whether the output smoothing gives the bones back their lengths: ``sampling.output_smoothing_keeps_bones``
+def smoothing_keeps_bones(trained: TrainedModel, sampling: SamplingConfig) -> bool | str:
+    """How the output smoothing gives the bones back their lengths: ``sampling.output_smoothing_keeps_bones``
     when set, else the checkpoint's own ``model.output_smoothing_keeps_bones``."""
     return trained.smoothing_keeps_bones_with(sampling.output_smoothing_keeps_bones)
 

@@ -55,7 +55,7 @@ class ContactSheetRequest:
     guidance: float | None = None  # None: the sampler's default (the model's sampling_guidance)
     seed: int = 0
     guided_features: str | None = None  # all or pose; None: the model's own (as launch/sample.py --guided-features)
-    smoothing_keeps_bones: bool | None = None  # None: the model's own (as launch/sample.py --smoothing-keeps-bones)
+    smoothing_keeps_bones: bool | str | None = None  # None: the model's own (as launch/sample.py --smoothing-keeps-bones)
     smoothing: float | None = None  # σ in frames of the output's Gaussian smoothing; None: the sampler's default
     decode: str = "ric"  # a key of pipeline.generation.sampling.JOINT_DECODES
     device: str = "auto"

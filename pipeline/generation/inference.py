@@ -138,10 +138,10 @@ class TrainedModel:
             return "all"
         return override or self.model_config.guided_features
 
-    def smoothing_keeps_bones_with(self, override: bool | None) -> bool:
-        """Whether the output smoothing gives the bones back their lengths: ``override`` when set (a sample
-        request's or the evaluator's), else the model's ``output_smoothing_keeps_bones``."""
-        return bool(self.model_config.output_smoothing_keeps_bones if override is None else override)
+    def smoothing_keeps_bones_with(self, override: bool | str | None) -> bool | str:
+        """How the output smoothing gives the bones back their lengths (mfm.model.BONE_KEEPING): ``override`` when
+        set (a sample request's or the evaluator's), else the model's ``output_smoothing_keeps_bones``."""
+        return self.model_config.output_smoothing_keeps_bones if override is None else override
 
     @property
     def default_guidance(self) -> float:
@@ -254,14 +254,14 @@ class TrainedModel:
 
     def finish_output(self, x: torch.Tensor, lengths: torch.Tensor, smoothing_sigma: float, *,
                       known: torch.Tensor | None = None, keep: torch.Tensor | None = None,
-                      reference_translation: bool = False, keep_bones: bool | None = None) -> torch.Tensor:
+                      reference_translation: bool = False, keep_bones: bool | str | None = None) -> torch.Tensor:
         """The sampler's output ``x`` (B, T, D, normalised) as it is written or scored: smoothed over time with
         σ = ``smoothing_sigma`` (0: as is), then, for a diffusion edit (``keep`` of ``known``) with
         ``reference_translation``, the source's root copied where the edit keeps it, after the smoothing as
         FLAME's edit_motion.py: 79–82 then 93–94 (:func:`mfm.diffusion_sampling.copy_reference_root`). Flow edits
         (MFM's procedure) never copy. Shared by the evaluator and the sampler."""
-        x = smooth_over_time(x, lengths, smoothing_sigma, BoneKeeping(self.skeleton, self.mean, self.std)
-                             if self.smoothing_keeps_bones_with(keep_bones) else None)
+        x = smooth_over_time(x, lengths, smoothing_sigma, BoneKeeping.for_setting(
+            self.smoothing_keeps_bones_with(keep_bones), self.skeleton, self.mean, self.std))
         if keep is not None and reference_translation and self.objective == "diffusion":
             x = copy_reference_root(x, known.to(x.dtype), keep, FeatureLayout(self.skeleton))
         return x

@@ -27,6 +27,7 @@ from mfm.editing import (
     EditSettings,
 )
 from mfm.guidance import PRECISION_SETTINGS, guided_feature_mask
+from mfm.model import is_bone_keeping
 from mfm.solvers import (
     FIXED_STEP_SOLVERS,
 )
@@ -114,10 +115,11 @@ class SampleRequest:
     """Gaussian smoothing of the output over time, σ in frames; null: the diffusion baseline's own (FLAME: 1), else
     the model's ``output_smoothing`` (none unless its preset says otherwise; not the baseline's with
     ``baseline_defaults=false``)."""
-    smoothing_keeps_bones: bool | None = None
-    """After the smoothing, give every bone back the length it had before the filter (it then smooths the bones'
-    directions only; ours, not FLAME's); null: the model's ``output_smoothing_keeps_bones`` (false unless its preset
-    says otherwise). Nothing to keep without smoothing."""
+    smoothing_keeps_bones: bool | str | None = None
+    """After the smoothing, give every bone back a length it had before the filter (it then smooths the bones'
+    directions only; ours, not FLAME's): true, each frame's own; smoothed, its lengths smoothed over time with the
+    same σ (mfm.model.ModelConfig.output_smoothing_keeps_bones); null: the model's ``output_smoothing_keeps_bones``
+    (false unless its preset says otherwise). Nothing to keep without smoothing."""
     baseline_defaults: bool = True
     """Diffusion checkpoints of a preset whose authors sampled it their own way run that way unless a key below
     overrides one setting (mfm.diffusion_sampling.BASELINE_SAMPLING; FLAME: guidance 8.0, σ = 1 smoothing, every
@@ -217,6 +219,8 @@ class SampleRequest:
             _positive_int("steps", self.steps)
         if self.smoothing is not None and not self.smoothing >= 0:
             raise SamplingError(f"smoothing must be a σ >= 0 (frames; 0: none), got {self.smoothing}")
+        if self.smoothing_keeps_bones is not None and not is_bone_keeping(self.smoothing_keeps_bones):
+            raise SamplingError(f"smoothing_keeps_bones must be true, false or smoothed, got {self.smoothing_keeps_bones!r}")
         if self.weights not in ("ema", "model"):
             raise SamplingError(f"weights must be 'ema' or 'model', got {self.weights!r}")
         if self.solver is not None and self.solver not in known_solvers() + list(SAMPLERS):
@@ -336,7 +340,7 @@ class SampleRequest:
             return float(self.smoothing)
         return trained.smoothing_with(self.baseline_for(trained))
 
-    def smoothing_keeps_bones_for(self, trained: TrainedModel) -> bool:
+    def smoothing_keeps_bones_for(self, trained: TrainedModel) -> bool | str:
         """Whether the smoothing keeps the bones' lengths: as given, else the model's."""
         return trained.smoothing_keeps_bones_with(self.smoothing_keeps_bones)
 
@@ -428,6 +432,17 @@ def on_off(text: str) -> bool:
     return settings[text.lower()]
 
 
+def bone_keeping_setting(text: str) -> bool | str:
+    """--smoothing-keeps-bones's value (launch/sample.py, launch/contact_sheet.py): true/on, false/off or smoothed
+    (mfm.model.BONE_KEEPING)."""
+    if text.lower() == "smoothed":
+        return "smoothed"
+    try:
+        return on_off(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"true, false or smoothed, got {text!r}") from None
+
+
 def _compile_setting(text: str) -> bool | str:
     """``--compile``'s value as the request key holds it: auto, True or False."""
     if text.lower() == "auto":
@@ -459,7 +474,8 @@ FLAGS: tuple[Flag, ...] = (
     Flag("--guidance", "guidance", type=float),
     Flag("--guided-features", "guided_features", choices=("all", "pose")),
     Flag("--smoothing", "smoothing", type=float),
-    Flag("--smoothing-keeps-bones", "smoothing_keeps_bones", type=on_off, metavar="{true,false}"),
+    Flag("--smoothing-keeps-bones", "smoothing_keeps_bones", type=bone_keeping_setting,
+         metavar="{true,false,smoothed}"),
     Flag("--no-baseline-defaults", "baseline_defaults", "false"),
     Flag("--no-clip-denoised", "baseline_clip_denoised", "false"),
     Flag("--no-reference-translation", "edit_reference_translation", "false"),

@@ -176,7 +176,7 @@ class PreviewSampler:
         normalization = self.manifest.data["normalization"]
         mean = torch.as_tensor(np.asarray(normalization["mean"], dtype=np.float32))
         std = torch.as_tensor(np.asarray(normalization["std"], dtype=np.float32))
-        keep_bones = BoneKeeping(self.skeleton, mean, std) if config.output_smoothing_keeps_bones else None
+        keep_bones = BoneKeeping.for_setting(config.output_smoothing_keeps_bones, self.skeleton, mean, std)
         x1 = smooth_over_time(result.x1.float().cpu(), lengths, self.smoothing, keep_bones)
         features = (x1 * std + mean).numpy()
         return [features_to_joints(features[i, :n], self.skeleton) for i, n in enumerate(prompts.lengths)]
