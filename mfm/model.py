@@ -252,7 +252,7 @@ class ModelConfig:
     limb that swings fast (the average of points on an arc lies inside it): σ 0.9 took a synthetic run's shin from
     43 to 27 cm. Each frame's own length puts back that frame's length jitter, and it adds up along a leg to the
     foot: on the synthetic preset the feet went lower and slid more than with the plain filter
-    (docs/generator-study.md, "Bone lengths smoothed, not per frame"). Applies wherever the smoothing does
+    (docs/generator-study.md, "Bone lengths smoothed, not put back per frame"). Applies wherever the smoothing does
     (sampler, evaluator, contact sheet, training previews)."""
     sampling_guidance: float = 2.5
     """The classifier-free guidance scale samplers use for this model unless told otherwise (``launch/sample.py
