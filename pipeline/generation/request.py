@@ -432,25 +432,25 @@ def on_off(text: str) -> bool:
     return settings[text.lower()]
 
 
-def bone_keeping_setting(text: str) -> bool | str:
-    """--smoothing-keeps-bones's value (launch/sample.py, launch/contact_sheet.py): true/on, false/off or smoothed
-    (mfm.model.BONE_KEEPING)."""
-    if text.lower() == "smoothed":
-        return "smoothed"
-    try:
-        return on_off(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"true, false or smoothed, got {text!r}") from None
+def _switch_or(word: str, accepted: str) -> Callable[[str], bool | str]:
+    """A switch's value (:func:`on_off`) that may also be ``word``; ``accepted`` lists the values in the error."""
+
+    def parse(text: str) -> bool | str:
+        if text.lower() == word:
+            return word
+        try:
+            return on_off(text)
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"{accepted}, got {text!r}") from None
+
+    return parse
 
 
-def _compile_setting(text: str) -> bool | str:
-    """``--compile``'s value as the request key holds it: auto, True or False."""
-    if text.lower() == "auto":
-        return "auto"
-    try:
-        return on_off(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"auto, true or false, got {text!r}") from None
+bone_keeping_setting = _switch_or("smoothed", "true, false or smoothed")
+"""--smoothing-keeps-bones's value (launch/sample.py, launch/contact_sheet.py, the study's benchmarks): true/on,
+false/off or smoothed (mfm.model.BONE_KEEPING)."""
+_compile_setting = _switch_or("auto", "auto, true or false")
+"""``--compile``'s value as the request key holds it: auto, True or False."""
 
 
 def _key_value(text: str) -> tuple[str, str]:
