@@ -244,8 +244,7 @@ class SamplingConfig:
                  f"sampling.guided_features must be all, pose or null (each checkpoint's own), got {self.guided_features!r}")
         _require(self.output_smoothing_keeps_bones is None or is_bone_keeping(self.output_smoothing_keeps_bones),
                  "sampling.output_smoothing_keeps_bones must be true, false, smoothed or null (each checkpoint's "
-                 "own), got "
-                 f"{self.output_smoothing_keeps_bones!r}")
+                 f"own), got {self.output_smoothing_keeps_bones!r}")
         _require(self.output_smoothing is None or self.output_smoothing >= 0,
                  f"sampling.output_smoothing must be >= 0 (or null: each checkpoint's own), got {self.output_smoothing}")
 
