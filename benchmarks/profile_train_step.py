@@ -120,6 +120,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_intermixed_args(argv)
     if (args.manifest is None) == (args.synthetic is None):
         parser.error("give --manifest or --synthetic")
+    if args.profile_steps < 1 or args.steps < 2:
+        parser.error("--profile-steps must be at least 1 and --steps at least 2 (the figures divide by them)")
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         manifest = args.manifest or bench_data.build_synthetic(args.synthetic, Path(tmp) / "ds", text_dim=512,
