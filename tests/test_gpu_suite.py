@@ -17,6 +17,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from conftest import load_benchmark
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -180,19 +182,10 @@ def test_evaluator_bench_counts_the_generators_passes_and_estimates_a_single_edi
         bench_eval.run_evaluation_bench(dataclasses.replace(base, editing_passes="single"))
 
 
-def load_train_step_profiler():
-    load_suite()  # puts benchmarks/ on sys.path, as the script does for its sibling bench_* modules
-    spec = importlib.util.spec_from_file_location("profile_train_step",
-                                                  REPO_ROOT / "benchmarks" / "profile_train_step.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_train_step_profiler_times_both_ema_updates_and_writes_its_tables(tmp_path, capsys):
     """benchmarks/profile_train_step.py at the tiny preset on CPU (kept from rotting: its H200 figures are in
     docs/performance.md): one record per batch size, both EMA updates timed, the profile's table written."""
-    module = load_train_step_profiler()
+    module = load_benchmark("profile_train_step")
     module.main(["--synthetic", "40", "--config", "tiny", "--batch-sizes", "4", "--window", "24", "--steps", "2",
                  "--warmup", "1", "--profile-steps", "1", "--out", str(tmp_path)])
     (record,) = [json.loads(line) for line in (tmp_path / "results.jsonl").read_text().splitlines()]
@@ -204,7 +197,7 @@ def test_train_step_profiler_times_both_ema_updates_and_writes_its_tables(tmp_pa
 @pytest.mark.parametrize("counts", [["--profile-steps", "0"], ["--steps", "1"]])
 def test_train_step_profiler_refuses_counts_its_figures_divide_by(tmp_path, capsys, counts):
     """--profile-steps 0 used to run every timed step and then fail dividing by it; now refused before any work."""
-    module = load_train_step_profiler()
+    module = load_benchmark("profile_train_step")
     with pytest.raises(SystemExit) as exit_info:
         module.main(["--synthetic", "40", "--config", "tiny", *counts, "--out", str(tmp_path / "out")])
     assert exit_info.value.code == 2
