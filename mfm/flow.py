@@ -21,7 +21,7 @@ import torch
 from mfm.features import root_path
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
-from mfm.path import MIN_NOISE_SCALE, SIGMA_MIN, data_from_velocity
+from mfm.path import MIN_NOISE_SCALE, SIGMA_MIN, data_from_velocity, velocity_from_data
 
 
 class VelocityModel(Protocol):
@@ -69,6 +69,10 @@ def sample_time(
 
 
 TIME_SAMPLINGS = ("uniform", "logit_normal", "grid")
+GRID_INPUTS = ("interpolated", "own_path")
+"""What a grid-trained row's network input is (``flow_matching_loss(grid_inputs=)``): 'interpolated', the point of
+the straight path between its noise and its data (rectified flow's k-step distillation); 'own_path', the state the
+model's own Euler steps reach from that noise (backward distillation)."""
 
 
 def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scale: float = 1.0,
@@ -247,6 +251,7 @@ def flow_matching_loss(
     perturbation: torch.Tensor | None = None,
     self_condition_prob: float = 0.0,
     self_condition_rows: torch.Tensor | None = None,
+    grid_inputs: str = "interpolated",
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
     weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
@@ -276,6 +281,11 @@ def flow_matching_loss(
     ``channel_weight`` (D,) weighs the main MSE's channels (:func:`masked_mse`; the two terms are not weighted).
     ``model_kwargs`` go to the model
     (per-frame conditions, token features, positional mode of the FlowMDM/FLAME variants).
+    ``grid_inputs='own_path'`` (grid time sampling only, with ``cond_mask``): a row trained at the grid time k/K
+    gets as input the state the model's own k Euler steps reach from its noise (:func:`own_path_inputs`, no
+    gradient), and its target is the velocity from there to its ``x1`` (:func:`mfm.path.velocity_from_data`):
+    a few-step student then learns its later steps from the states its earlier steps really leave, not from
+    the straight path's (backward distillation, Kohler et al. 2024, "Imagine Flash"). Draws nothing more.
     Returns the scalar loss and ``{"loss": detached loss, "valid_frames": number of frames averaged}``.
     """
     if x1.dim() != 3:
@@ -283,6 +293,15 @@ def flow_matching_loss(
     if lengths.shape != (x1.shape[0],):
         raise ValueError(f"lengths must be ({x1.shape[0]},), got {tuple(lengths.shape)}")
     lengths = lengths.to(x1.device)
+    if grid_inputs not in GRID_INPUTS:
+        raise ValueError(f"grid_inputs must be one of {GRID_INPUTS}, got {grid_inputs!r}")
+    own_path = grid_inputs == "own_path"
+    if own_path and (time_sampling[0] != "grid" or cond_mask is None or input_perturbation > 0
+                     or self_condition_prob > 0):
+        raise ValueError("grid_inputs='own_path' needs grid time sampling and an explicit cond_mask (both passes "
+                         "drop the same conditions), without input perturbation or self-conditioning, got "
+                         f"time sampling {time_sampling[0]!r}, cond_mask {'given' if cond_mask is not None else None}, "
+                         f"input_perturbation {input_perturbation!r}, self_condition_prob {self_condition_prob!r}")
     if t is None:
         t = sample_time(x1.shape[0], generator, x1.device)
     t = warp_time(t, *time_sampling)
@@ -292,6 +311,10 @@ def flow_matching_loss(
         perturbation = sample_noise(x1, generator)
     input_noise = x0 + input_perturbation * perturbation if input_perturbation > 0 else x0  # the target keeps x0
     x_t = interpolate(input_noise, x1, t, sigma_min)
+    target = target_velocity(x0, x1, sigma_min)
+    if own_path:
+        x_t = own_path_inputs(model, x0, t, cond, lengths, cond_mask, time_sampling[3], model_kwargs)
+        target = velocity_from_data(x1.float(), x_t.float(), t.float(), sigma_min=sigma_min).to(target.dtype)
     # With an explicit cond_mask the model draws nothing; not passing the generator then keeps a torch.compile'd
     # model free of a graph break (a Generator argument breaks the graph).
     model_generator = generator if cond_mask is None else None
@@ -304,7 +327,7 @@ def flow_matching_loss(
                                                                  model_kwargs, sigma_min)
     velocity = model(x_t, t, cond, lengths, cond_mask=cond_mask, generator=model_generator, **model_kwargs)
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
-    loss = velocity_loss(velocity, target_velocity(x0, x1, sigma_min), x1, t, frame_mask, sigma_min=sigma_min,
+    loss = velocity_loss(velocity, target, x1, t, frame_mask, sigma_min=sigma_min,
                          loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
                          trajectory_weight=trajectory_weight, trajectory_min_t=trajectory_min_t,
                          trajectory_huber=trajectory_huber, foot_contact_weight=foot_contact_weight,
@@ -558,6 +581,27 @@ PER_SAMPLE_MODEL_INPUTS = ("segments", "frame_cond", "text_tokens", "text_token_
 attention_chunk) apply to the whole pass."""
 
 
+def own_path_inputs(model: VelocityModel, x0: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
+                    lengths: torch.Tensor, cond_mask: torch.Tensor, grid_steps: int,
+                    model_kwargs: Mapping[str, Any] | None = None) -> torch.Tensor:
+    """Each row's state after its own Euler steps from ``x0`` on the grid 0, 1/K, ..., with K = ``grid_steps``: a
+    row at t = k/K (B,) takes k steps of ``x += v(x, j/K)/K`` (the K-step sampler's first k steps, guidance 1),
+    without gradient; a row at t = 0 keeps its noise. K − 1 passes of the whole batch whatever the rows' times, so
+    every data-parallel rank makes the same model calls (DDP broadcasts buffers at each forward)."""
+    if grid_steps < 1:
+        raise ValueError(f"own_path_inputs needs grid_steps >= 1, got {grid_steps!r}")
+    steps_taken = torch.round(t.float() * grid_steps).long()
+    if not torch.allclose(steps_taken.float() / grid_steps, t.float(), atol=1e-6):
+        raise ValueError(f"own_path_inputs needs times on the grid of {grid_steps} steps, got {t.tolist()}")
+    x = x0
+    with torch.no_grad():
+        for step in range(grid_steps - 1):
+            velocity = model(x, torch.full_like(t, step / grid_steps), cond, lengths, cond_mask=cond_mask,
+                             **dict(model_kwargs or {}))
+            x = torch.where((steps_taken > step)[:, None, None], x + velocity.to(x.dtype) / grid_steps, x)
+    return x
+
+
 def draw_self_condition_rows(batch: int, prob: float, generator: torch.Generator | None = None,
                              device: torch.device | None = None) -> torch.Tensor:
     """(B,) bool: which rows a self-conditioned training pass feeds the network's own estimate (share ``prob``)."""
@@ -618,6 +662,9 @@ class FlowMatchingObjective:
     time_loc: float = 0.0
     time_scale: float = 1.0
     time_grid_steps: int = 0
+    grid_inputs: str = "interpolated"
+    """:data:`GRID_INPUTS`: 'own_path' trains each grid time from the state the model's own Euler steps reach
+    (backward distillation; a few-step student's option, needs ``time_sampling='grid'``)."""
     terms_weighting: str = "data"
     velocity_weight_cap: float = 0.0
     channel_weight: tuple[float, ...] | None = None
@@ -640,6 +687,9 @@ class FlowMatchingObjective:
         if self.time_sampling == "grid" and self.time_grid_steps < 1:
             raise ValueError(f"FlowMatchingObjective.time_sampling='grid' needs time_grid_steps >= 1, got "
                              f"{self.time_grid_steps!r}")
+        if self.grid_inputs not in GRID_INPUTS or (self.grid_inputs == "own_path" and self.time_sampling != "grid"):
+            raise ValueError(f"FlowMatchingObjective.grid_inputs must be one of {GRID_INPUTS} ('own_path' with "
+                             f"time_sampling='grid'), got {self.grid_inputs!r} with {self.time_sampling!r}")
         if self.bone_weight < 0 or (self.bone_weight > 0 and self.geometry is None):
             raise ValueError(f"FlowMatchingObjective.bone_weight must be >= 0 and needs a geometry when > 0, got "
                              f"{self.bone_weight!r}")
@@ -701,4 +751,5 @@ class FlowMatchingObjective:
             channel_weight=self.channel_weight_on(x1.device),
             input_perturbation=self.input_perturbation,
             self_condition_prob=self.self_condition_prob, self_condition_rows=self_condition_rows,
+            grid_inputs=self.grid_inputs,
         )

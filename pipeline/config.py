@@ -382,6 +382,12 @@ class TrainLoopConfig:
     flow_time_grid_steps: int = 2
     """flow_time_sampling=grid: K, the Euler steps whose times are trained (2: t = 0 and 1/2, which serve the 1-step
     and the 2-step sampler; a student's distill.student_steps must divide it)."""
+    flow_grid_inputs: Literal["interpolated", "own_path"] = "interpolated"
+    """flow_time_sampling=grid: a row at the grid time k/K is fed 'interpolated', the straight path's point between
+    its noise and its pair's motion (rectified flow's k-step distillation, Liu et al. 2022), or 'own_path', the
+    state the student's own first k Euler steps reach from that noise, without gradient, trained toward the same
+    motion (backward distillation, Kohler et al. 2024, "Imagine Flash"): the later steps learn to mend what the
+    earlier ones really leave. Costs K − 1 gradient-free passes per update. Ours for motion, not MFM's."""
     flow_noise: Literal["independent", "recorded"] = "independent"
     """objective=flow: where each training pair's noise x0 comes from. 'independent' (MFM): fresh N(0, I) from the
     trainer's generator. 'recorded' (reflow, ``launch/distill.py``): the noise the teacher integrated to make the
@@ -569,6 +575,15 @@ class TrainConfig:
         _require(
             self.model.shortcut_levels == 0 or self.train.objective == "flow",
             "model.shortcut_levels > 0 (a shortcut model) trains with train.objective=flow",
+        )
+        _require(
+            self.train.flow_grid_inputs == "interpolated" or (
+                self.train.objective == "flow" and self.train.flow_time_sampling == "grid"
+                and self.model.self_condition_prob == 0 and self.model.shortcut_levels == 0
+                and self.train.flow_input_perturbation == 0),
+            "train.flow_grid_inputs=own_path feeds grid times the model's own Euler states: it needs "
+            "train.objective=flow with train.flow_time_sampling=grid, and no self-conditioning, shortcut levels or "
+            "input perturbation",
         )
         steps = self.distill.student_steps if self.distill is not None else 0
         _require(

@@ -254,3 +254,15 @@ def test_grid_times_are_for_a_pair_set_only():
     with pytest.raises(ConfigError, match="pair set"):
         TrainLoopConfig(flow_time_sampling="grid")
     assert TrainLoopConfig(flow_time_sampling="grid", flow_noise="recorded").flow_time_grid_steps == 2
+
+
+def test_own_path_grid_inputs_need_grid_times_and_nothing_that_changes_the_models_own_steps():
+    reflow = ["train.flow_time_sampling=grid", "train.flow_noise=recorded", "data.unit_length=1"]
+    assert load_config(TrainConfig, "tiny", [*reflow, "train.flow_grid_inputs=own_path"]).train.flow_grid_inputs \
+        == "own_path"
+    for extra in ([], ["model.self_condition_prob=0.5"], ["train.flow_input_perturbation=0.1"]):
+        overrides = (reflow if extra else []) + extra + ["train.flow_grid_inputs=own_path"]
+        with pytest.raises(ConfigError, match="flow_grid_inputs=own_path"):
+            load_config(TrainConfig, "tiny", overrides)
+    with pytest.raises(ConfigError, match="flow_grid_inputs"):
+        load_config(TrainConfig, "tiny", [*reflow, "train.flow_grid_inputs=straight"])

@@ -312,34 +312,72 @@ def test_student_one_step_lands_nearer_the_teachers_endpoint_than_the_teachers_o
     assert student_error < 0.9 * teacher_error, (student_error / len(records), teacher_error / len(records))
 
 
-def test_grid_times_train_the_few_step_samplers_map_closer(student_run, teacher_run, tmp_path):
+def distill_on_the_students_pairs(student_run: Path, teacher_run: Path, run: Path, *overrides: str) -> Path:
+    """A student trained on ``student_run``'s pair set (linked, not made again) with ``overrides``."""
+    if (run / "checkpoints").is_dir():
+        return run
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "pairs").symlink_to(student_run / "pairs", target_is_directory=True)
+    shutil.copy(student_run / RUN_MARKER, run / RUN_MARKER)  # a run folder of ours, as the pairs' own run is
+    with single_threaded_torch():
+        assert distill_entry.main(["--teacher", str(teacher_run), "--out", str(run), *STUDENT_OVERRIDES,
+                                   *overrides]) == 0
+    return run
+
+
+@pytest.fixture(scope="session")
+def grid_student_run(tmp_path_factory, student_run, teacher_run) -> Path:
+    return distill_on_the_students_pairs(student_run, teacher_run, tmp_path_factory.getbasetemp() / "grid-student",
+                                         "train.flow_time_sampling=grid", "train.flow_time_grid_steps=2")
+
+
+def endpoint_errors(teacher_run: Path, runs: list[Path], steps: int, pairs_of: Path) -> list[float]:
+    """Each run's summed squared error, over the first 32 pairs of ``pairs_of``, between its ``steps``-step Euler
+    solution (guidance 1) from the pair's own noise and the teacher's endpoint (normalised features)."""
+    teacher = load_trained_model(teacher_run)
+    records = pair_records(pairs_of)[:32]
+    errors = []
+    for student in (load_trained_model(run) for run in runs):
+        errors.append(sum((solve_from_recorded_noise(student, record, 1.0, steps)
+                           - (torch.from_numpy(record.features) - teacher.mean) / teacher.std
+                           ).square().mean().item() for record in records))
+    return errors
+
+
+def test_grid_times_train_the_few_step_samplers_map_closer(student_run, teacher_run, grid_student_run, tmp_path):
     """Rectified flow's k-step distillation (train.flow_time_sampling=grid, K = 2): a student trained only at the
     times its 2-step sampler visits (t = 0 and 1/2) ends its 1- and 2-step solutions from the pairs' own noise nearer
     the teacher's endpoints than the student trained on the same pairs, as long, at uniform times (plain reflow, the
     default). Its config and model card record the grid; a grid that lacks the student's steps is refused."""
-    run = tmp_path / "grid-student"
-    run.mkdir()
-    (run / "pairs").symlink_to(student_run / "pairs", target_is_directory=True)  # the same pair set, not made again
-    shutil.copy(student_run / RUN_MARKER, run / RUN_MARKER)  # a run folder of ours, as the pairs' own run is
-    with single_threaded_torch():
-        assert distill_entry.main(["--teacher", str(teacher_run), "--out", str(run), *STUDENT_OVERRIDES,
-                                   "train.flow_time_sampling=grid", "train.flow_time_grid_steps=2"]) == 0
+    run = grid_student_run
     recorded = yaml.safe_load((run / "config.yaml").read_text())["train"]
     assert (recorded["flow_time_sampling"], recorded["flow_time_grid_steps"]) == ("grid", 2)
     card = (export_pretrained(run, tmp_path / "export") / CARD_FILE).read_text()
     assert "trained only at the times its 2-step Euler sampler visits" in card
-    teacher, uniform, grid = (load_trained_model(r) for r in (teacher_run, student_run, run))
-    records = pair_records(student_run)[:32]
     for steps in (1, 2):
-        errors = []
-        for student in (uniform, grid):
-            errors.append(sum((solve_from_recorded_noise(student, record, 1.0, steps)
-                               - (torch.from_numpy(record.features) - teacher.mean) / teacher.std
-                               ).square().mean().item() for record in records))
+        errors = endpoint_errors(teacher_run, [student_run, run], steps, student_run)
         assert errors[1] < 0.8 * errors[0], (steps, errors)
+    teacher = load_trained_model(teacher_run)
     with pytest.raises(ConfigError, match="student_steps"):
         student_config(teacher, yaml.safe_load((teacher_run / "config.yaml").read_text()), tmp_path / "s3",
                        ["train.flow_time_sampling=grid", "distill.student_steps=3"])
+
+
+def test_a_second_step_trained_from_the_first_steps_own_states_lands_nearer(student_run, teacher_run,
+                                                                            grid_student_run, tmp_path_factory,
+                                                                            tmp_path):
+    """Backward distillation (train.flow_grid_inputs=own_path): the same grid, but the t = 1/2 rows start from the
+    state the student's own first step reaches. Its 2-step solution from the pairs' own noise, the sampler it was
+    trained for, ends nearer the teacher's endpoints than the grid student's trained from the straight path's
+    states, on the same pairs as long; the option is recorded in its config and model card."""
+    run = distill_on_the_students_pairs(student_run, teacher_run, tmp_path_factory.getbasetemp() / "own-student",
+                                        "train.flow_time_sampling=grid", "train.flow_time_grid_steps=2",
+                                        "train.flow_grid_inputs=own_path")
+    assert yaml.safe_load((run / "config.yaml").read_text())["train"]["flow_grid_inputs"] == "own_path"
+    card = (export_pretrained(run, tmp_path / "export") / CARD_FILE).read_text()
+    assert "from the state its own earlier steps reach" in card
+    errors = endpoint_errors(teacher_run, [grid_student_run, run], 2, student_run)
+    assert errors[1] < 0.9 * errors[0], errors
 
 
 def test_recorded_noise_needs_a_pair_set_used_whole(tmp_path_factory, tmp_path):
@@ -375,7 +413,8 @@ def student_launches(student_run, teacher_run, tmp_path_factory, request) -> dic
     launches = {}
     if "test_student_training_resumes_bit_exactly" in wanted:
         extra = ("data.unit_length=1", "train.flow_noise=recorded", f"train.init_from={teacher_run}",
-                 "model.cond_drop_prob=0", "train.max_steps=6", "train.save_every=2", "train.keep_last=2")
+                 "model.cond_drop_prob=0", "train.max_steps=6", "train.save_every=2", "train.keep_last=2",
+                 "train.flow_time_sampling=grid", "train.flow_grid_inputs=own_path")
         launches["resume"] = partial(kill_and_resume, student_run / "pairs" / "manifest.json", root / "resume",
                                      base_overrides, extra, 5, 4)
     if "test_two_ranks_share_the_teachers_work" in wanted:
@@ -383,15 +422,17 @@ def student_launches(student_run, teacher_run, tmp_path_factory, request) -> dic
             subprocess.run, [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
                              str(REPO_ROOT / "launch" / "distill.py"), "--teacher", str(teacher_run), "--out",
                              str(root / "two_ranks"), "train.max_steps=2", "train.save_every=2",
-                             "distill.batch_size=7"],
+                             "distill.batch_size=7", "train.flow_time_sampling=grid",
+                             "train.flow_grid_inputs=own_path"],
             cwd=REPO_ROOT, env=clean_env(), capture_output=True, text=True, timeout=300)
     started = start_two_at_a_time(launches)
     return {name: (root / name, future) for name, future in started.items()}
 
 
 def test_student_training_resumes_bit_exactly(student_launches):
-    """The student's run (recorded noise, initialised from the teacher) SIGKILLed in the middle of step 5 and resumed
-    from checkpoint 4 ends bit-identical to an uninterrupted one."""
+    """The student's run (recorded noise, initialised from the teacher, its second grid time trained from its own
+    first step's states) SIGKILLed in the middle of step 5 and resumed from checkpoint 4 ends bit-identical to an
+    uninterrupted one."""
     a_out, b_out = student_launches["resume"][1].result()
     assert_runs_identical(a_out / "run", b_out / "run", 6)
 
@@ -400,7 +441,7 @@ def test_student_training_resumes_bit_exactly(student_launches):
 def test_two_ranks_share_the_teachers_work(student_run, student_launches):
     """Under torchrun with 2 ranks each rank solves every other pair and rank 0 writes them all: the same pairs, in
     the same order, with the same seeds and (up to the summation order of other batch mates) the same motions as
-    one rank's; then the student trains on both ranks."""
+    one rank's; then the student trains on both ranks (with the own-path grid's extra gradient-free pass)."""
     out, started = student_launches["two_ranks"]
     proc = started.result()
     assert proc.returncode == 0, output_of(proc)

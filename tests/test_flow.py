@@ -661,3 +661,66 @@ def test_input_perturbation_builds_the_input_from_perturbed_noise_and_keeps_the_
         model, x1, cond, lengths, t=t, x0=x0, generator=torch.Generator().manual_seed(5))[0].item() > 0
     with pytest.raises(ValueError, match="input_perturbation"):
         FlowMatchingObjective(input_perturbation=-0.1)
+
+
+def test_own_path_inputs_feed_each_grid_time_the_models_own_euler_state_and_charge_the_way_to_its_motion():
+    """grid_inputs='own_path' (backward distillation): a row at t = k/K sees the state the model's own first k
+    Euler steps reach from its noise (no gradient) and is charged against the velocity from there to its x1; a row
+    at t = 0 is trained exactly as with the straight path; an oracle that heads for x1 from anywhere has zero loss."""
+    from mfm.flow import own_path_inputs
+    from mfm.path import velocity_from_data
+
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(ModelConfig(feature_dim=6, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
+    x1, cond, lengths = torch.randn(3, 8, 6), torch.randn(3, 4), torch.tensor([8, 5, 7])
+    x0, keep = torch.randn(3, 8, 6), torch.tensor([False, True, False])  # row 1's condition dropped
+    t = torch.tensor([0.0, 0.5, 0.5])
+    grid = ("grid", 0.0, 1.0, 2)
+    with torch.no_grad():
+        first = model(x0, torch.zeros(3), cond, lengths, cond_mask=keep)
+    expected_input = torch.cat([x0[:1], x0[1:] + 0.5 * first[1:]])
+    assert torch.allclose(own_path_inputs(model, x0, t, cond, lengths, keep, 2), expected_input)
+    expected_target = velocity_from_data(x1, expected_input, t)
+    expected = masked_mse(model(expected_input, t, cond, lengths, cond_mask=keep), expected_target,
+                          valid_frame_mask(lengths, 8))
+    own, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, cond_mask=keep, time_sampling=grid,
+                                grid_inputs="own_path")
+    assert own.item() == pytest.approx(expected.item(), rel=1e-5)
+    straight, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0, cond_mask=keep, time_sampling=grid)
+    assert own.item() != pytest.approx(straight.item(), rel=1e-3)
+    at_noise = torch.zeros(3)
+    assert flow_matching_loss(model, x1, cond, lengths, t=at_noise, x0=x0, cond_mask=keep, time_sampling=grid,
+                              grid_inputs="own_path")[0].item() == pytest.approx(
+        flow_matching_loss(model, x1, cond, lengths, t=at_noise, x0=x0, cond_mask=keep)[0].item(), rel=1e-6)
+
+    def oracle(x, times, cond, lengths=None, *, cond_mask=None, generator=None):
+        """Heads for x1 from anywhere, except that its first step aims 1 off: later states leave the straight path."""
+        return velocity_from_data(x1 + (times == 0).float()[:, None, None], x, times)
+
+    thirds = torch.tensor([1 / 3, 2 / 3, 2 / 3])
+    visited = own_path_inputs(oracle, x0, thirds, cond, lengths, keep, 3)
+    assert (visited - interpolate(x0, x1, thirds)).abs().min() > 0.1  # off the straight path
+    zero, _ = flow_matching_loss(oracle, x1, cond, lengths, t=thirds, x0=x0, cond_mask=keep,
+                                 time_sampling=("grid", 0.0, 1.0, 3), grid_inputs="own_path")
+    assert zero.item() == pytest.approx(0.0, abs=1e-10)
+
+
+def test_own_path_inputs_refuse_what_they_cannot_replay():
+    model = AffineStub()
+    x1, cond, lengths = torch.randn(2, 4, 3), torch.randn(2, 2), torch.tensor([4, 3])
+    keep, grid = torch.tensor([True, True]), ("grid", 0.0, 1.0, 2)
+    with pytest.raises(ValueError, match="own_path"):
+        flow_matching_loss(model, x1, cond, lengths, cond_mask=keep, grid_inputs="own_path")  # uniform times
+    with pytest.raises(ValueError, match="cond_mask"):
+        flow_matching_loss(model, x1, cond, lengths, time_sampling=grid, grid_inputs="own_path")
+    with pytest.raises(ValueError, match="own_path"):
+        flow_matching_loss(model, x1, cond, lengths, cond_mask=keep, time_sampling=grid, grid_inputs="own_path",
+                           input_perturbation=0.1)
+    with pytest.raises(ValueError, match="grid_inputs"):
+        flow_matching_loss(model, x1, cond, lengths, grid_inputs="straight")
+    with pytest.raises(ValueError, match="grid_inputs"):
+        FlowMatchingObjective(grid_inputs="own_path")
+    from mfm.flow import own_path_inputs
+    with pytest.raises(ValueError, match="on the grid"):
+        own_path_inputs(model, torch.randn(2, 4, 3), torch.tensor([0.0, 0.3]), cond, lengths, keep, 2)

@@ -220,6 +220,7 @@ def recipe_facts(trained: TrainedModel, train_config: Mapping[str, Any]) -> dict
         "flow_loss": loop.get("flow_loss") if trained.objective == "flow" else None,
         "flow_time_sampling": loop.get("flow_time_sampling", "uniform") if trained.objective == "flow" else None,
         "flow_time_grid_steps": loop.get("flow_time_grid_steps"),
+        "flow_grid_inputs": loop.get("flow_grid_inputs"),
         "steps": trained.step, "batch_size": data.get("batch_size"), "window": trained.window,
         "lr": optim.get("lr"), "schedule": optim.get("schedule"), "warmup_steps": optim.get("warmup_steps"),
         "weight_decay": optim.get("weight_decay"), "ema_decay": optim.get("ema_decay"),
@@ -375,6 +376,9 @@ def _recipe_lines(config: Mapping[str, Any], model: ModelConfig, recipe: Mapping
             lines.append(f"- trained only at the times its {grid}-step Euler sampler visits (0, 1/{grid}, ...: "
                          "`train.flow_time_sampling=grid`); at step counts whose times are not among them it runs "
                          "at times it was not distilled at")
+            if recipe.get("flow_grid_inputs") == "own_path":
+                lines.append("- each later step trained from the state its own earlier steps reach, not from the "
+                             "straight path's (`train.flow_grid_inputs=own_path`, backward distillation)")
     return lines + [
         f"- {recipe.get('steps')} steps, batch {recipe.get('batch_size')} of {recipe.get('window')}-frame windows, "
         f"lr {recipe.get('lr')} ({recipe.get('schedule')}, {recipe.get('warmup_steps')} warm-up steps), weight decay "
