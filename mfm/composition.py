@@ -40,7 +40,7 @@ from torch import Tensor, nn
 
 from mfm.flow import SIGMA_MIN
 from mfm.path import data_from_velocity
-from mfm.solvers import FIXED_STEP_SOLVERS, SolveResult, guided_velocity, initial_noise, solve
+from mfm.solvers import FIXED_STEP_SOLVERS, SolveResult, guided_velocity, initial_noise, solve, step_grid
 
 logger = logging.getLogger(__name__)
 
@@ -132,18 +132,20 @@ def segment_boundaries(lengths: Sequence[int]) -> list[tuple[int, int]]:
     return bounds
 
 
-def resolve_switch(switch: float | int, steps: int) -> float:
+def resolve_switch(switch: float | int, steps: int, grid: Tensor | None = None) -> float:
     """Flow time from which evaluations run in relative mode.
 
     float in [0, 1]: that time (1.0 = never, i.e. all absolute; 0.0 = all relative). int k in [0, steps]: the
-    first k of ``steps`` uniform steps run in absolute mode (k = steps: all).
+    first k of ``steps`` steps run in absolute mode (k = steps: all), uniform steps or those of ``grid``.
     """
     if isinstance(switch, bool):
         raise ValueError(f"switch must be a flow time (float) or a step count (int), got {switch!r}")
     if isinstance(switch, int):
         if not 0 <= switch <= steps:
             raise ValueError(f"switch as a step count must be in [0, {steps}] (steps), got {switch}")
-        return math.inf if switch == steps else switch / steps
+        if switch == steps:
+            return math.inf
+        return switch / steps if grid is None else float(grid[switch])
     switch = float(switch)
     if not 0.0 <= switch <= 1.0:
         raise ValueError(f"switch as a flow time must be in [0, 1], got {switch}")
@@ -358,7 +360,8 @@ def compose(
     conds, lengths = _stack_conditions(segments)
     conds = conds.to(device)
     bpe = config.positional == "bpe"
-    switch_time = resolve_switch(switch, steps)
+    grid = step_grid(steps, getattr(config, "sampling_times", None))  # a few-step student's own times
+    switch_time = resolve_switch(switch, steps, grid)
 
     extras: dict[str, Tensor] = {}
     if config.conditioning == "pccat":
@@ -387,7 +390,7 @@ def compose(
     x0 = initial_noise((1, total, config.feature_dim), seed=seed, generator=generator, device=device)
     velocity = guided_velocity(bound, conds[:1], scale=guidance, null_cond=null_cond,
                                conditional_channels=conditional_channels, precision=precision)
-    result = solve(velocity, x0, solver=solver, steps=steps, return_trajectory=return_trajectory)
+    result = solve(velocity, x0, solver=solver, steps=steps, grid=grid, return_trajectory=return_trajectory)
     return Composition(
         motion=result.x1[0],
         boundaries=segment_boundaries(lengths),

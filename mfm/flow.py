@@ -76,7 +76,7 @@ model's own Euler steps reach from that noise (backward distillation)."""
 
 
 def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scale: float = 1.0,
-              grid_steps: int = 0) -> torch.Tensor:
+              grid_steps: int = 0, grid_times: tuple[float, ...] | None = None) -> torch.Tensor:
     """Training times from uniform draws ``u`` in [0, 1) by the inverse CDF of the named density (so the random
     stream, and with it exact resume and any world size's draws, is the same whatever the density).
 
@@ -87,14 +87,21 @@ def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scal
     evaluates the network, each equally often: the k-step distillation of a reflowed model (Liu et al. 2022,
     rectified flow, section 2.3), which spends the student's training on the times its few-step sampler visits
     (K = 2 trains t = 0 and 1/2: both the 1-step and the 2-step sampler). For a pair set (launch/distill.py), not
-    for training from data.
+    for training from data. ``grid_times`` (K start times, ``ModelConfig.sampling_times``) replace 0, 1/K, ...:
+    the k-th draws train ``grid_times[k]``.
     """
     if sampling == "uniform":
         return u
     if sampling == "grid":
         if grid_steps < 1:
             raise ValueError(f"grid time sampling needs grid_steps >= 1, got {grid_steps!r}")
-        return (torch.floor(u * grid_steps).clamp(max=grid_steps - 1) / grid_steps).to(u.dtype)
+        index = torch.floor(u * grid_steps).clamp(max=grid_steps - 1)
+        if grid_times is None:
+            return (index / grid_steps).to(u.dtype)
+        if len(grid_times) != grid_steps:
+            raise ValueError(f"grid time sampling with {grid_steps} steps needs {grid_steps} grid_times, got "
+                             f"{grid_times!r}")
+        return torch.tensor(grid_times, dtype=u.dtype, device=u.device)[index.long()]
     if sampling != "logit_normal":
         raise ValueError(f"time sampling must be one of {TIME_SAMPLINGS}, got {sampling!r}")
     if scale <= 0:
@@ -243,7 +250,7 @@ def flow_matching_loss(
     root_mean_weight: float = 0.0,
     root_rate_channels: tuple[int, ...] = ROOT_RATE_CHANNELS,
     geometry: MotionGeometry | None = None,
-    time_sampling: tuple[str, float, float, int] = ("uniform", 0.0, 1.0, 0),
+    time_sampling: tuple = ("uniform", 0.0, 1.0, 0),
     terms_weighting: str = "data",
     velocity_weight_cap: float = 0.0,
     channel_weight: torch.Tensor | None = None,
@@ -275,7 +282,7 @@ def flow_matching_loss(
     (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
     ``t`` (B,) and ``x0`` (B, T, D), when given, replace the draws (a data-parallel step slices them from the
     global batch's draws so that any world size computes the same thing). ``t``, drawn or given, is a uniform draw
-    that ``time_sampling`` = (name, loc, scale, grid_steps) turns into the training time (:func:`warp_time`;
+    that ``time_sampling`` = (name, loc, scale, grid_steps[, grid_times]) turns into the training time (:func:`warp_time`;
     'uniform' keeps it); ``terms_weighting`` weighs the two terms over t (:func:`term_weight`);
     ``velocity_weight_cap`` caps the velocity loss's weight of an x̂1 error (:func:`loss_space_weight`);
     ``channel_weight`` (D,) weighs the main MSE's channels (:func:`masked_mse`; the two terms are not weighted).
@@ -310,11 +317,13 @@ def flow_matching_loss(
     if input_perturbation > 0 and perturbation is None:
         perturbation = sample_noise(x1, generator)
     input_noise = x0 + input_perturbation * perturbation if input_perturbation > 0 else x0  # the target keeps x0
-    x_t = interpolate(input_noise, x1, t, sigma_min)
-    target = target_velocity(x0, x1, sigma_min)
     if own_path:
-        x_t = own_path_inputs(model, x0, t, cond, lengths, cond_mask, time_sampling[3], model_kwargs)
-        target = velocity_from_data(x1.float(), x_t.float(), t.float(), sigma_min=sigma_min).to(target.dtype)
+        x_t = own_path_inputs(model, x0, t, cond, lengths, cond_mask, time_sampling[3], model_kwargs,
+                              *time_sampling[4:])
+        target = velocity_from_data(x1.float(), x_t.float(), t.float(), sigma_min=sigma_min).to(x1.dtype)
+    else:
+        x_t = interpolate(input_noise, x1, t, sigma_min)
+        target = target_velocity(x0, x1, sigma_min)
     # With an explicit cond_mask the model draws nothing; not passing the generator then keeps a torch.compile'd
     # model free of a graph break (a Generator argument breaks the graph).
     model_generator = generator if cond_mask is None else None
@@ -583,22 +592,30 @@ attention_chunk) apply to the whole pass."""
 
 def own_path_inputs(model: VelocityModel, x0: torch.Tensor, t: torch.Tensor, cond: torch.Tensor,
                     lengths: torch.Tensor, cond_mask: torch.Tensor, grid_steps: int,
-                    model_kwargs: Mapping[str, Any] | None = None) -> torch.Tensor:
-    """Each row's state after its own Euler steps from ``x0`` on the grid 0, 1/K, ..., with K = ``grid_steps``: a
-    row at t = k/K (B,) takes k steps of ``x += v(x, j/K)/K`` (the K-step sampler's first k steps, guidance 1),
-    without gradient; a row at t = 0 keeps its noise. K − 1 passes of the whole batch whatever the rows' times, so
-    every data-parallel rank makes the same model calls (DDP broadcasts buffers at each forward)."""
+                    model_kwargs: Mapping[str, Any] | None = None,
+                    grid_times: tuple[float, ...] | None = None) -> torch.Tensor:
+    """Each row's state after its own Euler steps from ``x0`` on the grid t_0 = 0 < t_1 < ... < t_{K-1} < 1 (K =
+    ``grid_steps``; ``grid_times``, or 0, 1/K, ... when None): a row at t = t_k (B,) takes the K-step sampler's
+    first k steps ``x += (t_{j+1} − t_j)·v(x, t_j)`` (guidance 1), without gradient; a row at t = 0 keeps its noise.
+    K − 1 passes of the whole batch whatever the rows' times, so every data-parallel rank makes the same model calls
+    (DDP broadcasts buffers at each forward)."""
     if grid_steps < 1:
         raise ValueError(f"own_path_inputs needs grid_steps >= 1, got {grid_steps!r}")
-    steps_taken = torch.round(t.float() * grid_steps).long()
-    if not torch.allclose(steps_taken.float() / grid_steps, t.float(), atol=1e-6):
-        raise ValueError(f"own_path_inputs needs times on the grid of {grid_steps} steps, got {t.tolist()}")
+    times = [k / grid_steps for k in range(grid_steps)] if grid_times is None else [float(k) for k in grid_times]
+    if len(times) != grid_steps:
+        raise ValueError(f"own_path_inputs needs {grid_steps} grid_times, got {grid_times!r}")
+    grid = torch.tensor([*times, 1.0], dtype=torch.float64)  # as mfm.solvers' grids: the step sizes in float64
+    distance = (t.double().cpu()[:, None] - grid[None, :-1]).abs()
+    steps_taken = distance.argmin(dim=1).to(t.device)
+    if not bool((distance.min(dim=1).values < 1e-6).all()):
+        raise ValueError(f"own_path_inputs needs times on the grid {times}, got {t.tolist()}")
     x = x0
     with torch.no_grad():
         for step in range(grid_steps - 1):
-            velocity = model(x, torch.full_like(t, step / grid_steps), cond, lengths, cond_mask=cond_mask,
+            velocity = model(x, torch.full_like(t, times[step]), cond, lengths, cond_mask=cond_mask,
                              **dict(model_kwargs or {}))
-            x = torch.where((steps_taken > step)[:, None, None], x + velocity.to(x.dtype) / grid_steps, x)
+            size = float(grid[step + 1] - grid[step])
+            x = torch.where((steps_taken > step)[:, None, None], x + size * velocity.to(x.dtype), x)
     return x
 
 
@@ -662,6 +679,8 @@ class FlowMatchingObjective:
     time_loc: float = 0.0
     time_scale: float = 1.0
     time_grid_steps: int = 0
+    time_grid_times: tuple[float, ...] | None = None
+    """time_sampling='grid': the K start times trained (``ModelConfig.sampling_times``); None: 0, 1/K, ..."""
     grid_inputs: str = "interpolated"
     """:data:`GRID_INPUTS`: 'own_path' trains each grid time from the state the model's own Euler steps reach
     (backward distillation; a few-step student's option, needs ``time_sampling='grid'``)."""
@@ -687,6 +706,10 @@ class FlowMatchingObjective:
         if self.time_sampling == "grid" and self.time_grid_steps < 1:
             raise ValueError(f"FlowMatchingObjective.time_sampling='grid' needs time_grid_steps >= 1, got "
                              f"{self.time_grid_steps!r}")
+        if self.time_grid_times is not None and (self.time_sampling != "grid"
+                                                 or len(self.time_grid_times) != self.time_grid_steps):
+            raise ValueError(f"FlowMatchingObjective.time_grid_times are the {self.time_grid_steps} times of "
+                             f"time_sampling='grid', got {self.time_grid_times!r} with {self.time_sampling!r}")
         if self.grid_inputs not in GRID_INPUTS or (self.grid_inputs == "own_path" and self.time_sampling != "grid"):
             raise ValueError(f"FlowMatchingObjective.grid_inputs must be one of {GRID_INPUTS} ('own_path' with "
                              f"time_sampling='grid'), got {self.grid_inputs!r} with {self.time_sampling!r}")
@@ -745,7 +768,8 @@ class FlowMatchingObjective:
             trajectory_weight=self.trajectory_weight, trajectory_min_t=self.trajectory_min_t,
             trajectory_huber=self.trajectory_huber, foot_contact_weight=self.foot_contact_weight,
             root_mean_weight=self.root_mean_weight, geometry=self.geometry,
-            time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps),
+            time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps,
+                           self.time_grid_times),
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,
             channel_weight=self.channel_weight_on(x1.device),

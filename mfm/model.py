@@ -105,6 +105,16 @@ ROPE_BASE = 10000.0
 """Base of the rotary frequencies (x-transformers' / RoFormer's default, used by FlowMDM)."""
 
 
+def is_step_start_grid(times: object) -> bool:
+    """Whether ``times`` can be ``ModelConfig.sampling_times``: a non-empty sequence of numbers, 0 first, strictly
+    increasing, all below 1."""
+    if not isinstance(times, (tuple, list)) or not times:
+        return False
+    if not all(isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) for t in times):
+        return False
+    return times[0] == 0 and all(a < b for a, b in zip(times, times[1:])) and times[-1] < 1
+
+
 @dataclass
 class ModelConfig:
     """Architecture of :class:`MotionFlowTransformer`; defaults are MFM's HumanML3D text model."""
@@ -266,6 +276,12 @@ class ModelConfig:
     """The ODE solver steps samplers use for this flow model unless told otherwise (``launch/sample.py --steps``,
     the contact sheet, MotionPipeline; edits keep their settings' steps, the evaluator its protocol's). 10 is MFM's
     Euler default; a few-step student (``launch/distill.py``) records 2. Not used in training."""
+    sampling_times: tuple[float, ...] | None = None
+    """The times at which samplers start their Euler steps when they take ``len(sampling_times)`` steps
+    (:func:`mfm.solvers.step_grid`): ``(0, 0.9)`` integrates 0 → 0.9 → 1 instead of 0 → 1/2 → 1, so a few-step
+    student's last step starts from a state nearer the motion; other step counts keep the uniform grid. A student
+    trained with ``train.flow_time_sampling=grid`` is trained at these times. None: the uniform grid (MFM). Ours,
+    not MFM's; chosen times for a distilled sampler's few steps are common practice (e.g. DMD2's 4-step times)."""
     shortcut_levels: int = 0
     """0: a flow model. K > 0: a shortcut model (Frans et al. 2024, "One Step Diffusion via Shortcut Models"): the
     network also takes the step size d of the sampler's step (``step_size``, embedded as the time is and added to
@@ -426,6 +442,14 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.sampling_guidance must be a finite scale >= 0, got {self.sampling_guidance!r}")
         if not isinstance(self.sampling_steps, int) or isinstance(self.sampling_steps, bool) or self.sampling_steps < 1:
             raise ValueError(f"ModelConfig.sampling_steps must be an int >= 1, got {self.sampling_steps!r}")
+        if isinstance(self.sampling_times, list):  # as a checkpoint's JSON or YAML gives it back
+            self.sampling_times = tuple(self.sampling_times)
+        if self.sampling_times is not None and not is_step_start_grid(self.sampling_times):
+            raise ValueError("ModelConfig.sampling_times must be null or the start times of a solve's steps: 0 first, "
+                             f"strictly increasing, below 1, got {self.sampling_times!r}")
+        if self.sampling_times is not None and self.shortcut_levels > 0:
+            raise ValueError("ModelConfig.sampling_times is for a flow model's Euler steps; a shortcut model's steps "
+                             "are its trained step sizes (shortcut_levels)")
         if not isinstance(self.shortcut_levels, int) or isinstance(self.shortcut_levels, bool) or not (
                 0 <= self.shortcut_levels <= 10):
             raise ValueError(f"ModelConfig.shortcut_levels must be an int in [0, 10], got {self.shortcut_levels!r}")

@@ -103,6 +103,14 @@ def uniform_grid(steps: int) -> Tensor:
     return torch.arange(steps + 1, dtype=torch.float64) / steps
 
 
+def step_grid(steps: int, sampling_times: Sequence[float] | None) -> Tensor | None:
+    """The grid of a ``steps``-step fixed solve for a model with ``ModelConfig.sampling_times``: those start times
+    and 1 when there are ``steps`` of them, else None (the solvers' uniform grid)."""
+    if sampling_times is None or len(sampling_times) != steps:
+        return None
+    return check_grid([*sampling_times, 1.0])
+
+
 def check_grid(grid: Sequence[float] | Tensor) -> Tensor:
     """A validated float64 copy of ``grid``: 1-D, at least two points, strictly increasing, within [0, 1]."""
     times = torch.as_tensor(grid, dtype=torch.float64).detach().cpu().clone()

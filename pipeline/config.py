@@ -381,7 +381,9 @@ class TrainLoopConfig:
     """flow_time_sampling=logit_normal: the normal's standard deviation (> 0)."""
     flow_time_grid_steps: int = 2
     """flow_time_sampling=grid: K, the Euler steps whose times are trained (2: t = 0 and 1/2, which serve the 1-step
-    and the 2-step sampler; a student's distill.student_steps must divide it)."""
+    and the 2-step sampler; a student's distill.student_steps must divide it). With ``model.sampling_times`` the
+    times are those (K must be their number): e.g. ``model.sampling_times=[0,0.9]`` trains t = 0 and 0.9, the
+    times the model's 2-step sampler then starts its steps at."""
     flow_grid_inputs: Literal["interpolated", "own_path"] = "interpolated"
     """flow_time_sampling=grid: a row at the grid time k/K is fed 'interpolated', the straight path's point between
     its noise and its pair's motion (rectified flow's k-step distillation, Liu et al. 2022), or 'own_path', the
@@ -586,8 +588,16 @@ class TrainConfig:
             "input perturbation",
         )
         steps = self.distill.student_steps if self.distill is not None else 0
+        times = self.model.sampling_times
         _require(
-            not steps or self.train.flow_time_sampling != "grid" or self.train.flow_time_grid_steps % steps == 0,
+            times is None or self.train.flow_time_sampling != "grid" or (
+                len(times) == self.train.flow_time_grid_steps and (not steps or steps in (1, len(times)))),
+            f"model.sampling_times={list(times or ())} are the times train.flow_time_sampling=grid trains: "
+            f"train.flow_time_grid_steps must be {len(times or ())} and distill.student_steps 1 or {len(times or ())}",
+        )
+        _require(
+            not steps or self.train.flow_time_sampling != "grid" or times is not None
+            or self.train.flow_time_grid_steps % steps == 0,
             f"train.flow_time_grid_steps={self.train.flow_time_grid_steps} does not hold the times of the student's "
             f"{steps}-step sampler (distill.student_steps): use a multiple of {steps}",
         )

@@ -266,3 +266,17 @@ def test_own_path_grid_inputs_need_grid_times_and_nothing_that_changes_the_model
             load_config(TrainConfig, "tiny", overrides)
     with pytest.raises(ConfigError, match="flow_grid_inputs"):
         load_config(TrainConfig, "tiny", [*reflow, "train.flow_grid_inputs=straight"])
+
+
+def test_sampling_times_are_a_solves_start_times_and_the_grid_trains_exactly_them():
+    reflow = ["train.flow_time_sampling=grid", "train.flow_noise=recorded", "data.unit_length=1"]
+    cfg = load_config(TrainConfig, "tiny", [*reflow, "model.sampling_times=[0,0.9]"])
+    assert cfg.model.sampling_times == (0, 0.9)
+    assert load_config(TrainConfig, "tiny", ["model.sampling_times=[0,0.9]"]).train.flow_time_sampling == "uniform"
+    for times in ("[0.1,0.9]", "[0,0.9,0.5]", "[0,1]", "[]"):
+        with pytest.raises(ConfigError, match="sampling_times"):
+            load_config(TrainConfig, "tiny", [f"model.sampling_times={times}"])
+    with pytest.raises(ConfigError, match="flow_time_grid_steps must be 3"):
+        load_config(TrainConfig, "tiny", [*reflow, "model.sampling_times=[0,0.5,0.9]"])
+    with pytest.raises(ConfigError, match="shortcut"):
+        load_config(TrainConfig, "tiny", ["model.sampling_times=[0,0.9]", "model.shortcut_levels=2"])

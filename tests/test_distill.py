@@ -98,14 +98,15 @@ def pair_records(run: Path):
 
 
 @torch.no_grad()
-def solve_from_recorded_noise(trained, record, guidance: float, steps: int) -> torch.Tensor:
-    """(L, D) normalised: ``trained``'s Euler solution from the record's own noise, for its caption and length."""
+def solve_from_recorded_noise(trained, record, guidance: float, steps: int, grid=None) -> torch.Tensor:
+    """(L, D) normalised: ``trained``'s Euler solution from the record's own noise, for its caption and length
+    (on ``grid`` when given, else uniform)."""
     length = record.features.shape[0]
     lengths = torch.tensor([length])
     x0 = draw_noise((1, length, trained.model_config.feature_dim), seeded_generators([record.noise_seed]),
                     lengths=lengths)
     velocity = guided_velocity(trained.model, torch.from_numpy(record.text_emb[:1]), scale=guidance, lengths=lengths)
-    return solve(zero_padded_frames(velocity, lengths), x0, solver="euler", steps=steps).x1[0]
+    return solve(zero_padded_frames(velocity, lengths), x0, solver="euler", steps=steps, grid=grid).x1[0]
 
 
 def test_pair_set_is_the_teachers_samples_made_once(student_run, teacher_run, tmp_path):
@@ -380,6 +381,44 @@ def test_a_second_step_trained_from_the_first_steps_own_states_lands_nearer(stud
     assert errors[1] < 0.9 * errors[0], errors
 
 
+@pytest.fixture(scope="session")
+def late_student_run(tmp_path_factory, student_run, teacher_run) -> Path:
+    """A 2-step student whose second step starts at 0.9, trained there from its first step's own states."""
+    return distill_on_the_students_pairs(student_run, teacher_run, tmp_path_factory.getbasetemp() / "late-student",
+                                         "train.flow_time_sampling=grid", "train.flow_grid_inputs=own_path",
+                                         "model.sampling_times=[0,0.9]")
+
+
+def test_a_student_at_its_own_sampling_times_is_trained_and_sampled_there(student_run, teacher_run,
+                                                                           late_student_run, tmp_path):
+    """model.sampling_times=[0,0.9] with the own-path grid: the student trains at t = 0 and 0.9, and its 2-step
+    sampler starts its steps there: launch/sample.py gives the Euler solution on 0 -> 0.9 -> 1 from the pair's
+    noise (not the uniform grid's), which ends nearer the teacher's endpoints than the same student on the
+    uniform grid; its 1-step sampler is the uniform one; config, model card and results.json record the times."""
+    run = late_student_run
+    assert yaml.safe_load((run / "config.yaml").read_text())["model"]["sampling_times"] == [0, 0.9]
+    card = (export_pretrained(run, tmp_path / "export") / CARD_FILE).read_text()
+    assert "starts its Euler steps at the times 0, 0.9" in card
+    student, first = load_trained_model(run), pair_records(student_run)[0]
+    late, uniform = (solve_from_recorded_noise(student, first, 1.0, 2, grid) for grid in ([0, 0.9, 1], None))
+    for steps, expected in ((2, late), (1, solve_from_recorded_noise(student, first, 1.0, 1))):
+        out = tmp_path / f"sampled-{steps}"
+        assert sample_entry.main(["--checkpoint", str(run), "--out", str(out), "--text", first.captions[0],
+                                  "--length", str(first.features.shape[0]), "--seed", "0", "--steps", str(steps),
+                                  "--no-video", "--no-bvh"]) == 0
+        sampled = np.load(out / "sample_000" / "features.npy")
+        np.testing.assert_allclose(sampled, student.denormalize(expected).numpy(), rtol=0, atol=1e-4)
+        assert json.loads((out / "results.json").read_text()).get("grid") == ([0, 0.9, 1] if steps == 2 else None)
+    assert (late - uniform).abs().max() > 1e-2
+    teacher = load_trained_model(teacher_run)
+    errors = []
+    for grid in ([0, 0.9, 1], None):
+        errors.append(sum((solve_from_recorded_noise(student, record, 1.0, 2, grid)
+                           - (torch.from_numpy(record.features) - teacher.mean) / teacher.std).square().mean().item()
+                          for record in pair_records(student_run)[:32]))
+    assert errors[0] < 0.9 * errors[1], errors
+
+
 def test_recorded_noise_needs_a_pair_set_used_whole(tmp_path_factory, tmp_path):
     """train.flow_noise=recorded is refused on a crop that would cut a pair from its noise, and on a dataset that
     is not a pair set; launch/distill.py refuses overrides of what the method sets (exit 2, one line)."""
@@ -471,6 +510,22 @@ def test_the_evaluator_scores_a_student_on_its_teachers_test_split(student_run, 
                      "protocol.replications=1", "tasks.editing=[]", "protocol.multimodality=false",
                      f"evaluator.path={evaluator}", f"output.dir={tmp_path / 'guided'}"]) == 2
     assert {r["dataset_id"] for r in generated} == {open_manifest(dataset).dataset_id}
+
+
+def test_the_evaluator_steps_on_a_students_own_sampling_times(late_student_run, tmp_path, tmp_path_factory):
+    """The evaluator's 2-step point of a student with model.sampling_times runs on 0 -> 0.9 -> 1 and its results
+    say so; its 1-step point runs (and records) the uniform grid."""
+    from launch.evaluate import main as evaluate
+
+    dataset = build_dataset_once(tmp_path_factory)
+    evaluator = random_contrastive_evaluator(dataset, tmp_path / "evaluator.safetensors")
+    out = tmp_path / "eval"
+    assert evaluate(["--checkpoint", str(late_student_run), "--protocol", "fast", *SMALL_PROTOCOL, "--steps", "1,2",
+                     "--guidance", "1", "protocol.replications=1", "tasks.editing=[]", "protocol.multimodality=false",
+                     f"evaluator.path={evaluator}", f"output.dir={out}"]) == 0
+    results = [json.loads(path.read_text()) for path in sorted((out / "results").glob("step-*/euler-*.json"))]
+    assert sorted((r["sampling"]["steps"], r["sampling"]["grid"], r["nfe"]) for r in results) == \
+        [(1, None, 1), (2, [0.0, 0.9, 1.0], 2)]
 
 
 def test_a_students_contact_sheet_compares_with_its_teachers_clips(student_run, tmp_path, tmp_path_factory):

@@ -724,3 +724,39 @@ def test_own_path_inputs_refuse_what_they_cannot_replay():
     from mfm.flow import own_path_inputs
     with pytest.raises(ValueError, match="on the grid"):
         own_path_inputs(model, torch.randn(2, 4, 3), torch.tensor([0.0, 0.3]), cond, lengths, keep, 2)
+
+
+def test_grid_times_replace_the_uniform_grid_in_training_and_in_the_own_path():
+    """ModelConfig.sampling_times as the grid: warp_time's k-th K-quantile trains grid_times[k]; the own path steps
+    0 -> 0.9 with the step 0.9, as Euler on mfm.solvers.step_grid's 0 -> 0.9 -> 1 does; step_grid applies only to
+    its own step count."""
+    from mfm.flow import own_path_inputs
+    from mfm.solvers import solve, step_grid, uniform_grid
+
+    u = torch.tensor([0.0, 0.3, 0.49, 0.5, 0.99])
+    assert warp_time(u, "grid", grid_steps=2, grid_times=(0.0, 0.9)).tolist() == pytest.approx([0, 0, 0, 0.9, 0.9])
+    with pytest.raises(ValueError, match="grid_times"):
+        warp_time(u, "grid", grid_steps=3, grid_times=(0.0, 0.9))
+    assert step_grid(2, (0.0, 0.9)).tolist() == [0.0, 0.9, 1.0]
+    assert step_grid(1, (0.0, 0.9)) is None and step_grid(2, None) is None
+    assert torch.equal(step_grid(3, (0.0, 1 / 3, 2 / 3)), uniform_grid(3))
+
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(ModelConfig(feature_dim=6, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
+    x0, cond, lengths, keep = torch.randn(2, 8, 6), torch.randn(2, 4), torch.tensor([8, 6]), torch.ones(2, dtype=bool)
+    t = torch.tensor([0.9, 0.0])
+    visited = own_path_inputs(model, x0, t, cond, lengths, keep, 2, grid_times=(0.0, 0.9))
+
+    def field(x, times):
+        return model(x, times, cond, lengths, cond_mask=keep)
+
+    first_step = solve(field, x0, grid=[0.0, 0.9]).x1  # the 2-step sampler's first step on 0 -> 0.9 -> 1
+    assert torch.allclose(visited[0], first_step[0], atol=1e-6) and torch.equal(visited[1], x0[1])
+    with pytest.raises(ValueError, match="on the grid"):
+        own_path_inputs(model, x0, torch.tensor([0.5, 0.0]), cond, lengths, keep, 2, grid_times=(0.0, 0.9))
+    with pytest.raises(ValueError, match="time_grid_times"):
+        FlowMatchingObjective(time_grid_times=(0.0, 0.9))  # uniform times
+    assert FlowMatchingObjective(time_sampling="grid", time_grid_steps=2, time_grid_times=(0.0, 0.9)).loss(
+        model, torch.randn(2, 8, 6), cond, lengths, cond_mask=keep,
+        generator=torch.Generator().manual_seed(0))[0].item() > 0

@@ -84,6 +84,7 @@ from mfm.composition import (
 )
 from mfm.features import features_to_joints
 from mfm.guidance import guided_feature_mask
+from mfm.solvers import step_grid
 from pipeline.config import to_dict
 from pipeline.data.stages import stable_id_hash
 from pipeline.distributed import Dist
@@ -497,9 +498,10 @@ def transition_crops(sequence: np.ndarray, lengths: Sequence[int], window: int) 
     return np.ascontiguousarray(windows)
 
 
-def absolute_steps(switch_time: float, steps: int) -> int:
-    """Solver steps that start before the switch (they run in absolute mode)."""
-    return sum(i / steps < switch_time - SWITCH_TOLERANCE for i in range(steps))
+def absolute_steps(switch_time: float, steps: int, grid: Tensor | None = None) -> int:
+    """Solver steps that start before the switch (they run in absolute mode), on the uniform grid or ``grid``."""
+    starts = [i / steps for i in range(steps)] if grid is None else grid[:-1].tolist()
+    return sum(start < switch_time - SWITCH_TOLERANCE for start in starts)
 
 
 class CompositionRun:
@@ -510,7 +512,8 @@ class CompositionRun:
         self.cfg, self.dist, self.ctx, self.cctx, self.point, self.timer = cfg, dist, ctx, cctx, point, timer
         self.ccfg, self.cset, self.plan = cfg.composition, cctx.cset, cctx.plan
         self.switch = switch
-        self.switch_time = resolve_switch(switch, point.steps)
+        self.grid = step_grid(point.steps, ctx.trained.model_config.sampling_times)
+        self.switch_time = resolve_switch(switch, point.steps, self.grid)
         self.precision = sampling_precision(cfg.sampling, ctx.trained.device)
         self.window = self.ccfg.transition_window
         self.generated: list[dict[str, float]] = []
@@ -642,8 +645,8 @@ class CompositionRun:
             "composition": {
                 "switch": self.switch,
                 "switch_label": {0.0: "relative-only", 1.0: "absolute-only"}.get(self.switch, "blended"),
-                "absolute_steps": absolute_steps(self.switch_time, self.point.steps),
-                "relative_steps": self.point.steps - absolute_steps(self.switch_time, self.point.steps),
+                "absolute_steps": absolute_steps(self.switch_time, self.point.steps, self.grid),
+                "relative_steps": self.point.steps - absolute_steps(self.switch_time, self.point.steps, self.grid),
                 "scenario": self.ccfg.scenario, "length_range": cset.settings["length_range"],
                 "set_key": cset.key, "set_file": str(self.cctx.set_path.resolve()), "pool_size": cset.pool_size,
                 "num_sequences": len(cset.sequences), "segments_per_sequence": cset.segments_per_sequence,

@@ -68,7 +68,7 @@ from typing import Any
 import numpy as np
 
 from mfm.compilation import compiles
-from mfm.solvers import noise_generator_device
+from mfm.solvers import noise_generator_device, step_grid
 from pipeline import checkpoint as ckpt
 from pipeline.config import ConfigError, parse_yaml, to_dict, wandb_mode
 from pipeline.data.stream import (
@@ -161,6 +161,13 @@ def checkpoint_id(folder: Path) -> str:
     """sha256 of the COMPLETE marker, which lists every file's sha256: a re-saved checkpoint gets a new id (the id
     training lists in checkpoints/saved.jsonl)."""
     return ckpt.checkpoint_id(ckpt.read_marker(folder))
+
+
+def solver_grid(steps: int, trained: TrainedModel) -> list[float] | None:
+    """The fixed-step solver's time grid at ``steps`` steps as results record it: None for the uniform grid, else
+    the model's own (``ModelConfig.sampling_times``, :func:`mfm.solvers.step_grid`)."""
+    grid = step_grid(steps, trained.model_config.sampling_times)
+    return None if grid is None else grid.tolist()
 
 
 def baseline_record(trained: TrainedModel, sampling: Any) -> dict[str, Any]:
@@ -803,6 +810,8 @@ class EvaluationJob:
                          "precision": sampling_precision(self.cfg.sampling, self.dist.device),
                          "precision_setting": self.cfg.sampling.precision,
                          "compiled": trained.is_compiled, "compile_setting": self.cfg.sampling.compile,
+                         # the solver's time grid: None = uniform, else the model's own (ModelConfig.sampling_times)
+                         "grid": solver_grid(point.steps, trained),
                          # the seeded noise's setting, and where it was drawn (the CPU, or the model's device)
                          "noise_device": self.cfg.sampling.noise_device, "noise_drawn_on": noise_generator_device(
                              self.cfg.sampling.noise_device, self.dist.device).type,

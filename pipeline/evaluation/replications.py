@@ -60,6 +60,7 @@ from mfm.solvers import (
     noise_generator_device,
     seeded_generators,
     solve,
+    step_grid,
     zero_padded_frames,
 )
 from pipeline.data.stream import Manifest
@@ -770,11 +771,12 @@ def generate(trained: TrainedModel, cond: Tensor, extras: Mapping[str, Tensor], 
                                                                             trained.skeleton))
         x0 = draw_noise((len(seeds), num_frames, dim), generators, lengths=None if windowed else lengths,
                         device=trained.device)
+        grid = step_grid(point.steps, trained.model_config.sampling_times)
         if keep is None:
             result = solve(velocity if windowed else zero_padded_frames(velocity, lengths), x0, solver=point.solver,
-                           steps=point.steps, rtol=sampling.rtol, atol=sampling.atol)
+                           steps=point.steps, grid=grid, rtol=sampling.rtol, atol=sampling.atol)
         else:
-            result = edit(velocity, known, keep, steps=point.steps, rewrite_until=rewrite_until,
+            result = edit(velocity, known, keep, steps=point.steps, grid=grid, rewrite_until=rewrite_until,
                           solver=point.solver, x0=x0, lengths=lengths)
     x1 = trained.finish_output(result.x1.float(), lengths, output_smoothing(trained, sampling), known=known,
                                keep=keep, reference_translation=reference_translation,

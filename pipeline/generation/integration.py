@@ -13,6 +13,7 @@ import torch
 from mfm.diffusion import DenoisedRange, GaussianDiffusion
 from mfm.diffusion_sampling import SAMPLERS
 from mfm.guidance import resolve_precision
+from mfm.solvers import step_grid
 from pipeline import checkpoint as ckpt
 from pipeline.generation.inference import TrainedModel, load_trained_model
 from pipeline.generation.request import (
@@ -36,6 +37,7 @@ class Integrator:
     clip_denoised: DenoisedRange | None = None  # diffusion: the bounds of every step's x0 estimate (FLAME's clamp)
     precision: str = "fp32"  # the request's precision setting resolved on the model's device: "fp32" or "bf16"
     step_size: float | None = None  # a shortcut model's step size d (mfm.shortcut.sampler_step_size); None: a flow model
+    grid: tuple[float, ...] | None = None  # flow: the model's own time grid at these steps (step_grid); None: uniform
 
     def record(self, trained: TrainedModel) -> dict[str, Any]:
         """results.json's description of the objective and sampler."""
@@ -43,6 +45,8 @@ class Integrator:
                                 "steps": self.steps, "precision": self.precision}
         if self.step_size is not None:
             info["shortcut_step_size"] = self.step_size
+        if self.grid is not None:
+            info["grid"] = list(self.grid)
         if self.diffusion is not None:
             process = trained.diffusion
             info["diffusion"] = {"preset": trained.diffusion_preset, "train_steps": process.num_train_steps,
@@ -83,7 +87,9 @@ def resolve_integrator(request: SampleRequest, trained: TrainedModel) -> Integra
                 step_size = trained.shortcut_step_size(solver, steps, request.guidance_for(trained))
             except ValueError as err:
                 raise SamplingError(str(err)) from None
-        return Integrator("flow", solver, steps, precision=precision, step_size=step_size)
+        grid = step_grid(steps, trained.model_config.sampling_times)  # a few-step student's own times, if any
+        return Integrator("flow", solver, steps, precision=precision, step_size=step_size,
+                          grid=None if grid is None else tuple(grid.tolist()))
     sampler = request.solver or DEFAULT_DIFFUSION_SAMPLER
     if sampler not in SAMPLERS:
         raise SamplingError(f"{trained.checkpoint} is a diffusion model (train.objective=diffusion, preset "

@@ -51,6 +51,7 @@ from mfm.solvers import (
     flow_map_amplification,
     sample,
     seeded_generators,
+    step_grid,
 )
 from pipeline import checkpoint as ckpt
 from pipeline.config import DistillConfig
@@ -211,7 +212,9 @@ def solve_pairs(teacher: TrainedModel, pairs: Sequence[PlannedPair], records: Ma
                                                  dtype=torch.long, device=device)}
     model = conditioned_model(teacher, PromptConditions(cond, extras))
     result = sample(model, cond, lengths, num_frames=int(lengths.max()), feature_dim=teacher.model_config.feature_dim,
-                    solver=settings.teacher_solver, steps=settings.teacher_steps, guidance=settings.teacher_guidance,
+                    solver=settings.teacher_solver, steps=settings.teacher_steps,
+                    grid=step_grid(settings.teacher_steps, teacher.model_config.sampling_times),
+                    guidance=settings.teacher_guidance,
                     conditional_channels=guided_feature_mask(settings.teacher_guided_features, teacher.skeleton),
                     generator=seeded_generators([p.seed for p in pairs]), noise=noise)
     return result.x1.float()

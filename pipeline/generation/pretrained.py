@@ -365,6 +365,10 @@ def _recipe_lines(config: Mapping[str, Any], model: ModelConfig, recipe: Mapping
             f"{distill.get('teacher_solver')} {distill.get('teacher_steps')}-step solutions at guidance "
             f"{distill.get('teacher_guidance'):g} ({distill.get('teacher_guided_features')} channels); samples in "
             f"{model.sampling_steps} step(s) at guidance {model.sampling_guidance:g}")
+        if model.sampling_times is not None:
+            lines.append(f"- its {len(model.sampling_times)}-step sampler starts its Euler steps at the times "
+                         f"{', '.join(f'{t:g}' for t in model.sampling_times)} (`model.sampling_times`), not on the "
+                         "uniform grid")
         amplification = distill.get("teacher_flow_map_amplification")
         if amplification is not None:
             lines.append(f"- the teacher's flow-map amplification (how far its motion moves per unit change of the "

@@ -333,7 +333,8 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
                                       clip_denoised=integrator.clip_denoised)
     elif source is None:
         result = sample(model, cond, lengths, num_frames=num_frames, feature_dim=dim, solver=integrator.name,
-                        steps=integrator.steps, guidance=scale,
+                        steps=integrator.steps, grid=integrator.grid,
+                        guidance=scale,
                         conditional_channels=request.conditional_channels_for(trained),
                         generator=_noise_generators(specs, noise_generators),
                         return_trajectory=request.plot_trajectory, precision=integrator.precision)
@@ -344,6 +345,7 @@ def generate_batch(request: SampleRequest, trained: TrainedModel, integrator: In
         x0 = draw_noise((len(specs), num_frames, dim), _noise_generators(specs, noise_generators), lengths=lengths,
                         device=device)
         result = edit(velocity, known, keep, steps=integrator.steps, rewrite_until=request.rewrite_time,
+                      grid=integrator.grid,
                       solver=integrator.name, x0=x0, lengths=lengths, return_trajectory=request.plot_trajectory)
     # As the evaluator: smoothed, then a diffusion edit's source root copied (FLAME's use_reference_translation)
     x1 = trained.finish_output(result.x1.float(), lengths, request.smoothing_for(trained), known=known, keep=keep,

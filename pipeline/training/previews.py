@@ -49,7 +49,7 @@ from mfm.metrics import padded_motions, plausibility
 from mfm.model import ModelConfig
 from mfm.shortcut import sampler_step_size
 from mfm.skeleton import Skeleton, get_skeleton
-from mfm.solvers import sample, sample_lengths, seeded_generators
+from mfm.solvers import sample, sample_lengths, seeded_generators, step_grid
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig
 from pipeline.data.stream import Manifest, backend_for_format, iter_motions
@@ -170,7 +170,8 @@ class PreviewSampler:
             # As launch/sample.py draws it: each sample's noise from its own generator, over its own frames.
             conditional = guided_feature_mask(config.guided_features, self.skeleton)
             result = sample(call, cond, lengths, num_frames=num_frames, feature_dim=config.feature_dim,
-                            solver=FLOW_SOLVER, steps=config.sampling_steps, guidance=self.guidance,
+                            solver=FLOW_SOLVER, steps=config.sampling_steps,
+                            grid=step_grid(config.sampling_steps, config.sampling_times), guidance=self.guidance,
                             conditional_channels=None if conditional is None else conditional.to(device),
                             generator=generators)
         normalization = self.manifest.data["normalization"]

@@ -460,6 +460,8 @@ def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bo
                                      time_scale=cfg.train.flow_time_scale,
                                      time_grid_steps=cfg.train.flow_time_grid_steps,
                                      grid_inputs=cfg.train.flow_grid_inputs,
+                                     time_grid_times=(cfg.model.sampling_times
+                                                      if cfg.train.flow_time_sampling == "grid" else None),
                                      terms_weighting=cfg.train.flow_terms_weighting,
                                      velocity_weight_cap=cfg.train.flow_velocity_weight_cap,
                                      channel_weight=channel_weight)
