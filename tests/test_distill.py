@@ -491,17 +491,26 @@ def test_two_ranks_share_the_teachers_work(student_run, student_launches):
     assert ckpt.list_complete(ckpt.checkpoints_dir(out))[-1][0] == 2
 
 
-def test_the_evaluator_scores_a_student_on_its_teachers_test_split(student_run, tmp_path, tmp_path_factory):
-    """The evaluator takes the student like any checkpoint: its recorded dataset is the pair set (no test split), so
-    the default evaluation data is the teacher's dataset the pairs were made from; each row records its NFE."""
+def evaluate_at_one_and_two_steps(run: Path, tmp_path: Path, tmp_path_factory) -> tuple[Path, Path, Path]:
+    """The evaluator's fast protocol (small) on ``run`` at 1 and 2 steps, guidance 1, with a random evaluator:
+    (dataset manifest, evaluator weights, output folder)."""
     from launch.evaluate import main as evaluate
 
     dataset = build_dataset_once(tmp_path_factory)
     evaluator = random_contrastive_evaluator(dataset, tmp_path / "evaluator.safetensors")
     out = tmp_path / "eval"
-    assert evaluate(["--checkpoint", str(student_run), "--protocol", "fast", *SMALL_PROTOCOL, "--steps", "1,2",
+    assert evaluate(["--checkpoint", str(run), "--protocol", "fast", *SMALL_PROTOCOL, "--steps", "1,2",
                      "--guidance", "1", "protocol.replications=1", "tasks.editing=[]", "protocol.multimodality=false",
                      f"evaluator.path={evaluator}", f"output.dir={out}"]) == 0
+    return dataset, evaluator, out
+
+
+def test_the_evaluator_scores_a_student_on_its_teachers_test_split(student_run, tmp_path, tmp_path_factory):
+    """The evaluator takes the student like any checkpoint: its recorded dataset is the pair set (no test split), so
+    the default evaluation data is the teacher's dataset the pairs were made from; each row records its NFE."""
+    from launch.evaluate import main as evaluate
+
+    dataset, evaluator, out = evaluate_at_one_and_two_steps(student_run, tmp_path, tmp_path_factory)
     rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
     generated = [r for r in rows if r.get("row_kind") == "generated"]
     assert sorted((r["steps"], r["nfe"]) for r in generated) == [(1, 1), (2, 2)]
@@ -515,14 +524,7 @@ def test_the_evaluator_scores_a_student_on_its_teachers_test_split(student_run, 
 def test_the_evaluator_steps_on_a_students_own_sampling_times(late_student_run, tmp_path, tmp_path_factory):
     """The evaluator's 2-step point of a student with model.sampling_times runs on 0 -> 0.9 -> 1 and its results
     say so; its 1-step point runs (and records) the uniform grid."""
-    from launch.evaluate import main as evaluate
-
-    dataset = build_dataset_once(tmp_path_factory)
-    evaluator = random_contrastive_evaluator(dataset, tmp_path / "evaluator.safetensors")
-    out = tmp_path / "eval"
-    assert evaluate(["--checkpoint", str(late_student_run), "--protocol", "fast", *SMALL_PROTOCOL, "--steps", "1,2",
-                     "--guidance", "1", "protocol.replications=1", "tasks.editing=[]", "protocol.multimodality=false",
-                     f"evaluator.path={evaluator}", f"output.dir={out}"]) == 0
+    _, _, out = evaluate_at_one_and_two_steps(late_student_run, tmp_path, tmp_path_factory)
     results = [json.loads(path.read_text()) for path in sorted((out / "results").glob("step-*/euler-*.json"))]
     assert sorted((r["sampling"]["steps"], r["sampling"]["grid"], r["nfe"]) for r in results) == \
         [(1, None, 1), (2, [0.0, 0.9, 1.0], 2)]
