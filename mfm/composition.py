@@ -360,7 +360,7 @@ def compose(
     conds, lengths = _stack_conditions(segments)
     conds = conds.to(device)
     bpe = config.positional == "bpe"
-    grid = step_grid(steps, getattr(config, "sampling_times", None))  # a few-step student's own times
+    grid = step_grid(steps, config.sampling_times)  # a few-step student's own times
     switch_time = resolve_switch(switch, steps, grid)
 
     extras: dict[str, Tensor] = {}

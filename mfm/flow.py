@@ -22,6 +22,7 @@ from mfm.features import root_path
 from mfm.layout import FeatureLayout
 from mfm.model import valid_frame_mask
 from mfm.path import MIN_NOISE_SCALE, SIGMA_MIN, data_from_velocity, velocity_from_data
+from mfm.solvers import check_grid, uniform_grid
 
 
 class VelocityModel(Protocol):
@@ -599,20 +600,19 @@ def own_path_inputs(model: VelocityModel, x0: torch.Tensor, t: torch.Tensor, con
     first k steps ``x += (t_{j+1} − t_j)·v(x, t_j)`` (guidance 1), without gradient; a row at t = 0 keeps its noise.
     K − 1 passes of the whole batch whatever the rows' times, so every data-parallel rank makes the same model calls
     (DDP broadcasts buffers at each forward)."""
-    if grid_steps < 1:
-        raise ValueError(f"own_path_inputs needs grid_steps >= 1, got {grid_steps!r}")
-    times = [k / grid_steps for k in range(grid_steps)] if grid_times is None else [float(k) for k in grid_times]
-    if len(times) != grid_steps:
+    if grid_times is not None and len(grid_times) != grid_steps:
         raise ValueError(f"own_path_inputs needs {grid_steps} grid_times, got {grid_times!r}")
-    grid = torch.tensor([*times, 1.0], dtype=torch.float64)  # as mfm.solvers' grids: the step sizes in float64
-    distance = (t.double().cpu()[:, None] - grid[None, :-1]).abs()
+    # the sampler's own grid (float64, as mfm.solvers.solve steps on it)
+    grid = uniform_grid(grid_steps) if grid_times is None else check_grid([*grid_times, 1.0])
+    starts = grid[:-1]
+    distance = (t.double().cpu()[:, None] - starts[None, :]).abs()
     steps_taken = distance.argmin(dim=1).to(t.device)
     if not bool((distance.min(dim=1).values < 1e-6).all()):
-        raise ValueError(f"own_path_inputs needs times on the grid {times}, got {t.tolist()}")
+        raise ValueError(f"own_path_inputs needs times on the grid {starts.tolist()}, got {t.tolist()}")
     x = x0
     with torch.no_grad():
         for step in range(grid_steps - 1):
-            velocity = model(x, torch.full_like(t, times[step]), cond, lengths, cond_mask=cond_mask,
+            velocity = model(x, torch.full_like(t, float(grid[step])), cond, lengths, cond_mask=cond_mask,
                              **dict(model_kwargs or {}))
             size = float(grid[step + 1] - grid[step])
             x = torch.where((steps_taken > step)[:, None, None], x + size * velocity.to(x.dtype), x)
