@@ -498,6 +498,14 @@ class DistillConfig:
     """Teacher solutions per caption of the training split (each from its own noise seed)."""
     seed: int = 0
     """Seed of the pairs' noise: pair i's noise seed is ``SeedSequence([seed, i])`` (as launch/sample.py's)."""
+    pair_order: Literal["interleaved", "grouped"] = "interleaved"
+    """The order of the pairs (their indices, so their seeds, and the order the shards hold them in). interleaved:
+    repeat by repeat, every caption of the split once per repeat, so any run of records in a shard spans the
+    captions, and the loader's shuffle buffer (the teacher's data.shuffle_buffer, 64 on the embedded default) mixes
+    them into every batch. grouped (the order of pair sets made before 2026-12-06): a caption's pairs_per_caption
+    pairs one after another, so with many pairs per caption a shard holds one clip's pairs and the student trains
+    on one clip for hundreds of steps at a time (docs/few-step.md, "Pairs in the order they were made"). The same
+    when pairs_per_caption is 1."""
     batch_size: int = 64
     """Motions per teacher batch while making the pairs (does not change the pairs)."""
     student_steps: int = 2

@@ -148,8 +148,52 @@ def test_pair_set_is_the_teachers_samples_made_once(student_run, teacher_run, tm
         pairs_module.solve_pairs = no_solving
         try:
             make_pairs(teacher, settings, student_run, dist)  # reused
+            # one pair per caption: the grouped and the interleaved order are the same pairs
+            make_pairs(teacher, dataclasses.replace(settings, pair_order="grouped"), student_run, dist)
             with pytest.raises(PairSetError, match="seed"):
                 make_pairs(teacher, dataclasses.replace(settings, seed=1), student_run, dist)
+        finally:
+            pairs_module.solve_pairs = original
+
+
+def test_interleaved_pairs_cycle_through_the_captions_in_every_shard(student_run, teacher_run, tmp_path):
+    """distill.pair_order=interleaved (the default) numbers the pairs repeat by repeat, so the shards hold every
+    caption once before any caption's second pair (a shuffle buffer then mixes the captions into each batch; grouped,
+    a caption's pairs come together); pair i keeps noise seed sample_seed(seed, i). A set made before the option
+    (no order in its manifest) is a grouped one: reused with pair_order=grouped, refused with interleaved."""
+    teacher = load_trained_model(teacher_run)
+    settings = dataclasses.replace(load_config(TrainConfig, student_run / "config.yaml").distill,
+                                   pairs_per_caption=2, flow_map_probes=0, batch_size=64)
+    source = pairs_module.teacher_source(teacher)
+    captions = [(r.id, c) for r in iter_motions(source, "train") for c in range(len(r.captions))]
+    plans = {order: pairs_module.plan_pairs(source, dataclasses.replace(settings, pair_order=order), 96)
+             for order in ("interleaved", "grouped")}
+    assert [(p.record_id, p.caption, p.repeat) for p in plans["interleaved"]] == \
+        [(record, caption, repeat) for repeat in (0, 1) for record, caption in captions]
+    assert [(p.record_id, p.caption, p.repeat) for p in plans["grouped"]] == \
+        [(record, caption, repeat) for record, caption in captions for repeat in (0, 1)]
+
+    with Dist() as dist:
+        manifest_path = make_pairs(teacher, dataclasses.replace(settings, pair_order="interleaved"),
+                                   tmp_path / "interleaved", dist)
+    records = list(iter_motions(open_manifest(manifest_path), "train"))
+    assert [r.id for r in records] == [p.pair_id for p in plans["interleaved"]]
+    assert [r.noise_seed for r in records] == [sample_seed(settings.seed, i) for i in range(len(records))]
+    assert len({r.id.rsplit("_p", 1)[0] for r in records[:len(captions)]}) == len(captions)
+    manifest = json.loads(manifest_path.read_text())
+    assert manifest["pairs"]["order"] == "interleaved"
+
+    del manifest["pairs"]["order"]  # as a set made before the option recorded it
+    manifest_path.write_text(json.dumps(manifest))
+    with Dist() as dist:
+        with pytest.raises(PairSetError, match="order"):
+            make_pairs(teacher, dataclasses.replace(settings, pair_order="interleaved"), tmp_path / "interleaved",
+                       dist)
+        original = pairs_module.solve_pairs
+        pairs_module.solve_pairs = None  # reused: nothing is solved
+        try:
+            assert make_pairs(teacher, dataclasses.replace(settings, pair_order="grouped"), tmp_path / "interleaved",
+                              dist) == manifest_path
         finally:
             pairs_module.solve_pairs = original
 
@@ -222,17 +266,21 @@ def test_pairs_made_in_chunks_straddling_records_are_the_same_pairs(student_run,
 
 
 def test_the_record_window_refuses_pairs_whose_records_the_split_lacks():
-    """A pair set's records are streamed once in order: a record the split skipped or ended before is refused with
-    the missing positions named, whichever way it is missed."""
+    """A pair set's records are streamed in order: a record the split skipped or ended before is refused with
+    the missing positions named, whichever way it is missed; a run of pairs that needs a record the pass has gone by
+    (interleaved pairs, back at the split's start) gets it from a new pass, and only then."""
     def pair(position: int) -> PlannedPair:
         return PlannedPair(position, position, f"r{position}", 0, 0, 10, 0)
 
-    window = RecordWindow(iter([(0, "a"), (1, "b"), (3, "d")]))
+    split = [(0, "a"), (1, "b"), (3, "d")]
+    window = RecordWindow(lambda: iter(split))
     assert window.take([pair(0), pair(1)]) == {0: "a", 1: "b"}
+    assert window.take([pair(1), pair(3)]) == {1: "b", 3: "d"} and window.passes == 1  # 1 is the record it holds
+    assert window.take([pair(3), pair(0)]) == {0: "a", 3: "d"} and window.passes == 2
     with pytest.raises(PairSetError, match=r"records \[2\] of the pairs are not in the split"):
         window.take([pair(2)])  # the split passed it
     with pytest.raises(PairSetError, match=r"records \[1\] of the pairs are not in the split"):
-        RecordWindow(iter([(0, "a")])).take([pair(0), pair(1)])  # the split ended before it
+        RecordWindow(lambda: iter([(0, "a")])).take([pair(0), pair(1)])  # the split ended before it
 
 
 def test_recorded_noise_is_each_records_seed_and_length(student_run, teacher_run, tmp_path):

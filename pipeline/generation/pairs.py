@@ -19,15 +19,19 @@ its features the teacher's x1 un-normalised with the teacher's Mean/Std (the loa
 ``noise_seed``. ``manifest.json`` is written last and carries the ``pairs`` section (teacher checkpoint id and step,
 sampler, seeds, source dataset); the normalisation, feature spec and text encoder are the teacher's dataset's.
 
+Order (``distill.pair_order``): ``interleaved`` numbers the pairs repeat by repeat (every caption of the split once,
+then every caption again, ...), so a shard's records span the captions; ``grouped`` puts a caption's pairs one after
+another (the order before 2026-12-06, when a shard of the embedded default's 144 pairs per caption held one clip).
+
 Ranks: every rank plans the same pair list from the manifest (indices, lengths and seeds only); rank ``r`` solves
 pairs ``r, r + W, ...`` in chunks of :data:`CHUNK_BATCHES` batches of ``distill.batch_size`` (longest first within a
-chunk, as the samplers batch), reading the chunk's records from one forward pass over the split, and writes each
-chunk to ``.build-tmp/rank-r-chunk-k.pt``; rank 0 then streams the split once more and writes the shards in pair
-order, reading each rank's chunks one at a time, and the manifest. Memory is one chunk's records and motions per
-rank (and one chunk per rank on rank 0 while it writes), not the dataset's, so a HumanML3D-sized split with token
-features fits. Resume: a complete pair set whose ``pairs`` section is the one asked for is reused as it is; one made
-with another teacher or settings is refused; an unfinished one (no manifest) is removed and made again (generation
-itself restarts from its first pair).
+chunk, as the samplers batch), reading the chunk's records from one pass over the split (:class:`RecordWindow`), and
+writes each chunk to ``.build-tmp/rank-r-chunk-k.pt``; rank 0 then streams the split again (once per repeat when
+interleaved) and writes the shards in pair order, reading each rank's chunks one at a time, and the manifest. Memory
+is one chunk's records and motions per rank (and one chunk per rank on rank 0 while it writes), not the dataset's,
+so a HumanML3D-sized split with token features fits. Resume: a complete pair set whose ``pairs`` section is the one
+asked for is reused as it is; one made with another teacher or settings is refused; an unfinished one (no manifest)
+is removed and made again (generation itself restarts from its first pair).
 """
 
 from __future__ import annotations
@@ -35,8 +39,9 @@ from __future__ import annotations
 import logging
 import math
 import shutil
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -130,6 +135,7 @@ def pair_settings(teacher: TrainedModel, settings: DistillConfig, source: Manife
         "guided_features": settings.teacher_guided_features,
         "output_smoothing": 0.0,
         "pairs_per_caption": settings.pairs_per_caption,
+        "order": settings.pair_order,
         "seed": settings.seed,
         "max_length": max_sample_length(teacher),
         "source_dataset_id": source.dataset_id,
@@ -152,16 +158,18 @@ def teacher_source(teacher: TrainedModel) -> Manifest:
 
 def plan_pairs(source: Manifest, settings: DistillConfig, max_length: int, backend: str = "webdataset"
                ) -> list[PlannedPair]:
-    """Every pair, in order: records in manifest order, their captions in order, ``pairs_per_caption`` each; a
-    caption's length is its span's, at most ``max_length`` (the frames the teacher samples: its window)."""
-    pairs: list[PlannedPair] = []
-    for record_index, record in enumerate(iter_motions(source, "train", backend)):
-        for caption, (start, end) in enumerate(record.spans.tolist()):
-            for repeat in range(settings.pairs_per_caption):
-                index = len(pairs)
-                pairs.append(PlannedPair(index, record_index, record.id, caption, repeat,
-                                         min(int(end - start), max_length), sample_seed(settings.seed, index)))
-    return pairs
+    """Every pair, in order, ``pairs_per_caption`` per caption: the split's captions (records in manifest order,
+    their captions in order) once per repeat (``distill.pair_order=interleaved``), or each caption's repeats together
+    (``grouped``). A caption's length is its span's, at most ``max_length`` (the frames the teacher samples: its
+    window)."""
+    captions = [(record_index, record.id, caption, min(int(end - start), max_length))
+                for record_index, record in enumerate(iter_motions(source, "train", backend))
+                for caption, (start, end) in enumerate(record.spans.tolist())]
+    repeats = range(settings.pairs_per_caption)
+    order = ([(caption, repeat) for caption in captions for repeat in repeats] if settings.pair_order == "grouped"
+             else [(caption, repeat) for repeat in repeats for caption in captions])
+    return [PlannedPair(index, record_index, record_id, caption, repeat, length, sample_seed(settings.seed, index))
+            for index, ((record_index, record_id, caption, length), repeat) in enumerate(order)]
 
 
 def stream_records(source: Manifest, backend: str = "webdataset") -> Iterator[tuple[int, MotionRecord]]:
@@ -170,16 +178,23 @@ def stream_records(source: Manifest, backend: str = "webdataset") -> Iterator[tu
 
 
 class RecordWindow:
-    """The records a run of pairs needs, taken from one forward pass over the split: asked for pairs in index order,
-    it reads up to their last record and keeps only the records they use, so memory holds one chunk's records."""
+    """The records a run of pairs needs, read from passes over the split: asked for a run of pairs, it reads up to
+    their last record and keeps only the records they use, so memory holds one chunk's records. A run that needs a
+    record this pass has gone by starts a new pass (``open_records`` again): interleaved pairs come back to the
+    split's first records once per repeat."""
 
-    def __init__(self, records: Iterator[tuple[int, MotionRecord]]) -> None:
-        self._records = records
+    def __init__(self, open_records: Callable[[], Iterator[tuple[int, MotionRecord]]]) -> None:
+        self._open = open_records
+        self._records = open_records()
         self._last: tuple[int, MotionRecord] | None = None  # the newest record read: the next run may start on it
+        self.passes = 1
 
     def take(self, pairs: Sequence[PlannedPair]) -> dict[int, MotionRecord]:
-        """The records of ``pairs`` (which come after every pair taken before) by position."""
+        """The records of ``pairs`` by position."""
         wanted = {p.record_index for p in pairs}
+        if self._last is not None and min(wanted) < self._last[0]:
+            self._records, self._last = self._open(), None
+            self.passes += 1
         found: dict[int, MotionRecord] = {}
         if self._last is not None and self._last[0] in wanted:
             found[self._last[0]] = self._last[1]
@@ -282,6 +297,10 @@ def _existing(folder: Path, wanted: Mapping[str, Any]) -> bool:
         return False
     manifest = load_manifest(folder, verify="size")
     found = manifest.get(PAIRS_KEY)
+    if found is not None:
+        found = {"order": "grouped", **found}  # a set made before distill.pair_order holds its pairs grouped
+        if found.get("pairs_per_caption") == wanted.get("pairs_per_caption") == 1:
+            found["order"] = wanted["order"]  # one pair per caption: both orders are the same pairs
     if found != dict(wanted):
         differing = sorted(k for k in set(wanted) | set(found or {}) if (found or {}).get(k) != wanted.get(k))
         raise PairSetError(f"{folder / MANIFEST_NAME}: a pair set made with other settings ({', '.join(differing)} "
@@ -312,7 +331,7 @@ def make_pairs(teacher: TrainedModel, settings: DistillConfig, out_dir: str | Pa
     dist.barrier()
     mine = pairs[dist.rank::dist.world_size]
     size = chunk_size(settings)
-    window = RecordWindow(stream_records(source))
+    window = RecordWindow(partial(stream_records, source))
     for chunk_index, start in enumerate(range(0, len(mine), size)):
         chunk = mine[start:start + size]
         records = window.take(chunk)
@@ -350,7 +369,7 @@ def write_pair_set(folder: Path, teacher: TrainedModel, source: Manifest, pairs:
     schema = parquet_schema(int(spec["dim"]), int(text["dim"]), tokens, noise_seeds=True)
     shard_size = max(1, min(MAX_SHARD_SIZE, math.ceil(len(pairs) / MIN_SHARDS)))
     writer = SplitShardWriter(folder, "train", shard_size=shard_size, formats=("tar", "parquet"), schema=schema)
-    window = RecordWindow(stream_records(source))
+    window = RecordWindow(partial(stream_records, source))
     for pair in pairs:
         record = window.take([pair])[pair.record_index]
         motion = solved[pair.index]
