@@ -109,6 +109,10 @@ def solve_from_recorded_noise(trained, record, guidance: float, steps: int, grid
     return solve(zero_padded_frames(velocity, lengths), x0, solver="euler", steps=steps, grid=grid).x1[0]
 
 
+def refuse_solving(*args, **kwargs):
+    raise AssertionError("a complete pair set of the same teacher and settings was made again")
+
+
 def test_pair_set_is_the_teachers_samples_made_once(student_run, teacher_run, tmp_path):
     """Pair i is launch/sample.py's sample i of its caption and length with --seed distill.seed (the teacher's
     default sampler, no smoothing); the manifest names the teacher; making the set again elsewhere gives the same
@@ -141,11 +145,8 @@ def test_pair_set_is_the_teachers_samples_made_once(student_run, teacher_run, tm
             manifest["dataset_id"]
         assert not leftover.exists()
 
-        def no_solving(*args, **kwargs):
-            raise AssertionError("a complete pair set of the same teacher and settings was made again")
-
         original = pairs_module.solve_pairs
-        pairs_module.solve_pairs = no_solving
+        pairs_module.solve_pairs = refuse_solving
         try:
             make_pairs(teacher, settings, student_run, dist)  # reused
             # one pair per caption: the grouped and the interleaved order are the same pairs
@@ -190,7 +191,7 @@ def test_interleaved_pairs_cycle_through_the_captions_in_every_shard(student_run
             make_pairs(teacher, dataclasses.replace(settings, pair_order="interleaved"), tmp_path / "interleaved",
                        dist)
         original = pairs_module.solve_pairs
-        pairs_module.solve_pairs = None  # reused: nothing is solved
+        pairs_module.solve_pairs = refuse_solving
         try:
             assert make_pairs(teacher, dataclasses.replace(settings, pair_order="grouped"), tmp_path / "interleaved",
                               dist) == manifest_path
