@@ -187,7 +187,7 @@ def test_interleaved_pairs_cycle_through_the_captions_in_every_shard(student_run
     del manifest["pairs"]["order"]  # as a set made before the option recorded it
     manifest_path.write_text(json.dumps(manifest))
     with Dist() as dist:
-        with pytest.raises(PairSetError, match="order"):
+        with pytest.raises(PairSetError, match="its pairs are grouped: distill.pair_order=grouped reuses them"):
             make_pairs(teacher, dataclasses.replace(settings, pair_order="interleaved"), tmp_path / "interleaved",
                        dist)
         original = pairs_module.solve_pairs

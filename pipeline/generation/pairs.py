@@ -303,8 +303,10 @@ def _existing(folder: Path, wanted: Mapping[str, Any]) -> bool:
             found["order"] = wanted["order"]  # one pair per caption: both orders are the same pairs
     if found != dict(wanted):
         differing = sorted(k for k in set(wanted) | set(found or {}) if (found or {}).get(k) != wanted.get(k))
+        hint = (f"; its pairs are {found['order']}: distill.pair_order={found['order']} reuses them"
+                if found and "order" in differing else "")
         raise PairSetError(f"{folder / MANIFEST_NAME}: a pair set made with other settings ({', '.join(differing)} "
-                           "differ): give another --out for this teacher or these settings")
+                           f"differ): give another --out for this teacher or these settings{hint}")
     return True
 
 
