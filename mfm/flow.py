@@ -112,6 +112,21 @@ def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scal
     return torch.sigmoid(loc + scale * normal).to(u.dtype)
 
 
+@dataclass(frozen=True)
+class TimeSampling:
+    """How :func:`flow_matching_loss` turns its uniform draws into training times: :func:`warp_time`'s arguments,
+    named (``FlowMatchingObjective.training_times`` builds it from the objective's fields)."""
+
+    name: str = "uniform"
+    loc: float = 0.0
+    scale: float = 1.0
+    grid_steps: int = 0
+    grid_times: tuple[float, ...] | None = None
+
+    def warp(self, u: torch.Tensor) -> torch.Tensor:
+        return warp_time(u, self.name, self.loc, self.scale, self.grid_steps, self.grid_times)
+
+
 def sample_noise(like: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
     """x0 ~ N(0, I) with the shape, dtype and device of ``like``."""
     noise = torch.randn(like.shape, generator=generator, device=_draw_device(generator, like.device))
@@ -251,7 +266,7 @@ def flow_matching_loss(
     root_mean_weight: float = 0.0,
     root_rate_channels: tuple[int, ...] = ROOT_RATE_CHANNELS,
     geometry: MotionGeometry | None = None,
-    time_sampling: tuple = ("uniform", 0.0, 1.0, 0),
+    time_sampling: TimeSampling = TimeSampling(),
     terms_weighting: str = "data",
     velocity_weight_cap: float = 0.0,
     channel_weight: torch.Tensor | None = None,
@@ -283,7 +298,7 @@ def flow_matching_loss(
     (:func:`mfm.model.draw_cond_drop_mask`) and pass it here.
     ``t`` (B,) and ``x0`` (B, T, D), when given, replace the draws (a data-parallel step slices them from the
     global batch's draws so that any world size computes the same thing). ``t``, drawn or given, is a uniform draw
-    that ``time_sampling`` = (name, loc, scale, grid_steps[, grid_times]) turns into the training time (:func:`warp_time`;
+    that ``time_sampling`` (:class:`TimeSampling`) turns into the training time (:func:`warp_time`;
     'uniform' keeps it); ``terms_weighting`` weighs the two terms over t (:func:`term_weight`);
     ``velocity_weight_cap`` caps the velocity loss's weight of an x̂1 error (:func:`loss_space_weight`);
     ``channel_weight`` (D,) weighs the main MSE's channels (:func:`masked_mse`; the two terms are not weighted).
@@ -304,23 +319,24 @@ def flow_matching_loss(
     if grid_inputs not in GRID_INPUTS:
         raise ValueError(f"grid_inputs must be one of {GRID_INPUTS}, got {grid_inputs!r}")
     own_path = grid_inputs == "own_path"
-    if own_path and (time_sampling[0] != "grid" or cond_mask is None or input_perturbation > 0
+    if own_path and (time_sampling.name != "grid" or cond_mask is None or input_perturbation > 0
                      or self_condition_prob > 0):
         raise ValueError("grid_inputs='own_path' needs grid time sampling and an explicit cond_mask (both passes "
                          "drop the same conditions), without input perturbation or self-conditioning, got "
-                         f"time sampling {time_sampling[0]!r}, cond_mask {'given' if cond_mask is not None else None}, "
+                         f"time sampling {time_sampling.name!r}, "
+                         f"cond_mask {'given' if cond_mask is not None else None}, "
                          f"input_perturbation {input_perturbation!r}, self_condition_prob {self_condition_prob!r}")
     if t is None:
         t = sample_time(x1.shape[0], generator, x1.device)
-    t = warp_time(t, *time_sampling)
+    t = time_sampling.warp(t)
     if x0 is None:
         x0 = sample_noise(x1, generator)
     if input_perturbation > 0 and perturbation is None:
         perturbation = sample_noise(x1, generator)
     input_noise = x0 + input_perturbation * perturbation if input_perturbation > 0 else x0  # the target keeps x0
     if own_path:
-        x_t = own_path_inputs(model, x0, t, cond, lengths, cond_mask, time_sampling[3], model_kwargs,
-                              *time_sampling[4:])
+        x_t = own_path_inputs(model, x0, t, cond, lengths, cond_mask, time_sampling.grid_steps, model_kwargs,
+                              time_sampling.grid_times)
         target = velocity_from_data(x1.float(), x_t.float(), t.float(), sigma_min=sigma_min).to(x1.dtype)
     else:
         x_t = interpolate(input_noise, x1, t, sigma_min)
@@ -689,6 +705,12 @@ class FlowMatchingObjective:
     channel_weight: tuple[float, ...] | None = None
     """Per-channel weights of the main MSE (:func:`feat_bias_channel_weight`); None: every channel 1 (MFM)."""
 
+    @property
+    def training_times(self) -> TimeSampling:
+        """The objective's time density as :func:`flow_matching_loss` takes it."""
+        return TimeSampling(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps,
+                            self.time_grid_times)
+
     def channel_weight_on(self, device: torch.device) -> torch.Tensor | None:
         """``channel_weight`` as a tensor on ``device``, made once per device rather than every step (on a GPU each
         step would otherwise copy it from the host)."""
@@ -768,8 +790,7 @@ class FlowMatchingObjective:
             trajectory_weight=self.trajectory_weight, trajectory_min_t=self.trajectory_min_t,
             trajectory_huber=self.trajectory_huber, foot_contact_weight=self.foot_contact_weight,
             root_mean_weight=self.root_mean_weight, geometry=self.geometry,
-            time_sampling=(self.time_sampling, self.time_loc, self.time_scale, self.time_grid_steps,
-                           self.time_grid_times),
+            time_sampling=self.training_times,
             terms_weighting=self.terms_weighting,
             velocity_weight_cap=self.velocity_weight_cap,
             channel_weight=self.channel_weight_on(x1.device),

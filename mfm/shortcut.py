@@ -28,8 +28,7 @@ import torch
 from torch import Tensor
 
 from mfm.composition import BoundInputs
-from mfm.flow import (FlowMatchingObjective, interpolate, sample_noise, sample_time, target_velocity, velocity_loss,
-                      warp_time)
+from mfm.flow import FlowMatchingObjective, interpolate, sample_noise, sample_time, target_velocity, velocity_loss
 from mfm.guidance import classifier_free_guidance
 from mfm.model import ModelConfig, draw_cond_drop_mask, valid_frame_mask
 
@@ -128,7 +127,7 @@ class ShortcutObjective:
         boot, flow_rows = slice(0, n_boot), slice(n_boot, batch)
 
         flow_t = sample_time(n_flow, generator, device) if t is None else t[flow_rows].to(device)
-        flow_t = warp_time(flow_t, flow.time_sampling, flow.time_loc, flow.time_scale, flow.time_grid_steps)
+        flow_t = flow.training_times.warp(flow_t)
         flow_x0 = sample_noise(x1[flow_rows], generator) if x0 is None else x0[flow_rows].to(device)
         # Spread over the levels from a random first one, so that every level is trained at any batch size.
         draw_device = generator.device if generator is not None else device

@@ -9,6 +9,7 @@ from mfm.flow import (
     warp_time,
     SIGMA_MIN,
     FlowMatchingObjective,
+    TimeSampling,
     flow_matching_loss,
     interpolate,
     masked_mse,
@@ -457,7 +458,7 @@ def test_the_loss_trains_at_the_warped_time():
     u, x0 = torch.tensor([0.2, 0.5, 0.9]), torch.randn(3, 8, 6)
     warped = warp_time(u, "logit_normal", -0.5, 1.0)
     loss_warped, _ = flow_matching_loss(model, x1, cond, lengths, t=u, x0=x0,
-                                        time_sampling=("logit_normal", -0.5, 1.0))
+                                        time_sampling=TimeSampling("logit_normal", -0.5, 1.0))
     loss_direct, _ = flow_matching_loss(model, x1, cond, lengths, t=warped, x0=x0)
     assert torch.allclose(loss_warped, loss_direct)
 
@@ -676,7 +677,7 @@ def test_own_path_inputs_feed_each_grid_time_the_models_own_euler_state_and_char
     x1, cond, lengths = torch.randn(3, 8, 6), torch.randn(3, 4), torch.tensor([8, 5, 7])
     x0, keep = torch.randn(3, 8, 6), torch.tensor([False, True, False])  # row 1's condition dropped
     t = torch.tensor([0.0, 0.5, 0.5])
-    grid = ("grid", 0.0, 1.0, 2)
+    grid = TimeSampling("grid", grid_steps=2)
     with torch.no_grad():
         first = model(x0, torch.zeros(3), cond, lengths, cond_mask=keep)
     expected_input = torch.cat([x0[:1], x0[1:] + 0.5 * first[1:]])
@@ -702,14 +703,14 @@ def test_own_path_inputs_feed_each_grid_time_the_models_own_euler_state_and_char
     visited = own_path_inputs(oracle, x0, thirds, cond, lengths, keep, 3)
     assert (visited - interpolate(x0, x1, thirds)).abs().min() > 0.1  # off the straight path
     zero, _ = flow_matching_loss(oracle, x1, cond, lengths, t=thirds, x0=x0, cond_mask=keep,
-                                 time_sampling=("grid", 0.0, 1.0, 3), grid_inputs="own_path")
+                                 time_sampling=TimeSampling("grid", grid_steps=3), grid_inputs="own_path")
     assert zero.item() == pytest.approx(0.0, abs=1e-10)
 
 
 def test_own_path_inputs_refuse_what_they_cannot_replay():
     model = AffineStub()
     x1, cond, lengths = torch.randn(2, 4, 3), torch.randn(2, 2), torch.tensor([4, 3])
-    keep, grid = torch.tensor([True, True]), ("grid", 0.0, 1.0, 2)
+    keep, grid = torch.tensor([True, True]), TimeSampling("grid", grid_steps=2)
     with pytest.raises(ValueError, match="own_path"):
         flow_matching_loss(model, x1, cond, lengths, cond_mask=keep, grid_inputs="own_path")  # uniform times
     with pytest.raises(ValueError, match="cond_mask"):
