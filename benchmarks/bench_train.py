@@ -90,6 +90,7 @@ def measure(trainer: Trainer, source: str, steps: int, warmup: int) -> dict[str,
     for _ in range(warmup):
         trainer.train_step([next(batches) for _ in range(accum)])
         trainer.step += 1
+    trainer.settle()  # train.step_sync=deferred: the last warm-up step's flags
     if dist.device.type == "cuda":
         torch.cuda.synchronize(dist.device)
         torch.cuda.reset_peak_memory_stats(dist.device)
@@ -98,10 +99,17 @@ def measure(trainer: Trainer, source: str, steps: int, warmup: int) -> dict[str,
         start = time.perf_counter()
         micro_batches = [next(batches) for _ in range(accum)]
         fetched = time.perf_counter()
-        trainer.train_step(micro_batches)  # ends in the flag all-reduce's host sync: the step is done on return
+        # every_step: ends in the flag all-reduce's host sync, the step done on return; deferred: returns once the
+        # previous step's flags are read, this step queued (the host at most one step ahead of the device)
+        trainer.train_step(micro_batches)
         trainer.step += 1
         step_times.append(time.perf_counter() - fetched)
         waits.append(fetched - start)
+    drain = time.perf_counter()
+    trainer.settle()  # deferred: the queued last step, counted in the last step's time
+    if dist.device.type == "cuda":
+        torch.cuda.synchronize(dist.device)
+    step_times[-1] += time.perf_counter() - drain
     total = sum(step_times) + sum(waits)
     peak, peak_kind = peak_memory_mb(dist.device)
     samples = steps * accum * cfg.data.batch_size * dist.world_size
@@ -109,6 +117,7 @@ def measure(trainer: Trainer, source: str, steps: int, warmup: int) -> dict[str,
     return {
         "bench": "train_step", "source": source, "device": device_name, "world_size": dist.world_size,
         "threads": torch.get_num_threads(), "precision": dist.mixed_precision,
+        "step_sync": "deferred" if trainer.defers_step_sync else "every_step",
         "params_m": round(trainer.num_parameters / 1e6, 3),
         "layers": trainer.model_config.num_layers, "latent_dim": trainer.model_config.latent_dim,
         "batch_size": cfg.data.batch_size, "grad_accum": accum, "window": cfg.data.window,

@@ -302,7 +302,7 @@ def probe_loss(trainer: Trainer) -> float:
     draws = draw_for_batch(batch, trainer.model_config.cond_drop_prob, torch.Generator().manual_seed(1))
     trainer.model.eval()
     try:
-        result = trainer.train_step([batch], draws=[draws])
+        *_, result = trainer.train_step([batch], draws=[draws]) + trainer.settle()
     finally:
         trainer.model.train()
     trainer.step += 1

@@ -6,14 +6,20 @@
 
 For each batch size, one Trainer of ``--config`` (humanml3d by default: bf16 autocast and torch.compile on CUDA,
 the preset's ``auto``) on random batches of the window's shape (``bench_train.random_batches``: lengths in
-[window/2, window], so attention is masked as in training). It prints one JSON line per batch size:
+[window/2, window], so attention is masked as in training), built with ``train.step_sync=deferred`` (so with
+fused AdamW, as on a GPU). It prints one JSON line per batch size:
 
-* ``step_ms``: the median step (``--steps`` after ``--warmup``), with the weights' average updated by one
-  multi-tensor lerp (``EMA.update`` as the trainer runs it), and ``step_ms_ema_per_tensor`` the same trainer with
-  the average updated one tensor at a time (the trainer's loop before 2026-11-27), timed in alternating blocks;
-* ``device_busy``: over ``--profile-steps`` profiled steps (``torch.profiler``), the summed device time of the
-  kernels over the wall time: near 1 = the GPU is the limit; well under 1 = the host (Python, launches, the step's
-  one host sync) leaves it idle;
+* ``step_ms``: the median step, each timed to its end (the device synchronised before and after: no overlap
+  between steps);
+* ``streamed_ms_deferred`` / ``streamed_ms_every_step``: the time per step of ``--steps`` steps run back to back
+  and then drained (the last step's flags read, the device synchronised), with the host reading each step's
+  flags one step later (``train.step_sync=deferred``: it queues step k+1 before it waits for step k) or at the
+  step's end (every_step: it waits for each backward pass before queueing the next step), timed in alternating
+  blocks on the same trainer, so drift in the machine's speed falls on both alike; ``samples_per_s`` is the
+  deferred figure;
+* ``device_busy``: over ``--profile-steps`` profiled steps (``torch.profiler``, each timed to its end), the summed
+  device time of the kernels over the wall time: near 1 = the GPU is the limit; well under 1 = the host (Python,
+  launches) leaves it idle;
 * the profile's tables (top kernels by device time; top host operators) in ``OUT/profile_b<batch>.txt``.
 """
 
@@ -37,18 +43,7 @@ import bench_train  # noqa: E402
 
 from pipeline.config import TrainConfig, load_config  # noqa: E402
 from pipeline.distributed import Dist  # noqa: E402
-from pipeline.training.trainer import EMA, Trainer  # noqa: E402
-
-
-def ema_update_per_tensor(self: EMA, model: torch.nn.Module, *, copy: bool = False) -> None:
-    """The average's update one tensor at a time: what ``EMA.update`` did before its multi-tensor lerp."""
-    with torch.no_grad():
-        decay = self.next_decay()
-        for name, value in model.state_dict().items():
-            if value.dtype.is_floating_point and not copy:
-                self.shadow[name].lerp_(value.detach().float(), 1.0 - decay)
-            else:
-                self.shadow[name].copy_(value)
+from pipeline.training.trainer import Trainer  # noqa: E402
 
 
 def synchronize(device: torch.device) -> None:
@@ -68,22 +63,38 @@ def timed_steps(trainer: Trainer, batches: list[dict[str, Any]], steps: int) -> 
     return times
 
 
+def streamed_step_s(trainer: Trainer, batches: list[dict[str, Any]], steps: int, deferred: bool) -> float:
+    """Seconds per step of ``steps`` steps run back to back, then drained; the host reads each step's flags one
+    step later (``deferred``) or at its end (the trainer, built deferred, runs every_step's path when told)."""
+    trainer.settle()
+    synchronize(trainer.dist.device)
+    trainer.defers_step_sync = deferred
+    start = time.perf_counter()
+    for i in range(steps):
+        trainer.train_step([batches[i % len(batches)]])
+        trainer.step += 1
+    trainer.settle()
+    synchronize(trainer.dist.device)
+    elapsed = time.perf_counter() - start
+    trainer.defers_step_sync = True
+    return elapsed / steps
+
+
 def profile_batch_size(args: argparse.Namespace, manifest: Path, batch_size: int, out: Path) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         cfg = load_config(TrainConfig, args.config, [
             f"data.manifest={manifest}", f"data.batch_size={batch_size}", f"data.window={args.window}",
             "data.num_workers=0", "data.verify=off", "optim.grad_accum=1", f"train.out_dir={tmp}/run",
-            "train.wandb=disabled", *args.overrides])
+            "train.wandb=disabled", "train.step_sync=deferred", *args.overrides])
         with Dist(mixed_precision=cfg.train.mixed_precision) as dist:
             trainer = Trainer(cfg, dist)
             batches = bench_train.random_batches(trainer, count=4)
             timed_steps(trainer, batches, args.warmup)
-            fused, per_tensor = [], []
-            original = EMA.update
+            step_s = statistics.median(timed_steps(trainer, batches, args.steps))
+            streamed: dict[bool, list[float]] = {True: [], False: []}
             for block in range(4):  # alternating blocks, so drift in the machine's speed falls on both alike
-                EMA.update = original if block % 2 == 0 else ema_update_per_tensor
-                (fused if block % 2 == 0 else per_tensor).extend(timed_steps(trainer, batches, args.steps // 2))
-            EMA.update = original
+                deferred = block % 2 == 0
+                streamed[deferred].append(streamed_step_s(trainer, batches, args.steps, deferred))
             activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dist.device.type == "cuda" else [])
             with profile(activities=activities) as prof:
                 wall = sum(timed_steps(trainer, batches, args.profile_steps))
@@ -94,13 +105,16 @@ def profile_batch_size(args: argparse.Namespace, manifest: Path, batch_size: int
                 f"batch {batch_size}, {args.profile_steps} steps, wall {wall * 1e3:.1f} ms\n\n"
                 + events.table(sort_by=sort, row_limit=40, max_name_column_width=90) + "\n\n"
                 + events.table(sort_by="self_cpu_time_total", row_limit=25, max_name_column_width=90))
-            step_s = statistics.median(fused)
+            deferred_s, every_step_s = (statistics.mean(streamed[mode]) for mode in (True, False))
             return {"bench": "profile_train_step", "config": args.config, "device": str(dist.device),
                     "device_name": torch.cuda.get_device_name(dist.device) if dist.device.type == "cuda" else "cpu",
                     "precision": dist.mixed_precision, "compile": cfg.train.compile, "batch_size": batch_size,
                     "window": args.window, "params_m": round(trainer.num_parameters / 1e6, 3),
-                    "step_ms": round(step_s * 1e3, 3), "samples_per_s": round(batch_size / step_s, 1),
-                    "step_ms_ema_per_tensor": round(statistics.median(per_tensor) * 1e3, 3),
+                    "step_ms": round(step_s * 1e3, 3),
+                    "streamed_ms_deferred": round(deferred_s * 1e3, 3),
+                    "streamed_ms_every_step": round(every_step_s * 1e3, 3),
+                    "samples_per_s": round(batch_size / deferred_s, 1),
+                    "samples_per_s_every_step": round(batch_size / every_step_s, 1),
                     "profiled_wall_ms_per_step": round(wall * 1e3 / args.profile_steps, 3),
                     "device_busy": round(device_us / 1e6 / wall, 3) if dist.device.type == "cuda" else None}
 
@@ -113,7 +127,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--config", default="humanml3d")
     parser.add_argument("--batch-sizes", default="128,512")
     parser.add_argument("--window", type=int, default=196)
-    parser.add_argument("--steps", type=int, default=20, help="timed steps, half with each EMA update")
+    parser.add_argument("--steps", type=int, default=20, help="timed steps, and steps per streamed block")
     parser.add_argument("--warmup", type=int, default=5)
     parser.add_argument("--profile-steps", type=int, default=3)
     parser.add_argument("overrides", nargs="*", metavar="key.sub=value")

@@ -254,6 +254,18 @@ class TrainLoopConfig:
     never count here."""
     nonfinite_budget: int = 10
     """With nonfinite=skip: consecutive skipped steps tolerated before the run stops."""
+    step_sync: Literal["auto", "every_step", "deferred"] = "auto"
+    """When the host reads a step's outcome (non-finite loss or gradient on some rank, no sample, bad data, a stop
+    signal, the loss it logs). every_step: at the step's end, before its update is applied: one host sync per step,
+    so on a GPU the host waits for the backward pass before it can queue the next step (the HumanML3D preset's
+    batch-128 step kept an H200 busy half of the time, docs/performance.md). deferred: the update is applied or
+    skipped on the device (fused AdamW's ``found_inf``, the EMA's weight times 0 or 1), and the host reads step
+    k's flags once step k+1's forward and backward are queued, and at once at every log, save, validation and
+    preview step and the last: between those it never waits for the GPU. The decisions are the same, on every
+    rank alike; the host acts on them one step later: a stop signal ends the run after the next step (saved there),
+    train.nonfinite=stop and bad data raise during the next step. Uses fused AdamW on every device; not with fp16,
+    whose loss scale is decided on the host every step. auto: deferred on CUDA (without fp16), every_step elsewhere: a CPU has nothing to
+    overlap, and every_step keeps the CPU presets' runs as they were, bit for bit."""
     wandb: Literal["auto", "offline", "online", "disabled"] = "auto"
     """Weights & Biases mode (offline needs no network; `wandb sync` uploads later). auto: the environment's
     WANDB_MODE when set, else offline. An explicit offline/online/disabled (here, in a preset or an override) wins
@@ -464,6 +476,9 @@ class TrainLoopConfig:
         _require(bool(self.out_dir.strip()), "train.out_dir must not be empty")
         _require(self.seed >= 0, f"train.seed must be >= 0, got {self.seed}")
         _require(self.nonfinite_budget >= 0, f"train.nonfinite_budget must be >= 0, got {self.nonfinite_budget}")
+        _require(not (self.step_sync == "deferred" and self.mixed_precision == "fp16"),
+                 "train.step_sync=deferred does not go with train.mixed_precision=fp16: fp16's loss scale is decided on "
+                 "the host every step (use bf16, or train.step_sync=every_step)")
         _require(self.fp16_init_scale > 0, f"train.fp16_init_scale must be > 0, got {self.fp16_init_scale}")
         _require(self.fp16_growth_interval >= 1,
                  f"train.fp16_growth_interval must be >= 1, got {self.fp16_growth_interval}")

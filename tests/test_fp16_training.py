@@ -187,7 +187,7 @@ def test_a_forced_overflow_skips_exactly_that_update_and_lowers_the_scale(datase
         batches = trainer.loader.iter_batches()
 
         def step():
-            result = trainer.train_step([next(batches)])
+            [result] = trainer.train_step([next(batches)])
             trainer.step += 1
             trainer._handle_nonfinite(result)
             return result

@@ -182,14 +182,16 @@ def test_evaluator_bench_counts_the_generators_passes_and_estimates_a_single_edi
         bench_eval.run_evaluation_bench(dataclasses.replace(base, editing_passes="single"))
 
 
-def test_train_step_profiler_times_both_ema_updates_and_writes_its_tables(tmp_path, capsys):
+def test_train_step_profiler_times_both_step_syncs_and_writes_its_tables(tmp_path, capsys):
     """benchmarks/profile_train_step.py at the tiny preset on CPU (kept from rotting: its H200 figures are in
-    docs/performance.md): one record per batch size, both EMA updates timed, the profile's table written."""
+    docs/performance.md): one record per batch size, the step streamed with both train.step_sync modes, the
+    profile's table written."""
     module = load_benchmark("profile_train_step")
     module.main(["--synthetic", "40", "--config", "tiny", "--batch-sizes", "4", "--window", "24", "--steps", "2",
                  "--warmup", "1", "--profile-steps", "1", "--out", str(tmp_path)])
     (record,) = [json.loads(line) for line in (tmp_path / "results.jsonl").read_text().splitlines()]
-    assert record["batch_size"] == 4 and record["step_ms"] > 0 and record["step_ms_ema_per_tensor"] > 0
+    assert record["batch_size"] == 4 and record["step_ms"] > 0
+    assert record["streamed_ms_deferred"] > 0 and record["streamed_ms_every_step"] > 0
     assert record["device_busy"] is None  # a CPU has no device kernels to sum
     assert "aten::" in (tmp_path / "profile_b4.txt").read_text()
 

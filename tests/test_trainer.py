@@ -171,10 +171,12 @@ def assert_identical(a: Any, b: Any, where: str = "state") -> None:
         assert a == b, f"{where}: {a!r} != {b!r}"
 
 
-def assert_runs_identical(run_a: Path, run_b: Path, step: int, differing: tuple[str, ...] = ()) -> None:
+def assert_runs_identical(run_a: Path, run_b: Path, step: int, differing: tuple[str, ...] = (),
+                          log_every: int = 1, resumed_from: int = 0) -> None:
     """Final checkpoints equal bit for bit (model, EMA, optimizer, scheduler, per-rank RNG and data position,
-    counters) and the same per-step metrics; only the run folder differs, and the ``train.<key>`` settings named
-    in ``differing``."""
+    counters) and the same metrics at every ``log_every``-th step (but the loss of a window that a resume from
+    step ``resumed_from`` cut short: it averages fewer steps); only the run folder differs, and the
+    ``train.<key>`` settings named in ``differing``."""
     model_a, ema_a, state_a = ckpt.load_checkpoint(ckpt.checkpoints_dir(run_a) / ckpt.step_dir_name(step))
     model_b, ema_b, state_b = ckpt.load_checkpoint(ckpt.checkpoints_dir(run_b) / ckpt.step_dir_name(step))
     assert_identical(model_a, model_b, "model")
@@ -184,10 +186,11 @@ def assert_runs_identical(run_a: Path, run_b: Path, step: int, differing: tuple[
             del state["config"]["train"][key]
     assert_identical(state_a, state_b, "state.pt")
     metrics_a, metrics_b = metrics_by_step(run_a), metrics_by_step(run_b)
-    assert sorted(metrics_a) == sorted(metrics_b) == list(range(1, step + 1))
+    assert sorted(metrics_a) == sorted(metrics_b) == list(range(log_every, step + 1, log_every))
     deterministic = ("loss", "grad_norm", "lr", "epoch", "samples_seen", "skipped_steps", "records_skipped")
     for s in metrics_a:
-        assert {k: metrics_a[s][k] for k in deterministic} == {k: metrics_b[s][k] for k in deterministic}, s
+        keys = [k for k in deterministic if k != "loss" or not s - log_every < resumed_from < s]
+        assert {k: metrics_a[s][k] for k in keys} == {k: metrics_b[s][k] for k in keys}, s
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -280,6 +283,8 @@ KILL_RESUME_CASES = {
     "workers-2": (resume_overrides, ("data.num_workers=2",), KILL_STEP, 10, [5, 10]),
     "length-aware": (base_overrides, LENGTH_AWARE_RUN, 5, 4, None),
     "flame-ema": (base_overrides, FLAME_EMA_RUN, 3, 2, [2]),
+    # flags read one step late, off the log steps too (log_every 4, saves every 5)
+    "deferred": (resume_overrides, ("train.step_sync=deferred", "train.log_every=4"), KILL_STEP, 10, [5, 10]),
 }
 UNINTERRUPTED = "uninterrupted"  # killed_and_resumed's launch of every case's run A
 
@@ -324,6 +329,14 @@ def test_resume_after_sigkill_is_bit_exact(killed_and_resumed, num_workers):
     assert_runs_identical(a_out / "run", b_out / "run", MAX_STEPS)
     ids_a, ids_b = ids_by_step(a_out, 0), ids_by_step(b_out, 0)
     assert sorted(ids_a) == list(range(1, MAX_STEPS + 1)) and ids_a == ids_b
+
+
+@pytest.mark.slow
+def test_deferred_step_sync_resumes_bit_exactly(killed_and_resumed):
+    """train.step_sync=deferred, whose scheduler step and EMA count follow one step behind the update: a run
+    SIGKILLed in the middle of step 12 and resumed from checkpoint 10 ends as the uninterrupted run does."""
+    a_out, b_out = killed_and_resumed("deferred")
+    assert_runs_identical(a_out / "run", b_out / "run", MAX_STEPS, log_every=4, resumed_from=10)
 
 
 @pytest.mark.slow
@@ -443,23 +456,147 @@ def test_nonfinite_budget_exceeded_raises(dataset, tmp_path, monkeypatch):
     assert metrics[2]["loss"] is None and metrics[3]["loss"] > 0  # a skipped step has no loss to average
 
 
-def test_skipped_step_leaves_weights_and_optimizer_untouched(dataset, tmp_path, monkeypatch):
+@pytest.mark.parametrize("step_sync", ["every_step", "deferred"])
+def test_skipped_step_leaves_weights_and_optimizer_untouched(dataset, tmp_path, monkeypatch, step_sync):
+    """Also when the skip is decided on the device (deferred: fused AdamW's found_inf, the EMA's weight 0)."""
     patch_loss(monkeypatch, NaNAtSteps({2}))
-    cfg = load_config(TrainConfig, "tiny", base_overrides(dataset, tmp_path / "run"))
+    cfg = load_config(TrainConfig, "tiny", base_overrides(dataset, tmp_path / "run", f"train.step_sync={step_sync}"))
     with Dist(mixed_precision="no") as dist:
         trainer = Trainer(cfg, dist)
         batches = trainer.loader.iter_batches()
         trainer.train_step([next(batches)])
         trainer.step += 1
+        trainer.settle()
         before = {k: v.clone() for k, v in trainer.model.state_dict().items()}
         optimizer_before = trainer.optimizer.state_dict()
-        ema_before = trainer.ema.state_dict()
-        result = trainer.train_step([next(batches)])
-        assert result.skipped
+        ema_before, ema_updates, lr = trainer.ema.state_dict(), trainer.ema.num_updates, trainer.scheduler.get_last_lr()
+        [result] = trainer.train_step([next(batches)]) + trainer.settle()
+        assert result.skipped and result.step == 2
+        assert (trainer.ema.num_updates, trainer.scheduler.get_last_lr()) == (ema_updates, lr)
         assert_identical(before, dict(trainer.model.state_dict()), "model")
         assert_identical(optimizer_before, trainer.optimizer.state_dict(), "optimizer")
         assert_identical(ema_before, trainer.ema.state_dict(), "ema")
         assert all(p.grad is None for p in trainer.model.parameters())
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# train.step_sync=deferred: the update decided on the device, the flags read one step later
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class CountingLoss:
+    """The real loss, counting its calls (one per micro-batch: the forward passes made so far)."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        return self.__wrapped__(*args, **kwargs)
+
+
+class NaNAtStepsCounted(CountingLoss):
+    def __init__(self, steps: set[int]) -> None:
+        super().__init__()
+        self.steps = steps
+
+    def __call__(self, *args, **kwargs):
+        loss, stats = super().__call__(*args, **kwargs)
+        return (loss * float("nan") if self.calls in self.steps else loss), stats
+
+
+def test_deferred_flags_are_read_during_the_next_step_and_at_log_and_save_steps(dataset, tmp_path, monkeypatch):
+    """Each step's flags are read once: during the next step, after its forward pass (so on a GPU the host queues
+    that step before it waits), or at once at a log or save step. The decisions are every_step's: the NaN step is
+    skipped and counted, the other steps train to the same weights, bit for bit (every_step given fused AdamW here
+    too, as on a GPU), and the same EMA within rounding (a multiply-add for the device-weighted update)."""
+    real_adamw = torch.optim.AdamW
+    monkeypatch.setattr(torch.optim, "AdamW", lambda *args, **kwargs: real_adamw(*args, **{**kwargs, "fused": True}))
+    loss = NaNAtStepsCounted({3})
+    patch_loss(monkeypatch, loss)
+    reads: list[tuple[int, int]] = []
+    real_read = trainer_module.PendingStep.read
+
+    def read(self):
+        reads.append((self.step, loss.calls))
+        return real_read(self)
+
+    monkeypatch.setattr(trainer_module.PendingStep, "read", read)
+    steps = ("train.max_steps=8", "train.log_every=4", "train.save_every=6", "train.keep_last=0")
+    runs = {mode: tmp_path / mode for mode in ("deferred", "every_step")}
+    for mode, run in runs.items():
+        loss.calls = 0
+        assert train_entry.main(["--config", "tiny", *base_overrides(dataset, run, *steps),
+                                 "train.log_every=4", f"train.step_sync={mode}"]) == 0
+        if mode == "deferred":
+            assert reads == [(k, k if k in (4, 6, 8) else k + 1) for k in range(1, 9)]
+    assert len(reads) == 8  # every_step reads no pending step
+    deferred, every_step = metrics_by_step(runs["deferred"]), metrics_by_step(runs["every_step"])
+    assert sorted(deferred) == sorted(every_step) == [4, 8]
+    for step in (4, 8):
+        assert deferred[step]["skipped_steps"] == every_step[step]["skipped_steps"] == 1
+        assert deferred[step]["lr"] == every_step[step]["lr"]
+        assert deferred[step]["loss"] == every_step[step]["loss"]
+    for step in (6, 8):
+        model_d, ema_d, state_d = ckpt.load_checkpoint(ckpt.checkpoints_dir(runs["deferred"]) / ckpt.step_dir_name(step))
+        model_e, ema_e, state_e = ckpt.load_checkpoint(ckpt.checkpoints_dir(runs["every_step"])
+                                                       / ckpt.step_dir_name(step))
+        assert state_d["extra"]["ema_updates"] == state_e["extra"]["ema_updates"] == step - 1
+        assert state_d["scheduler"] == state_e["scheduler"]
+        assert_identical(model_d, model_e, f"model at step {step}")
+        for name in model_e:
+            torch.testing.assert_close(ema_d[name], ema_e[name], rtol=1e-5, atol=1e-7, msg=name)
+
+
+def test_a_deferred_step_reads_no_tensor_on_the_host(dataset, tmp_path):
+    """Between its flag reads a deferred step asks the host for no tensor value (no ``.item()``, ``float()``,
+    ``bool()`` of a tensor, nor the optimizer's step count, which fused AdamW keeps on the device): each would make
+    the host wait for the GPU."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class ScalarReads(TorchDispatchMode):
+        def __init__(self) -> None:
+            super().__init__()
+            self.count = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.count += func is torch.ops.aten._local_scalar_dense.default
+            return func(*args, **(kwargs or {}))
+
+    cfg = load_config(TrainConfig, "tiny", base_overrides(dataset, tmp_path / "run", "train.step_sync=deferred"))
+    with Dist(mixed_precision="no") as dist:
+        trainer = Trainer(cfg, dist)
+        batches = trainer.loader.iter_batches()
+        for _ in range(2):  # the first steps create AdamW's state
+            trainer.train_step([next(batches)])
+            trainer.step += 1
+        with ScalarReads() as reads:
+            for _ in range(2):
+                outcomes = trainer.train_step([next(batches)])
+                trainer.step += 1
+        assert reads.count == 0
+        assert [outcome.step for outcome in outcomes] == [3]
+
+
+def test_deferred_sigint_stops_after_the_next_step_with_its_checkpoint(dataset, tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    patch_loss(monkeypatch, SignalAtStep(3, signal.SIGINT))
+    code = train_entry.main(["--config", "tiny", *base_overrides(dataset, run, "train.max_steps=50",
+                                                                   "train.save_every=20", "train.log_every=2",
+                                                                   "train.step_sync=deferred")])
+    assert code == 130
+    assert complete_steps(run) == [4]  # step 3's flags were read during step 4, which ends and is saved
+    assert sorted(metrics_by_step(run)) == [2, 4]
+
+
+def test_deferred_step_sync_is_refused_with_fp16():
+    with pytest.raises(ValueError, match="train.step_sync=deferred does not go with train.mixed_precision=fp16"):
+        from_dict(TrainConfig, {"train": {"step_sync": "deferred", "mixed_precision": "fp16"}})
+    assert trainer_module.resolve_step_sync("auto", torch.device("cuda"), "bf16")
+    assert not trainer_module.resolve_step_sync("auto", torch.device("cuda"), "fp16")
+    assert not trainer_module.resolve_step_sync("auto", torch.device("cpu"), "no")
+    with pytest.raises(ValueError, match="here from the launcher"):
+        trainer_module.resolve_step_sync("deferred", torch.device("cpu"), "fp16")
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -147,7 +147,11 @@ def misc_scenarios(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dic
     skip = fit_scenario(root / "skip", [f"data.manifest={dataset}", f"train.out_dir={root / 'skip' / 'run'}",
                                         "train.log_every=1", "train.max_steps=5"],
                         nan_at=[1, [NAN_STEP]], snapshot_at=[NAN_STEP, 5])
-    return [equivalence, self_conditioned, validate, skip], {"root": root, "dataset": dataset}
+    # the same with the skip decided on the device and the flags read during the next step (logged at step 5 only)
+    skip_deferred = fit_scenario(root / "skip-deferred", [
+        f"data.manifest={dataset}", f"train.out_dir={root / 'skip-deferred' / 'run'}", "train.log_every=5",
+        "train.max_steps=5", "train.step_sync=deferred"], nan_at=[1, [NAN_STEP]], snapshot_at=[NAN_STEP, 5])
+    return [equivalence, self_conditioned, validate, skip, skip_deferred], {"root": root, "dataset": dataset}
 
 
 def self_conditioned_overrides(dataset: Path, root: Path) -> list[str]:
@@ -236,6 +240,29 @@ def test_nan_on_one_rank_is_skipped_by_every_rank_at_the_same_step(misc_launch):
     assert metrics[NAN_STEP]["loss"] is None and all(metrics[s]["loss"] > 0 for s in (1, 2, 4, 5))
     _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(out / "run") / "step-00000005")
     assert state["extra"]["skipped_steps"] == 1 and state["extra"]["ema_updates"] == 4
+
+
+def test_deferred_nan_on_one_rank_is_skipped_on_the_device_by_every_rank(misc_launch):
+    """train.step_sync=deferred: rank 1's NaN at NAN_STEP reaches rank 0 in the step's flags, and both skip the
+    update on the device (fused AdamW's found_inf, the EMA's weight 0) before either host reads them; the run then
+    goes on as every_step's does."""
+    out = misc_launch["root"] / "skip-deferred"
+    assert results(out, 2) == [{"exit_code": 0}] * 2, output_of(misc_launch["proc"])
+    snaps = {(r, s): torch.load(out / f"snap-rank{r}-step{s}.pt") for r in (0, 1) for s in (NAN_STEP - 1, NAN_STEP, 5)}
+    for rank in (0, 1):  # the learning rate is the scheduler's, stepped when the host reads: compared below
+        before, after = snaps[rank, NAN_STEP - 1], snaps[rank, NAN_STEP]
+        for part in ("model", "ema"):
+            assert_identical(before[part], after[part], f"rank {rank}'s {part} across the skipped step")
+        assert_identical(before["optimizer"]["state"], after["optimizer"]["state"], f"rank {rank}'s AdamW state")
+    for step in (NAN_STEP, 5):
+        assert_identical(snaps[0, step]["model"], snaps[1, step]["model"], f"rank 0 vs 1 after step {step}")
+    metrics = metrics_by_step(out / "run")
+    assert sorted(metrics) == [5] and metrics[5]["skipped_steps"] == 1
+    _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(out / "run") / "step-00000005")
+    _, _, every_step = ckpt.load_checkpoint(ckpt.checkpoints_dir(misc_launch["root"] / "skip" / "run")
+                                            / "step-00000005")
+    assert state["extra"]["skipped_steps"] == 1 and state["extra"]["ema_updates"] == 4
+    assert state["scheduler"] == every_step["scheduler"]  # four scheduler steps, as every_step's
 
 
 def test_nan_with_nonfinite_stop_raises_on_every_rank(misc_launch):

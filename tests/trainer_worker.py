@@ -225,7 +225,7 @@ def run_equivalence(trainer: Trainer, batches: list[tuple[dict[str, Any], Draws]
         pieces = [slice_batch(batch, draws, dist.rank * micro_batches + i, parts) for i in range(micro_batches)]
         if step in empty_steps:
             pieces = [empty_slice(batch, draws) for _ in pieces]
-        result = trainer.train_step([p[0] for p in pieces], draws=[p[1] for p in pieces])
+        *_, result = trainer.train_step([p[0] for p in pieces], draws=[p[1] for p in pieces]) + trainer.settle()
         trainer.step += 1
         losses.append(result.loss)
         grad_norms.append(float(result.grad_norm))

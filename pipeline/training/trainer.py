@@ -24,7 +24,9 @@ Decisions that every rank must take together (skip a non-finite step, skip the u
 stop on SIGTERM/SIGINT, stop on bad data that one rank met reading its batch) come from ONE all-reduce (SUM) of a
 small flag vector per optimizer step, which also carries the loss and the sample count, so the logged loss is the
 mean over all ranks at no extra cost; that and the ``.tolist()`` reading it are the only host syncs outside log
-steps.
+steps. With train.step_sync=deferred (auto on CUDA) not even that: the update is applied or skipped on the device,
+and the host reads step k's flags while the GPU runs step k+1's forward and backward (:meth:`Trainer.settle`), and
+at once at log, save, validation and preview steps.
 
 Bad records (``data.verify=tolerant``). A record that fails to decode is left out of its batch, and a batch
 whose every record was left out is an EMPTY batch, never passed over: every rank takes exactly one planned
@@ -224,10 +226,15 @@ class EMA:
         self.num_updates = 0
         self.shadow = {name: p.detach().clone().float() for name, p in model.state_dict().items()}
 
-    def after_step(self, model: torch.nn.Module, step: int) -> None:
-        """Called after optimizer step ``step`` (1-based) updated ``model``'s weights: updates the EMA when due."""
-        if step % self.every == 0:
-            self.update(model, copy=step <= self.start)
+    def after_step(self, model: torch.nn.Module, step: int, applied: torch.Tensor | None = None) -> bool:
+        """Called after optimizer step ``step`` (1-based) updated ``model``'s weights: updates the EMA when due, and
+        says whether it was due. ``applied``: a boolean device tensor, False when the step's update was skipped on
+        the device (train.step_sync=deferred), which leaves the average as it was (its update count is the
+        caller's to take back)."""
+        if step % self.every:
+            return False
+        self.update(model, copy=step <= self.start, applied=applied)
+        return True
 
     def next_decay(self) -> float:
         """Counts one more update and returns its decay (with the warm-up, if on)."""
@@ -235,20 +242,33 @@ class EMA:
         return min(self.decay, (1 + self.num_updates) / (10 + self.num_updates)) if self.warmup else self.decay
 
     @torch.no_grad()
-    def update(self, model: torch.nn.Module, *, copy: bool = False) -> None:
-        """One EMA update: the average (``copy=False``) or a copy of the weights."""
+    def update(self, model: torch.nn.Module, *, copy: bool = False, applied: torch.Tensor | None = None) -> None:
+        """One EMA update: the average (``copy=False``) or a copy of the weights; none where ``applied`` (a
+        boolean device tensor, see :meth:`after_step`) is False."""
         decay = self.next_decay()
         averaged_shadows, averaged_values = [], []
         for name, value in model.state_dict().items():
             if value.dtype.is_floating_point and not copy:
                 averaged_shadows.append(self.shadow[name])
                 averaged_values.append(value.detach().float())
-            else:
+            elif applied is None:
                 self.shadow[name].copy_(value)
-        if averaged_shadows:
+            else:
+                self.shadow[name].copy_(torch.where(applied, value, self.shadow[name]))
+        if not averaged_shadows:
+            return
+        if applied is None:
             # One multi-tensor launch instead of one lerp per tensor: on a GPU the per-tensor loop's ~150 launches
             # cost the step more than the arithmetic (same result: the same lerp on every element).
             torch._foreach_lerp_(averaged_shadows, averaged_values, 1.0 - decay)
+            return
+        # The weight as a device tensor, 0 for a skipped update: shadow + w·(weights − shadow) in three multi-tensor
+        # launches (a lerp with a tensor weight per tensor would be one launch each). Not lerp's rounding: within
+        # 2.4e-7 of it at the HumanML3D preset's sizes.
+        weight = applied.float() * (1.0 - decay)
+        steps = torch._foreach_sub(averaged_values, averaged_shadows)
+        torch._foreach_mul_(steps, weight)
+        torch._foreach_add_(averaged_shadows, steps)
 
     @torch.no_grad()
     def copy_weights(self, model: torch.nn.Module) -> None:
@@ -480,12 +500,54 @@ def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bo
 
 @dataclasses.dataclass
 class StepResult:
+    """A step's outcome as the host read it (:meth:`Trainer.train_step`, :meth:`Trainer.settle`)."""
+    step: int  # 1-based: the step's number (Trainer.step after it)
     loss: float  # mean loss over the step's samples on all ranks (NaN when some rank's was not finite)
     grad_norm: torch.Tensor  # global gradient norm before clipping (device tensor: read it on log steps only)
     skipped: bool  # the update was skipped on every rank (non-finite loss or gradient norm on some rank)
     stop_signal: int  # the signal number some rank received before this step's end (0: none)
     empty: bool = False  # no rank had a sample (tolerant mode: every record skipped): no update, loss meaningless
     overflow: bool = False  # fp16: the scaled gradients overflowed on some rank: update skipped, scale lowered
+
+
+def resolve_step_sync(setting: str, device: torch.device, mixed_precision: str) -> bool:
+    """Whether train.step_sync defers the host's reading of each step's flags (see the option): auto defers on
+    CUDA without fp16. A deferred run under fp16 (the launcher's ``--mixed_precision fp16``) is refused."""
+    if setting == "auto":
+        return device.type == "cuda" and mixed_precision != "fp16"
+    if setting == "deferred" and mixed_precision == "fp16":
+        raise ConfigError("train.step_sync=deferred does not go with fp16 (here from the launcher): fp16's loss scale "
+                          "is decided on the host every step; use bf16, or train.step_sync=every_step")
+    return setting == "deferred"
+
+
+def to_device(values: list[float], device: torch.device) -> torch.Tensor:
+    """A float32 tensor of host values on ``device``, copied without making the host wait for the device's queue
+    (a pageable host tensor's ``.to(cuda)`` waits for all queued work: the sync train.step_sync=deferred avoids)."""
+    host = torch.tensor(values, dtype=torch.float32)
+    if device.type != "cuda":
+        return host.to(device)
+    return host.pin_memory().to(device, non_blocking=True)
+
+
+class PendingStep:
+    """A step whose update was queued with its skip decided on the device (train.step_sync=deferred): its
+    all-reduced flags travel to the host while the host queues the next step; :meth:`read` waits for them."""
+
+    def __init__(self, step: int, flags: torch.Tensor, grad_norm: torch.Tensor, ema_updated: bool) -> None:
+        self.step, self.grad_norm, self.ema_updated = step, grad_norm, ema_updated
+        if flags.device.type == "cuda":
+            self._host = torch.empty(flags.shape, dtype=flags.dtype, pin_memory=True)
+            self._host.copy_(flags, non_blocking=True)
+            self._copied: torch.cuda.Event | None = torch.cuda.Event()
+            self._copied.record()
+        else:
+            self._host, self._copied = flags.detach().clone(), None
+
+    def read(self) -> list[float]:
+        if self._copied is not None:
+            self._copied.synchronize()
+        return self._host.tolist()
 
 
 class Trainer:
@@ -522,7 +584,10 @@ class Trainer:
         self.num_parameters = count_parameters(model)
         self.ema = EMA(model, cfg.optim.ema_decay, every=cfg.optim.ema_every, start=cfg.optim.ema_start,
                        warmup=cfg.optim.ema_warmup)
-        fused = dist.device.type == "cuda"
+        # train.step_sync=deferred needs fused AdamW (it takes the skip as found_inf, on the device) on every device
+        self.defers_step_sync = resolve_step_sync(cfg.train.step_sync, dist.device, dist.mixed_precision)
+        self._pending: PendingStep | None = None  # deferred: the step whose flags the host has not read yet
+        fused = dist.device.type == "cuda" or self.defers_step_sync
         optimizer = torch.optim.AdamW(
             model.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas, weight_decay=cfg.optim.weight_decay,
             fused=fused or None,
@@ -567,6 +632,8 @@ class Trainer:
                 # remote shards downloaded once into data.cache_dir (verified), read from there every later epoch
                 cache_dir=cfg.data.cache_dir,
                 cache_max_bytes=cfg.data.cache_max_bytes,
+                # page-locked batches (workers > 0): their copy to a GPU is queued, the host does not wait for it
+                pin_memory=dist.device.type == "cuda",
             ),
             rank=dist.rank,
             world_size=dist.world_size,
@@ -618,8 +685,8 @@ class Trainer:
 
     def _condition(self, batch: Mapping[str, Any]) -> torch.Tensor:
         if self.model_config.is_action_model:
-            return batch["action"].to(self.dist.device)
-        return batch["text_emb"].to(self.dist.device)
+            return batch["action"].to(self.dist.device, non_blocking=True)
+        return batch["text_emb"].to(self.dist.device, non_blocking=True)
 
     def _micro_batch_loss(self, batch: Mapping[str, Any], draws: Draws | None,
                           generator: torch.Generator | None = None, model: Callable[..., Any] | None = None
@@ -714,7 +781,7 @@ class Trainer:
             return [1.0] * len(counts)
         device = self.dist.device
         scale = len(counts) * self.dist.world_size
-        total = self.dist.all_reduce_sum(torch.tensor(float(sum(counts)), device=device)).clamp_min(1.0)
+        total = self.dist.all_reduce_sum(to_device([float(sum(counts))], device)[0]).clamp_min(1.0)
         return [torch.full((), float(n * scale), device=device) / total if n else 0.0 for n in counts]
 
     def train_step(self, micro_batches: list[Mapping[str, Any]], draws: list[Draws] | None = None) -> StepResult:
@@ -736,7 +803,12 @@ class Trainer:
         fp16: each backward runs on the scaled loss; the gradients are unscaled once, before the norm and the
         clipping. Non-finite gradients under a finite loss on ANY rank are an overflow (``StepResult.overflow``):
         every rank skips the update and lowers the scale alike (the flag is in the step's one all-reduce). Order
-        of precedence: a non-finite loss (``skipped``), then no sample (``empty``), then an overflow."""
+        of precedence: a non-finite loss (``skipped``), then no sample (``empty``), then an overflow.
+
+        Returns the outcomes the host read during this call: with train.step_sync=every_step, [this step's]; with
+        deferred, [the previous step's] (or [] at the first step or after :meth:`settle`): this step's update is
+        queued with its skip decided on the device, and :meth:`settle` or the next call reads it
+        (:meth:`_queue_update`)."""
         model, device = self.model, self.dist.device
         accum = len(micro_batches)
         weights = self._micro_batch_weights([len(batch["ids"]) for batch in micro_batches])
@@ -775,10 +847,12 @@ class Trainer:
         else:
             nonfinite, overflow = loss_nonfinite | grad_nonfinite, found_inf > 0  # found_inf is 0 here
         samples = sum(len(batch["ids"]) for batch in micro_batches)
-        host_flags = torch.tensor([*self.stop_signal.flags(), float(samples), float(self._data_error is not None)],
-                                  device=device)
+        host_flags = to_device([*self.stop_signal.flags(), float(samples), float(self._data_error is not None)],
+                               device)
         flags = self.dist.all_reduce_sum(torch.cat([nonfinite.float().view(1), overflow.float().view(1),
                                                     loss_mean.float().view(1), host_flags]))
+        if self.defers_step_sync:
+            return self._queue_update(flags, grad_norm)
         # The one host sync per step: every rank reads the same sums, so every rank decides alike.
         nonfinite_ranks, overflow_ranks, loss_sum, *signal_counts, total_samples, data_error_ranks = flags.tolist()
         if data_error_ranks > 0:  # before any update: the run stops here on every rank
@@ -800,8 +874,52 @@ class Trainer:
             self.optimizer.zero_grad(set_to_none=True)
             self.ema.after_step(self.dist.unwrap(model), self.step + 1)  # self.step: the steps before this one
         loss = loss_sum / self.dist.world_size
-        return StepResult(loss, grad_norm, skip, StopSignal.from_flags(signal_counts), empty=empty and not skip,
-                          overflow=overflowed)
+        return [StepResult(self.step + 1, loss, grad_norm, skip, StopSignal.from_flags(signal_counts),
+                           empty=empty and not skip, overflow=overflowed)]
+
+    # -- train.step_sync=deferred: the update decided on the device, its flags read one step later --------------
+
+    def _queue_update(self, flags: torch.Tensor, grad_norm: torch.Tensor) -> list[StepResult]:
+        """Apply this step's update unless its all-reduced ``flags`` say otherwise, without the host reading them:
+        the skip is a device tensor that fused AdamW takes as ``found_inf`` (no update, its step count kept) and the
+        EMA as a weight of 0. First, with this step's forward and backward queued (the GPU busy on them), the host
+        reads the previous step's flags (:meth:`settle`): its scheduler step must precede this update's learning
+        rate. This step's flags are copied to the host without waiting; :meth:`settle` reads them."""
+        earlier = self.settle()
+        nonfinite_ranks, _, _, *_, total_samples, data_error_ranks = flags.unbind()
+        skip = (nonfinite_ranks > 0) | (total_samples == 0) | (data_error_ranks > 0)
+        optimizer = getattr(self.optimizer, "optimizer", self.optimizer)  # under accelerate's wrapper
+        optimizer.found_inf = skip.float()
+        try:
+            self.optimizer.step()
+        finally:
+            del optimizer.found_inf
+        self.optimizer.zero_grad(set_to_none=True)
+        applied = ~skip
+        ema_updated = self.ema.after_step(self.dist.unwrap(self.model), self.step + 1, applied=applied)
+        self._pending = PendingStep(self.step + 1, flags, grad_norm, ema_updated)
+        return earlier
+
+    def settle(self) -> list[StepResult]:
+        """Read the queued step's flags (waiting for its all-reduce) and act on them as every_step does at the
+        step's end: the scheduler steps after an applied update, the EMA's update count is taken back after a
+        skipped one, bad data on some rank raises. Returns [its result], or [] with none queued."""
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return []
+        nonfinite_ranks, _, loss_sum, *signal_counts, total_samples, data_error_ranks = pending.read()
+        if data_error_ranks > 0:  # its update was not applied; the run stops here on every rank
+            self.optimizer.zero_grad(set_to_none=True)
+            raise self._data_error_of_some_rank()
+        skip = nonfinite_ranks > 0
+        empty = total_samples == 0
+        if skip or empty:
+            if pending.ema_updated:
+                self.ema.num_updates -= 1  # as if it had not been called: the warm-up counts applied updates
+        else:
+            self.scheduler.step()
+        return [StepResult(pending.step, loss_sum / self.dist.world_size, pending.grad_norm, skip,
+                           StopSignal.from_flags(signal_counts), empty=empty and not skip)]
 
     def _next_micro_batches(self, window: "WindowStats", batches: Iterator[dict[str, Any]]) -> list[dict[str, Any]]:
         """The step's micro-batches. Bad data met reading them (a record that fails to decode in strict mode, a
@@ -829,7 +947,7 @@ class Trainer:
         if result.empty:  # neither a non-finite step nor a normal one: counted apart, the budget untouched
             self.empty_steps += 1
             self.dist.log0("step %d: no rank had a sample (tolerant mode: every record of its batches was skipped); "
-                           "stepped through without an update (%d such step(s) so far)", self.step, self.empty_steps,
+                           "stepped through without an update (%d such step(s) so far)", result.step, self.empty_steps,
                            level=logging.WARNING)
             return
         if not result.skipped:
@@ -838,7 +956,7 @@ class Trainer:
         self.skipped_steps += 1
         self.consecutive_skips += 1
         policy, budget = self.cfg.train.nonfinite, self.cfg.train.nonfinite_budget
-        message = f"non-finite loss or gradient norm at step {self.step} on at least one rank"
+        message = f"non-finite loss or gradient norm at step {result.step} on at least one rank"
         if policy == "stop":
             raise NonFiniteLossError(f"{message}; train.nonfinite=stop: stopping before the optimizer update")
         if self.consecutive_skips > budget:
@@ -866,6 +984,9 @@ class Trainer:
 
     def save(self) -> Path | None:
         """Write one complete checkpoint of the current step (rank 0 writes; every rank contributes its RNG)."""
+        if self._pending is not None:  # its scheduler step and EMA count are not known yet: the loop settles first
+            raise RuntimeError(f"step {self._pending.step}'s flags are unread (train.step_sync=deferred): settle() "
+                               "before saving")
         rank_state = {"rng": ckpt.capture_rng_state(), "generator": self.generator.get_state().cpu()}
         rank_states = self.dist.all_gather_object(rank_state)
         data_states = self.dist.all_gather_object(self.loader.state_dict())
@@ -1061,13 +1182,18 @@ class Trainer:
         try:
             while self.step < cfg.train.max_steps:
                 micro_batches = self._next_micro_batches(window, batches)
-                result = self.train_step(micro_batches)
+                outcomes = self.train_step(micro_batches)  # deferred: the previous step's, read during this one
                 self.step += 1
                 self.samples_seen += cfg.data.batch_size * cfg.optim.grad_accum * self.dist.world_size
-                self._handle_nonfinite(result)
-                window.add(result, cfg.data.batch_size * cfg.optim.grad_accum)
                 progress.update(1)
                 log_step = self.step % cfg.train.log_every == 0 or self.step == cfg.train.max_steps
+                stopping = any(outcome.stop_signal for outcome in outcomes)
+                if stopping or log_step or self._saves_validates_or_previews():
+                    outcomes += self.settle()  # deferred: this step's flags now (every_step: none pending)
+                for outcome in outcomes:
+                    self._handle_nonfinite(outcome)
+                    window.add(outcome, cfg.data.batch_size * cfg.optim.grad_accum)
+                result = outcomes[-1] if outcomes else None
                 record = self._log_record(window, result) if log_step else None
                 validation = self._validate_if_due(window)
                 preview = self._preview_if_due(window)
@@ -1078,8 +1204,9 @@ class Trainer:
                     logger_sink.log_image(self.step, PREVIEW_IMAGE_TAG, preview.png)
                 if self.step % cfg.train.save_every == 0 or self.step == cfg.train.max_steps:
                     self.save()
-                if result.stop_signal:
-                    return self._stop_on_signal(result.stop_signal)
+                signum = next((outcome.stop_signal for outcome in outcomes if outcome.stop_signal), 0)
+                if signum:
+                    return self._stop_on_signal(signum)
             return 0
         finally:
             # Ends the batch stream now, and with it the DataLoader's worker processes, however training ended: a
@@ -1099,6 +1226,14 @@ class Trainer:
         """Whether this run reaches a multiple of train.val_every after its current step."""
         every = self.cfg.train.val_every
         return every > 0 and self.step // every < self.cfg.train.max_steps // every
+
+    def _saves_validates_or_previews(self) -> bool:
+        """Whether this step ends in a checkpoint, a validation or a preview: train.step_sync=deferred reads the
+        step's flags first. By the settings alone (previews run on rank 0 only), so every rank reads at the same
+        steps."""
+        train, step = self.cfg.train, self.step
+        return (step % train.save_every == 0 or step == train.max_steps
+                or any(every > 0 and step % every == 0 for every in (train.val_every, train.preview_every)))
 
     def _validate_if_due(self, window: "WindowStats") -> dict[str, Any] | None:
         """At a multiple of train.val_every: the validation record; its time is left out of the throughput."""
