@@ -17,6 +17,8 @@ fused AdamW, as on a GPU). It prints one JSON line per batch size:
   step's end (every_step: it waits for each backward pass before queueing the next step), timed in alternating
   blocks on the same trainer, so drift in the machine's speed falls on both alike; ``samples_per_s`` is the
   deferred figure;
+* ``host_syncs_per_deferred_step`` (CUDA): the calls that made the host wait for the GPU during deferred steps
+  (``torch.cuda.set_sync_debug_mode``), the flag reads excluded: 0 when nothing but the reads waits;
 * ``device_busy``: over ``--profile-steps`` profiled steps (``torch.profiler``, each timed to its end), the summed
   device time of the kernels over the wall time: near 1 = the GPU is the limit; well under 1 = the host (Python,
   launches) leaves it idle;
@@ -31,6 +33,7 @@ import statistics
 import sys
 import tempfile
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +46,7 @@ import bench_train  # noqa: E402
 
 from pipeline.config import TrainConfig, load_config  # noqa: E402
 from pipeline.distributed import Dist  # noqa: E402
-from pipeline.training.trainer import Trainer  # noqa: E402
+from pipeline.training.trainer import PendingStep, Trainer  # noqa: E402
 
 
 def synchronize(device: torch.device) -> None:
@@ -80,6 +83,37 @@ def streamed_step_s(trainer: Trainer, batches: list[dict[str, Any]], steps: int,
     return elapsed / steps
 
 
+def host_syncs_per_deferred_step(trainer: Trainer, batches: list[dict[str, Any]], steps: int) -> float | None:
+    """On CUDA: the synchronising calls (``torch.cuda.set_sync_debug_mode``'s warnings: ``.item()``, blocking
+    copies, ``nonzero``...) per deferred step, the flag reads (``PendingStep.read``) excluded: 0 means the host
+    never waits for the GPU between reads. None elsewhere."""
+    if trainer.dist.device.type != "cuda":
+        return None
+    trainer.settle()
+    real_read = PendingStep.read
+
+    def unwatched_read(pending: PendingStep) -> list[float]:
+        torch.cuda.set_sync_debug_mode("default")
+        try:
+            return real_read(pending)
+        finally:
+            torch.cuda.set_sync_debug_mode("warn")
+
+    PendingStep.read = unwatched_read
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            for i in range(steps):
+                trainer.train_step([batches[i % len(batches)]])
+                trainer.step += 1
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+            PendingStep.read = real_read
+    trainer.settle()
+    return sum("synchroniz" in str(w.message) for w in caught) / steps
+
+
 def profile_batch_size(args: argparse.Namespace, manifest: Path, batch_size: int, out: Path) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         cfg = load_config(TrainConfig, args.config, [
@@ -106,6 +140,7 @@ def profile_batch_size(args: argparse.Namespace, manifest: Path, batch_size: int
                 + events.table(sort_by=sort, row_limit=40, max_name_column_width=90) + "\n\n"
                 + events.table(sort_by="self_cpu_time_total", row_limit=25, max_name_column_width=90))
             deferred_s, every_step_s = (statistics.mean(streamed[mode]) for mode in (True, False))
+            syncs = host_syncs_per_deferred_step(trainer, batches, args.steps)
             return {"bench": "profile_train_step", "config": args.config, "device": str(dist.device),
                     "device_name": torch.cuda.get_device_name(dist.device) if dist.device.type == "cuda" else "cpu",
                     "precision": dist.mixed_precision, "compile": cfg.train.compile, "batch_size": batch_size,
@@ -115,6 +150,7 @@ def profile_batch_size(args: argparse.Namespace, manifest: Path, batch_size: int
                     "streamed_ms_every_step": round(every_step_s * 1e3, 3),
                     "samples_per_s": round(batch_size / deferred_s, 1),
                     "samples_per_s_every_step": round(batch_size / every_step_s, 1),
+                    "host_syncs_per_deferred_step": syncs,
                     "profiled_wall_ms_per_step": round(wall * 1e3 / args.profile_steps, 3),
                     "device_busy": round(device_us / 1e6 / wall, 3) if dist.device.type == "cuda" else None}
 

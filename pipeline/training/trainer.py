@@ -263,8 +263,9 @@ class EMA:
             torch._foreach_lerp_(averaged_shadows, averaged_values, 1.0 - decay)
             return
         # The weight as a device tensor, 0 for a skipped update: shadow + w·(weights − shadow) in three multi-tensor
-        # launches (a lerp with a tensor weight per tensor would be one launch each). Not lerp's rounding: within
-        # 2.4e-7 of it at the HumanML3D preset's sizes.
+        # launches (a lerp with a tensor weight falls back to one launch per tensor on CUDA). It rounds unlike lerp's
+        # fused multiply-add (the last bits of the average differ from every_step's) and costs a temporary copy of
+        # the weights: on a CPU 29 ms against lerp's 3.8 ms at 17.8 M weights, where auto never defers.
         weight = applied.float() * (1.0 - decay)
         steps = torch._foreach_sub(averaged_values, averaged_shadows)
         torch._foreach_mul_(steps, weight)
