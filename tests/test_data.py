@@ -302,6 +302,7 @@ def test_a_header_parse_lost_to_cpythons_ast_thread_race_is_read_again_not_dropp
     import pipeline.data.stages as stages
 
     raw, real_load, failures = _raw_records(dataset)[1], np.load, []
+    monkeypatch.setattr(stages, "NPY_LAYOUTS", {})  # its headers not seen yet: parsed, as every new header is
 
     def racy_load(*args, **kwargs):
         if len(failures) < failures_wanted:
@@ -314,6 +315,7 @@ def test_a_header_parse_lost_to_cpythons_ast_thread_race_is_read_again_not_dropp
     rec = DecodeTarRecord(SPEC)(raw)
     assert np.array_equal(rec.features, fixture_motion(1)["features"]) and len(failures) == failures_wanted
     failures.clear()
+    stages.NPY_LAYOUTS.clear()  # parsed again
     failures_wanted = 10 * stages.AST_RACE_ATTEMPTS  # never recovers: the record's error, naming the member
     with pytest.raises(RecordError, match=r"cannot decode \.features\.npy: AST constructor recursion depth"):
         DecodeTarRecord(SPEC)(raw)
@@ -323,8 +325,39 @@ def test_a_header_parse_lost_to_cpythons_ast_thread_race_is_read_again_not_dropp
         raise SystemError("something else")
 
     monkeypatch.setattr(stages.np, "load", other_system_error)
+    stages.NPY_LAYOUTS.clear()
     with pytest.raises(RecordError, match="something else"):
         DecodeTarRecord(SPEC)(raw)
+
+
+def test_npy_members_after_the_first_of_a_header_skip_the_parse_and_decode_the_same(dataset, monkeypatch):
+    """A header seen once is not parsed again (np.load's ast parse was most of a record's decode): the arrays are
+    copied from their bytes and equal np.load's in dtype, shape, order, values and writability; a payload cut short
+    under a known header still fails naming the member."""
+    import pipeline.data.stages as stages
+
+    monkeypatch.setattr(stages, "NPY_LAYOUTS", {})
+    raw = _raw_records(dataset)[1]
+    first = DecodeTarRecord(SPEC)(raw)
+    real_load, parses = np.load, []
+    monkeypatch.setattr(stages.np, "load", lambda *a, **k: parses.append(1) or real_load(*a, **k))
+    again = DecodeTarRecord(SPEC)(raw)
+    assert parses == []
+    for name in ("features", "text_emb"):
+        a, b = getattr(first, name), getattr(again, name)
+        assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b) and b.flags.writeable
+    for array in (np.arange(12, dtype=">f8").reshape(3, 4), np.asfortranarray(np.arange(6.0).reshape(2, 3)),
+                  np.array(7, dtype=np.int64), np.array([True, False])):
+        buffer = io.BytesIO()
+        np.save(buffer, array)
+        payload, where = buffer.getvalue(), "test"
+        for _ in range(2):  # the parse, then the copy
+            decoded = stages._load_npy({"x.npy": payload}, "x.npy", where)
+            assert decoded.dtype == array.dtype and decoded.shape == array.shape and np.array_equal(decoded, array)
+            assert decoded.flags.f_contiguous == array.flags.f_contiguous and decoded.flags.writeable
+    with pytest.raises(RecordError, match=r"cannot decode \.x\.npy"):
+        stages._load_npy({"x.npy": payload[:-1]}, "x.npy", "test")
+    assert len(parses) == 5  # the four new headers and the damaged payload
 
 
 def test_decode_parquet_row_equals_tar_record(dataset):

@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 from dataclasses import dataclass, replace
 from typing import Any, Callable, Mapping, Sequence
 
@@ -182,12 +183,54 @@ nothing about the data, so the read is tried again instead of dropping a sound r
 AST_RACE_ATTEMPTS = 3
 
 
+NPY_LAYOUTS: dict[bytes, tuple[np.dtype, tuple[int, ...], str]] = {}
+"""A process's .npy headers seen so far → (dtype, shape, order) of their arrays. np.load parses every header with
+``ast.literal_eval``, which was 80 % of a record's decode time on a CPU profile (docs/performance.md,
+"The loader's .npy headers"); a dataset's records share a few hundred headers (one per clip length, one per
+pooled/token shape), so each is parsed once and the arrays after it are copied straight from their bytes."""
+NPY_LAYOUTS_MAX = 4096  # cleared when full: a bound, never reached by one dataset's shapes
+
+
+def _npy_header(payload: bytes) -> bytes | None:
+    """The magic, version, length and header dict of a .npy payload (the bytes its layout depends on), or None if
+    it does not start like one (np.load then says what is wrong)."""
+    if len(payload) < 10 or payload[:6] != b"\x93NUMPY":
+        return None
+    if payload[6] == 1:
+        end = 10 + int.from_bytes(payload[8:10], "little")
+    elif payload[6] in (2, 3) and len(payload) >= 12:
+        end = 12 + int.from_bytes(payload[8:12], "little")
+    else:
+        return None
+    return payload[:end] if end <= len(payload) else None
+
+
 def _load_npy(raw: Mapping[str, Any], member: str, where: str) -> np.ndarray:
     if member not in raw:
         raise RecordError(f"{where}: missing member .{member}")
+    payload = raw[member]
+    header = _npy_header(payload)
+    layout = NPY_LAYOUTS.get(header) if header is not None else None
+    if layout is not None:
+        dtype, shape, order = layout
+        count = math.prod(shape)
+        if len(payload) - len(header) == count * dtype.itemsize:  # else np.load below names the damage
+            return np.frombuffer(payload, dtype=dtype, count=count, offset=len(header)).reshape(
+                shape, order=order).copy(order=order)  # writable, as np.load's
+    array = _parsed_npy(payload, member, where)
+    if header is not None and array.dtype.kind in "biuf":
+        if len(NPY_LAYOUTS) >= NPY_LAYOUTS_MAX:
+            NPY_LAYOUTS.clear()
+        order = "F" if array.ndim > 1 and array.flags.f_contiguous and not array.flags.c_contiguous else "C"
+        NPY_LAYOUTS[header] = (array.dtype, array.shape, order)
+    return array
+
+
+def _parsed_npy(payload: bytes, member: str, where: str) -> np.ndarray:
+    """np.load of a payload whose header is new to this process (or damaged), read again after CPython's AST race."""
     for attempt in range(1, AST_RACE_ATTEMPTS + 1):
         try:
-            return np.load(io.BytesIO(raw[member]), allow_pickle=False)
+            return np.load(io.BytesIO(payload), allow_pickle=False)
         except SystemError as exc:
             if AST_RACE_MESSAGE not in str(exc) or attempt == AST_RACE_ATTEMPTS:
                 raise RecordError(f"{where}: cannot decode .{member}: {exc}") from exc
