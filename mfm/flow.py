@@ -11,6 +11,7 @@ The diffusion objective (FLAME / FlowMDM baselines) can live beside this one beh
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from collections.abc import Mapping
 from typing import Any, Protocol
@@ -55,6 +56,13 @@ class Objective(Protocol):
         cond_mask: torch.Tensor | None = None,
         model_kwargs: Mapping[str, Any] | None = None,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]: ...
+
+
+@functools.lru_cache(maxsize=64)
+def _grid_times_on(grid_times: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """The grid's times on ``device``, copied once (on a GPU a copy from the host at every step would wait for the
+    work queued before it)."""
+    return torch.tensor(grid_times, dtype=dtype, device=device)
 
 
 def _draw_device(generator: torch.Generator | None, device: torch.device | None) -> torch.device | None:
@@ -102,7 +110,7 @@ def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scal
         if len(grid_times) != grid_steps:
             raise ValueError(f"grid time sampling with {grid_steps} steps needs {grid_steps} grid_times, got "
                              f"{grid_times!r}")
-        return torch.tensor(grid_times, dtype=u.dtype, device=u.device)[index.long()]
+        return _grid_times_on(tuple(grid_times), u.dtype, u.device)[index.long()]
     if sampling != "logit_normal":
         raise ValueError(f"time sampling must be one of {TIME_SAMPLINGS}, got {sampling!r}")
     if scale <= 0:
@@ -466,7 +474,16 @@ class MotionGeometry:
 
     def raw(self, features: torch.Tensor) -> torch.Tensor:
         """Normalised (B, T, D) features back in the dataset's units (float32)."""
-        return features.float() * self.std.to(features.device) + self.mean.to(features.device)
+        mean, std = self.statistics_on(features.device)
+        return features.float() * std + mean
+
+    def statistics_on(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean, std) on ``device``, copied there once rather than at every loss (on a GPU a copy from the host
+        waits for the work queued before it: train.step_sync=deferred's step makes none)."""
+        copies = self.__dict__.setdefault("_statistics_on", {})  # a cache, not a field (frozen dataclass)
+        if device not in copies:
+            copies[device] = (self.mean.to(device), self.std.to(device))
+        return copies[device]
 
     def joints(self, features: torch.Tensor) -> torch.Tensor:
         """(B, T, J, 3) positions in the facing frame, root above the origin, from normalised (B, T, D) features."""

@@ -328,12 +328,13 @@ def initial_noise(
 ) -> Tensor:
     """Standard normal noise drawn from ``generator`` (default: a new CPU generator seeded with ``seed``).
 
-    Drawn on the generator's device and then moved, so a CPU generator gives the same noise on every device.
+    Drawn on the generator's device and then moved, so a CPU generator gives the same noise on every device. The
+    move is queued (``non_blocking``): a blocking copy to a GPU would first wait for all the work queued there.
     """
     if generator is None:
         generator = torch.Generator().manual_seed(seed)
     noise = torch.randn(tuple(shape), generator=generator, device=generator.device, dtype=torch.float32)
-    return noise.to(device=device, dtype=dtype)
+    return noise.to(device=device, dtype=dtype, non_blocking=True)
 
 
 NoiseGenerators = torch.Generator | Sequence[torch.Generator]
@@ -387,7 +388,7 @@ def draw_noise(
     noise = torch.zeros(shape, dtype=torch.float32, device=generator[0].device if generator else None)
     for row, (row_generator, length) in enumerate(zip(generator, rows)):
         noise[row, :length] = initial_noise((length, *shape[2:]), generator=row_generator)
-    return noise.to(device=device, dtype=dtype)
+    return noise.to(device=device, dtype=dtype, non_blocking=True)  # queued, as initial_noise's
 
 
 def model_device(model: Callable[..., Tensor], fallback: Tensor) -> torch.device:

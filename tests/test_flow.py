@@ -237,6 +237,10 @@ def test_motion_geometry_reads_the_bones_of_a_real_clip(reference_data):
     expected = np.stack([np.linalg.norm(joints[:, c] - joints[:, skeleton.parents[c]], axis=-1) for c in children], 1)
     np.testing.assert_allclose(geometry.bone_lengths(normalised)[0].numpy(), expected, atol=1e-5)
 
+    # the statistics are put on a device once, not at every loss (on a GPU each copy from the host would wait)
+    assert all(a is b for a, b in zip(geometry.statistics_on(normalised.device),
+                                      geometry.statistics_on(normalised.device)))
+
     mask = torch.ones(1, normalised.shape[1], dtype=torch.bool)
     assert bone_length_loss(normalised, normalised, mask, geometry).item() == 0.0
     stretched = torch.as_tensor(features).clone()

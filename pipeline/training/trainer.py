@@ -717,7 +717,8 @@ class Trainer:
                 model_kwargs["block_drop_mask"] = draw_block_drop_mask(
                     config.num_layers, config.blocks_per_layer, config.layer_dropout, generator, device)
             if self.cfg.train.flow_noise == "recorded":  # reflow: the noise the teacher integrated, from its seed
-                overrides["x0"] = recorded_noise(batch["noise_seed"], lengths, features)
+                # the host's lengths: the device's would be read back, making the host wait
+                overrides["x0"] = recorded_noise(batch["noise_seed"], batch["lengths"], features)
         else:
             draws = draws.to(device)
             cond_mask, overrides = draws.cond_mask, {"t": draws.t, "x0": draws.x0}
