@@ -374,6 +374,22 @@ def test_bad_data_stops_the_run_with_one_line_and_exit_2(dataset, tmp_path, monk
         assert stopped_at == 4  # the bad record's step: the worker's error comes in that batch's place
 
 
+def test_deferred_bad_record_stops_the_run_during_the_next_step(dataset, tmp_path, monkeypatch, capsys):
+    """train.step_sync=deferred: the bad record's step (3, neither a log nor a save step) skips its update on the
+    device; the host reads its flag during step 4 and stops there with the same one line and exit 2, before step
+    4's update and its log line."""
+    manifest = copy_dataset(dataset, tmp_path / "data")
+    run = tmp_path / "run"
+    overrides = resume_overrides(manifest, run, "data.verify=strict", "data.num_workers=0",
+                                 "train.step_sync=deferred", "train.log_every=4")
+    bad_id = planned_batches(manifest, overrides)[2][1]  # due at step 3
+    write_nan_into(manifest, bad_id)
+    assert fit(monkeypatch, overrides) == 2
+    assert f"{shard_of(manifest, bad_id)}: record '{bad_id}': features contain NaN or inf" in one_error_line(capsys)
+    assert not (run / "metrics.jsonl").exists() or metrics_by_step(run) == {}
+    assert complete_steps(run) == []
+
+
 @pytest.mark.parametrize("stop", ["bad_record_in_a_worker", "nonfinite_budget"])
 def test_a_run_stopped_by_an_error_leaves_no_worker_process_behind(dataset, tmp_path, monkeypatch, stop):
     """The error that stops the run is raised while its traceback, and the trainer that may store it, still hold the

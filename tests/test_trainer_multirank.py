@@ -108,8 +108,10 @@ def prepare_shared_launch(dataset: Path, root: Path) -> tuple[Path, list[dict[st
              "bad_shard": bad_shard_scenario(dataset, root / "bad-shard"),
              "refused": refused_resume_scenario(dataset, root / "refused"),
              "held": held_folder_scenario(dataset, root / "held"),
-             "bad_record": bad_record_scenario(dataset, root / "bad-record")}
-    for name in ("bad_shard", "refused", "held", "bad_record"):
+             "bad_record": bad_record_scenario(dataset, root / "bad-record"),
+             "bad_record_deferred": bad_record_scenario(dataset, root / "bad-record-deferred",
+                                                        "train.step_sync=deferred", "train.log_every=4")}
+    for name in ("bad_shard", "refused", "held", "bad_record", "bad_record_deferred"):
         for scenario in parts[name][0]:
             scenario["continue_after_error"] = True
     scenarios = [scenario for scenarios, _ in parts.values() for scenario in scenarios]
@@ -365,10 +367,10 @@ def test_an_empty_slice_on_one_rank_weighs_nothing_in_the_global_mean(empty_batc
 BAD_RECORD_STEP = 3  # rank 1's batch at this step holds a record that decodes to NaN
 
 
-def bad_record_scenario(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+def bad_record_scenario(dataset: Path, root: Path, *extra: str) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     manifest = copy_dataset(dataset, root / "data")
     overrides = [f"data.manifest={manifest}", "data.verify=strict", "train.log_every=1", "train.max_steps=6",
-                 "train.save_every=100", f"train.out_dir={root / 'run'}"]
+                 "train.save_every=100", f"train.out_dir={root / 'run'}", *extra]
     bad_id = planned_batches(manifest, overrides, rank=1, world_size=2)[BAD_RECORD_STEP - 1][1]  # not the first:
     write_nan_into(manifest, bad_id)  # the batcher reads a batch's first record with the batch before
     return [fit_scenario(root, overrides)], {"root": root, "manifest": manifest, "bad_id": bad_id}
@@ -389,6 +391,23 @@ def test_bad_data_met_by_one_rank_stops_every_rank_at_that_step_with_its_error(s
     assert sorted(ids_by_step(root, 0)) == sorted(ids_by_step(root, 1)) == list(range(1, BAD_RECORD_STEP + 1))
     assert ids_by_step(root, 1)[BAD_RECORD_STEP] == [[]]  # rank 1 took part in that step with an empty stand-in
     assert sorted(metrics_by_step(root / "run")) == list(range(1, BAD_RECORD_STEP))  # that step never completed
+    assert complete_steps(root / "run") == []
+
+
+def test_deferred_bad_data_met_by_one_rank_stops_every_rank_during_the_next_step(shared_launch):
+    """train.step_sync=deferred (flags read one step late; log_every 4, so step 3 is read during step 4): rank 1
+    takes part in step 4 with a stand-in again (its stream ended with the error), rank 0 with its batch; both
+    read the flag there and stop with rank 1's error, before step 4's update, nothing logged or saved."""
+    proc, part = shared_launch["proc"], shared_launch["bad_record_deferred"]
+    root, manifest, bad_id = part["root"], part["manifest"], part["bad_id"]
+    outcomes = results(root, 2)
+    assert [o.get("error") for o in outcomes] == ["RecordError"] * 2, output_of(proc)
+    assert outcomes[0]["message"] == outcomes[1]["message"]
+    assert f"{shard_of(manifest, bad_id)}: record '{bad_id}': features contain NaN" in outcomes[0]["message"]
+    ids = [ids_by_step(root, rank) for rank in (0, 1)]
+    assert sorted(ids[0]) == sorted(ids[1]) == list(range(1, BAD_RECORD_STEP + 2))
+    assert ids[1][BAD_RECORD_STEP] == ids[1][BAD_RECORD_STEP + 1] == [[]] and ids[0][BAD_RECORD_STEP + 1] != [[]]
+    assert not (root / "run" / "metrics.jsonl").exists() or metrics_by_step(root / "run") == {}
     assert complete_steps(root / "run") == []
 
 

@@ -928,12 +928,14 @@ class Trainer:
         shard that does not hold what the manifest says) must not end this rank alone, while the others wait for it
         in the step's collectives: the rank keeps the error and steps through empty batches (a stand-in with weight
         0, as for tolerant mode's empty batches), its flag travels in the step's one all-reduce, and every rank
-        stops there before the update (:meth:`train_step`)."""
-        try:
-            return window.timed_next(batches, self.cfg.optim.grad_accum)
-        except DataError as err:
-            self._data_error = err
-            return [self.loader.empty_batch() for _ in range(self.cfg.optim.grad_accum)]
+        stops there before the update (:meth:`train_step`). With train.step_sync=deferred the flag is read during the
+        next step, whose batches this rank does not read (its stream ended with the error): stand-ins again."""
+        if self._data_error is None:
+            try:
+                return window.timed_next(batches, self.cfg.optim.grad_accum)
+            except DataError as err:
+                self._data_error = err
+        return [self.loader.empty_batch() for _ in range(self.cfg.optim.grad_accum)]
 
     def _data_error_of_some_rank(self) -> DataError:
         """The bad-data error every rank stops with, once the step's flags say some rank met one: this rank's own,
