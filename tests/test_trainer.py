@@ -632,6 +632,26 @@ def test_ema_default_is_every_step_with_the_warmup_as_before():
     assert ema.num_updates == 30
 
 
+@pytest.mark.parametrize("copy", [False, True])
+def test_an_ema_update_weighted_on_the_device_is_the_update_or_none(copy):
+    """train.step_sync=deferred's EMA update (``applied``: a device bool): True gives the host-decided update (the
+    copy exactly; the average within rounding, a multiply-add instead of lerp), False leaves the average as it was."""
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 2)
+    decided, gated = EMA(model, 0.9), EMA(model, 0.9)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(torch.randn_like(p))
+    before = {k: v.clone() for k, v in gated.shadow.items()}
+    gated.update(model, copy=copy, applied=torch.tensor(False))
+    assert_identical(before, gated.shadow, "ema after a skipped update")
+    gated.num_updates = 0  # the trainer takes the count back after a skip
+    decided.update(model, copy=copy)
+    gated.update(model, copy=copy, applied=torch.tensor(True))
+    for name, value in decided.shadow.items():
+        torch.testing.assert_close(gated.shadow[name], value, rtol=0 if copy else 1e-6, atol=0 if copy else 1e-7)
+
+
 def test_ema_reproduces_flames_schedule_copy_until_ema_start_then_average_every_ema_every_steps():
     """FLAME's diffusion_module.py: on_train_batch_end calls step_ema when global_step % ema_update == 0 (global_step:
     optimizer steps done); step_ema copies the weights while global_step <= ema_start, else ema = decay * ema +
