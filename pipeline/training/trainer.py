@@ -786,7 +786,8 @@ class Trainer:
         total = self.dist.all_reduce_sum(to_device([float(sum(counts))], device)[0]).clamp_min(1.0)
         return [torch.full((), float(n * scale), device=device) / total if n else 0.0 for n in counts]
 
-    def train_step(self, micro_batches: list[Mapping[str, Any]], draws: list[Draws] | None = None) -> StepResult:
+    def train_step(self, micro_batches: list[Mapping[str, Any]], draws: list[Draws] | None = None
+                   ) -> list[StepResult]:
         """Forward/backward over the micro-batches (gradient accumulation), clip, and one AdamW + EMA update —
         unless the loss or gradient norm is non-finite on ANY rank, in which case every rank skips the update.
         ``draws`` replaces the generator's draws (tests slice a global batch's draws across ranks).
@@ -888,7 +889,7 @@ class Trainer:
         reads the previous step's flags (:meth:`settle`): its scheduler step must precede this update's learning
         rate. This step's flags are copied to the host without waiting; :meth:`settle` reads them."""
         earlier = self.settle()
-        nonfinite_ranks, _, _, *_, total_samples, data_error_ranks = flags.unbind()
+        nonfinite_ranks, total_samples, data_error_ranks = flags[0], flags[-2], flags[-1]  # train_step's layout
         skip = (nonfinite_ranks > 0) | (total_samples == 0) | (data_error_ranks > 0)
         optimizer = getattr(self.optimizer, "optimizer", self.optimizer)  # under accelerate's wrapper
         optimizer.found_inf = skip.float()
