@@ -19,9 +19,15 @@ Speed (``train_speed``): ``Trainer.train_step`` of the humanml3d preset's model 
 condition's width comes from ``--manifest``) with the preset's precision and compile setting (``auto``: bf16 and
 torch.compile on a CUDA GPU, fp32 eager on a CPU): one sort window of clips of the HumanML3D-like lengths
 (``--batch-size`` × ``--sort-window`` clips, random features), trained as fixed-window batches in their shuffled
-order and as the length-aware batches of the same clips, steps of the two interleaved (so that a shared machine's
-load falls on both alike), after one untimed step of each; ``--passes`` N repeats that N times and times the last.
-``useful_frames_per_s``: real frames over the summed step times (each step timed to its end on a GPU).
+order and as the length-aware batches of the same clips, after one untimed step of each; ``--passes`` N repeats
+that N times and times the last. ``useful_frames_per_s``: real frames over the time the steps took, timed as
+``--timing`` says:
+
+* ``streamed`` (default): each kind's steps run back to back as one block (its batches built before), then
+  drained (the last step's flags read, the GPU synchronised): the throughput of a run, where under
+  ``train.step_sync=deferred`` (auto on CUDA) the host queues a step while the GPU runs the one before;
+* ``per_step``: steps of the two kinds interleaved, each timed to its end (the GPU synchronised before and after:
+  no overlap), as the 2026-11-27 H200 figures were taken.
 
     python benchmarks/bench_padding.py --only train_speed --manifest M --batch-size 128 --passes 2   # on a GPU
 """
@@ -155,23 +161,43 @@ def train_speed(args: argparse.Namespace) -> dict[str, Any]:
                         "lengths": n, "text_emb": torch.randn(len(items), model_config.cond_dim, generator=generator),
                         "action": torch.zeros(len(items), dtype=torch.int64), "ids": [str(i) for i in items]}
 
-            def step(b: dict[str, Any]) -> float:
-                if dist.device.type == "cuda":  # the optimizer and EMA launches of the step before end first
+            def drain() -> None:  # the queued step's flags read (deferred), the GPU's queue emptied
+                trainer.settle()
+                if dist.device.type == "cuda":
                     torch.cuda.synchronize(dist.device)
+
+            def step(b: dict[str, Any]) -> float:
+                drain()  # the optimizer and EMA launches of the step before end first
                 start = time.perf_counter()
                 trainer.train_step([b])
                 trainer.step += 1
-                if dist.device.type == "cuda":
-                    torch.cuda.synchronize(dist.device)
+                drain()
                 return time.perf_counter() - start
+
+            def block(built: list[dict[str, Any]]) -> list[float]:
+                """The batches back to back, drained at the end: the block's time spread evenly over its steps."""
+                drain()
+                start = time.perf_counter()
+                for b in built:
+                    trainer.train_step([b])
+                    trainer.step += 1
+                drain()
+                return [(time.perf_counter() - start) / len(built)] * len(built)
 
             step(make(warmup[:batch], None))
             step(make(warmup[batch:], args.pad_multiple))
+            plans = {"fixed": (fixed_batches, None), "length_aware": (aware_batches, args.pad_multiple)}
             # Every pass trains the same batches; the last pass's times are kept. On a GPU under torch.compile each
             # new batch width compiles its own graph on first sight, and --passes 2 keeps that out of the figures.
             for _ in range(args.passes):
-                times = {"fixed": [], "length_aware": []}
-                widths = {"fixed": [], "length_aware": []}
+                times: dict[str, list[float]] = {"fixed": [], "length_aware": []}
+                widths: dict[str, list[int]] = {"fixed": [], "length_aware": []}
+                if args.timing == "streamed":
+                    for name, (plan, multiple) in plans.items():
+                        built = [make(items, multiple) for items in plan]
+                        widths[name] = [b["features"].shape[1] for b in built]
+                        times[name] = block(built)
+                    continue
                 for fixed_items, aware_items in zip(fixed_batches, aware_batches):
                     for name, items, multiple in (("fixed", fixed_items, None),
                                                   ("length_aware", aware_items, args.pad_multiple)):
@@ -185,6 +211,7 @@ def train_speed(args: argparse.Namespace) -> dict[str, Any]:
                 "device": torch.cuda.get_device_name(dist.device) if dist.device.type == "cuda" else "cpu",
                 "precision": dist.mixed_precision, "compile": cfg.train.compile, "threads": torch.get_num_threads(),
                 "batch_size": batch, "steps_each": len(fixed_batches), "passes": args.passes,
+                "timing": args.timing, "step_sync": "deferred" if trainer.defers_step_sync else "every_step",
                 "pad_multiple": args.pad_multiple,
                 "useful_frames": useful}
             for name in times:
@@ -210,6 +237,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--passes", type=int, default=1,
                         help="train_speed: passes over the same batches, the last one timed (2 on a GPU with compile)")
+    parser.add_argument("--timing", choices=("streamed", "per_step"), default="streamed",
+                        help="train_speed: each kind's steps back to back, drained at the end (a run's throughput), "
+                             "or each step timed to its end")
     parser.add_argument("--only", default="padding_humanml3d,padding_synthetic,train_speed",
                         help="comma-separated subset of the measurements")
     args = parser.parse_args(argv)
