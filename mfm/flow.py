@@ -58,6 +58,16 @@ class Objective(Protocol):
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]: ...
 
 
+def cached_on_device(owner: Any, name: str, device: torch.device, make: Any) -> Any:
+    """``make()`` for ``device``, made once per device and kept on ``owner`` (in its ``__dict__``: a cache, not a
+    field, so frozen dataclasses hold it too). Constants a loss needs on the model's device are copied there once
+    rather than every step: on a GPU a copy from the host waits for the work queued before it."""
+    copies = owner.__dict__.setdefault(name, {})
+    if device not in copies:
+        copies[device] = make()
+    return copies[device]
+
+
 @functools.lru_cache(maxsize=64)
 def _grid_times_on(grid_times: tuple[float, ...], dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """The grid's times on ``device``, copied once (on a GPU a copy from the host at every step would wait for the
@@ -478,12 +488,8 @@ class MotionGeometry:
         return features.float() * std + mean
 
     def statistics_on(self, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        """(mean, std) on ``device``, copied there once rather than at every loss (on a GPU a copy from the host
-        waits for the work queued before it: train.step_sync=deferred's step makes none)."""
-        copies = self.__dict__.setdefault("_statistics_on", {})  # a cache, not a field (frozen dataclass)
-        if device not in copies:
-            copies[device] = (self.mean.to(device), self.std.to(device))
-        return copies[device]
+        """(mean, std) on ``device``, copied there once (:func:`cached_on_device`)."""
+        return cached_on_device(self, "_statistics_on", device, lambda: (self.mean.to(device), self.std.to(device)))
 
     def joints(self, features: torch.Tensor) -> torch.Tensor:
         """(B, T, J, 3) positions in the facing frame, root above the origin, from normalised (B, T, D) features."""
@@ -729,14 +735,11 @@ class FlowMatchingObjective:
                             self.time_grid_times)
 
     def channel_weight_on(self, device: torch.device) -> torch.Tensor | None:
-        """``channel_weight`` as a tensor on ``device``, made once per device rather than every step (on a GPU each
-        step would otherwise copy it from the host)."""
+        """``channel_weight`` as a tensor on ``device``, made once per device (:func:`cached_on_device`)."""
         if self.channel_weight is None:
             return None
-        tensors = self.__dict__.setdefault("_channel_weight_tensors", {})  # a cache, not a field (frozen dataclass)
-        if device not in tensors:
-            tensors[device] = torch.tensor(self.channel_weight, dtype=torch.float32, device=device)
-        return tensors[device]
+        return cached_on_device(self, "_channel_weight_tensors", device,
+                                lambda: torch.tensor(self.channel_weight, dtype=torch.float32, device=device))
 
     def __post_init__(self) -> None:
         if self.time_sampling not in TIME_SAMPLINGS or self.time_scale <= 0:

@@ -264,8 +264,8 @@ class TrainLoopConfig:
     preview step and the last: between those it never waits for the GPU. The decisions are the same, on every
     rank alike; the host acts on them one step later: a stop signal ends the run after the next step (saved there),
     train.nonfinite=stop and bad data raise during the next step. Uses fused AdamW on every device; not with fp16,
-    whose loss scale is decided on the host every step. auto: deferred on CUDA (without fp16), every_step elsewhere: a CPU has nothing to
-    overlap, and every_step keeps the CPU presets' runs as they were, bit for bit."""
+    whose loss scale is decided on the host every step. auto: deferred on CUDA (without fp16), every_step elsewhere:
+    a CPU has nothing to overlap, and every_step keeps the CPU presets' runs as they were, bit for bit."""
     wandb: Literal["auto", "offline", "online", "disabled"] = "auto"
     """Weights & Biases mode (offline needs no network; `wandb sync` uploads later). auto: the environment's
     WANDB_MODE when set, else offline. An explicit offline/online/disabled (here, in a preset or an override) wins

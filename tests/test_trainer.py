@@ -484,27 +484,6 @@ def test_skipped_step_leaves_weights_and_optimizer_untouched(dataset, tmp_path, 
 # ---------------------------------------------------------------------------------------------------------------
 
 
-class CountingLoss:
-    """The real loss, counting its calls (one per micro-batch: the forward passes made so far)."""
-
-    def __init__(self) -> None:
-        self.calls = 0
-
-    def __call__(self, *args, **kwargs):
-        self.calls += 1
-        return self.__wrapped__(*args, **kwargs)
-
-
-class NaNAtStepsCounted(CountingLoss):
-    def __init__(self, steps: set[int]) -> None:
-        super().__init__()
-        self.steps = steps
-
-    def __call__(self, *args, **kwargs):
-        loss, stats = super().__call__(*args, **kwargs)
-        return (loss * float("nan") if self.calls in self.steps else loss), stats
-
-
 def test_deferred_flags_are_read_during_the_next_step_and_at_log_and_save_steps(dataset, tmp_path, monkeypatch):
     """Each step's flags are read once: during the next step, after its forward pass (so on a GPU the host queues
     that step before it waits), or at once at a log or save step. The decisions are every_step's: the NaN step is
@@ -512,7 +491,7 @@ def test_deferred_flags_are_read_during_the_next_step_and_at_log_and_save_steps(
     too, as on a GPU), and the same EMA within rounding (a multiply-add for the device-weighted update)."""
     real_adamw = torch.optim.AdamW
     monkeypatch.setattr(torch.optim, "AdamW", lambda *args, **kwargs: real_adamw(*args, **{**kwargs, "fused": True}))
-    loss = NaNAtStepsCounted({3})
+    loss = NaNAtSteps({3})  # its calls count the forward passes made so far (one micro-batch per step)
     patch_loss(monkeypatch, loss)
     reads: list[tuple[int, int]] = []
     real_read = trainer_module.PendingStep.read
