@@ -293,6 +293,7 @@ def flow_matching_loss(
     self_condition_prob: float = 0.0,
     self_condition_rows: torch.Tensor | None = None,
     grid_inputs: str = "interpolated",
+    estimate: bool = False,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
     weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
@@ -327,7 +328,10 @@ def flow_matching_loss(
     gradient), and its target is the velocity from there to its ``x1`` (:func:`mfm.path.velocity_from_data`):
     a few-step student then learns its later steps from the states its earlier steps really leave, not from
     the straight path's (backward distillation, Kohler et al. 2024, "Imagine Flash"). Draws nothing more.
-    Returns the scalar loss and ``{"loss": detached loss, "valid_frames": number of frames averaged}``.
+    Returns the scalar loss and ``{"loss": detached loss, "valid_frames": number of frames averaged}``; with
+    ``estimate``, also ``"x1_hat"``, the motion the trained pass's velocity leads to from its input
+    (:func:`mfm.path.data_from_velocity`, float32, in the graph: at t = 0 a student's one-step motion), and
+    ``"frame_mask"`` (B, T) bool, for a loss on that motion from the same forward pass (``mfm.critic``).
     """
     if x1.dim() != 3:
         raise ValueError(f"x1 must be (B, T, D), got {tuple(x1.shape)}")
@@ -378,7 +382,11 @@ def flow_matching_loss(
                          root_mean_weight=root_mean_weight, root_rate_channels=root_rate_channels,
                          geometry=geometry, terms_weighting=terms_weighting,
                          velocity_weight_cap=velocity_weight_cap, channel_weight=channel_weight)
-    return loss, {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
+    info = {"loss": loss.detach(), "valid_frames": frame_mask.sum()}
+    if estimate:
+        info["x1_hat"] = data_from_velocity(velocity.float(), x_t.float(), t.float(), sigma_min=sigma_min)
+        info["frame_mask"] = frame_mask
+    return loss, info
 
 
 def velocity_loss(
@@ -802,6 +810,7 @@ class FlowMatchingObjective:
         x0: torch.Tensor | None = None,
         model_kwargs: Mapping[str, Any] | None = None,
         self_condition_rows: torch.Tensor | None = None,
+        estimate: bool = False,
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         return flow_matching_loss(
             model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask,
@@ -816,5 +825,5 @@ class FlowMatchingObjective:
             channel_weight=self.channel_weight_on(x1.device),
             input_perturbation=self.input_perturbation,
             self_condition_prob=self.self_condition_prob, self_condition_rows=self_condition_rows,
-            grid_inputs=self.grid_inputs,
+            grid_inputs=self.grid_inputs, estimate=estimate,
         )

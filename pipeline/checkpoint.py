@@ -7,10 +7,13 @@ Layout (one folder per optimizer step; zero-padded so names sort by step)::
         model.safetensors   raw model weights
         ema.safetensors     EMA weights (absent when the run keeps no EMA)
         state.pt            {"version": 1, "step", "world_size", "optimizer", "scheduler", "scaler",
-                             "rng": [per rank], "data": [per rank], "config", "manifest", "extra"}
-                            "scaler": the fp16 loss scaler's {"scale", "growth_tracker"}, None without fp16. An
-                            optional entry, so the format stays version 1 both ways: a file written before it
-                            existed loads with "scaler": None, and older code reads new files (ignoring it)
+                             "rng": [per rank], "data": [per rank], "config", "manifest", "extra",
+                             "auxiliary"}
+                            "scaler": the fp16 loss scaler's {"scale", "growth_tracker"}, None without fp16;
+                            "auxiliary": what trains beside the model, by name ({"critic": ...} with
+                            train.critic_weight > 0, else {}). Optional entries, so the format stays version 1
+                            both ways: a file written before them loads with "scaler": None and no "auxiliary"
+                            (read as {}), and older code reads new files (ignoring them)
         COMPLETE            written last: JSON {"format", "version", "step", "files": {name: {bytes, sha256}}}
       step-00002000.tmp-node7-4242   a save in progress by pid 4242 on host node7 (or one that was killed):
                                      never read; removed at the next start-up once that pid is gone, or pruned
@@ -246,13 +249,15 @@ def save_checkpoint(
     manifest: Mapping[str, Any],
     extra: Mapping[str, Any] | None = None,
     scaler_state: Mapping[str, Any] | None = None,
+    auxiliary_state: Mapping[str, Any] | None = None,
 ) -> Path:
     """Write ``<ckpt_root>/step-<step>`` atomically and return its path. Call on global rank 0 only.
 
     ``rng_states`` / ``data_states``: one entry per rank, indexed by rank (already gathered). ``config``: the
     resolved config dict (``pipeline.config.to_dict``); ``manifest``: the dataset identity (dataset_id, feature
     spec, ...); ``extra``: counters such as samples seen; ``scaler_state``: the fp16 loss scaler's state (None
-    without fp16). Raises FileExistsError if a complete checkpoint for
+    without fp16); ``auxiliary_state``: the states of what trains beside the model, by name (``{"critic": ...}``
+    with train.critic_weight > 0; stored under ``"auxiliary"``, ``{}`` without). Raises FileExistsError if a complete checkpoint for
     ``step`` already exists, and CheckpointWriteError (an OSError) if writing fails: the partial folder is then
     already removed and the reason logged (for a full disk: the space needed and the space free).
     """
@@ -287,6 +292,7 @@ def save_checkpoint(
         "config": dict(config),
         "manifest": dict(manifest),
         "extra": dict(extra or {}),
+        "auxiliary": dict(auxiliary_state or {}),
     }
     metadata = {"step": str(step), "format": "pt"}
     files = {MODEL_FILE: safetensors.torch.save(_safetensors_ready(model_state, MODEL_FILE), metadata=metadata)}

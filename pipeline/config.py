@@ -402,6 +402,21 @@ class TrainLoopConfig:
     state the student's own first k Euler steps reach from that noise, without gradient, trained toward the same
     motion (backward distillation, Kohler et al. 2024, "Imagine Flash"): the later steps learn to mend what the
     earlier ones really leave. Costs K − 1 gradient-free passes per update. Ours for motion, not MFM's."""
+    critic_weight: float = 0.0
+    """objective=flow: weight of an adversarial term (adversarial distillation; Sauer et al. 2023, "Adversarial
+    Diffusion Distillation"): a caption-conditioned critic (``mfm.critic.MotionCritic``) trains alongside the model
+    with its own Adam, telling the batch's motions (a student's pair set: its teacher's motions) from the motion
+    each row's trained pass leads to (x̂1: a one-step student's one-step motion), and the model's loss adds
+    critic_weight × the critic's hinge loss of that motion. A fixed weight, not ADD's adaptive one (which needs a
+    second backward through the output layer; the fixed weight did the same in the probes: docs/few-step.md,
+    "A critic in the trainer"; 0.0022 there for a one-step student). The critic and its optimiser are part of the
+    resume state. Ours for motion; 0 = off (MFM, reflow)."""
+    critic_lr: float = 1e-4
+    """The critic's Adam learning rate (constant; no warm-up)."""
+    critic_betas: tuple[float, float] = (0.5, 0.9)
+    """The critic's Adam betas (a low β1, as GAN critics are usually trained)."""
+    critic_channels: int = 128
+    """The critic's width (``mfm.critic.MotionCritic``: 4 dilated residual blocks, 3-frame kernels)."""
     flow_noise: Literal["independent", "recorded"] = "independent"
     """objective=flow: where each training pair's noise x0 comes from. 'independent' (MFM): fresh N(0, I) from the
     trainer's generator. 'recorded' (reflow, ``launch/distill.py``): the noise the teacher integrated to make the
@@ -460,6 +475,17 @@ class TrainLoopConfig:
                  "train.flow_noise=recorded), not for training from data")
         _require(self.flow_noise == "independent" or self.objective == "flow",
                  f"train.flow_noise={self.flow_noise} is a flow-matching setting; train.objective is {self.objective}")
+        _require(self.critic_weight >= 0, f"train.critic_weight must be >= 0 (0: no critic), got {self.critic_weight}")
+        _require(self.critic_lr > 0, f"train.critic_lr must be > 0, got {self.critic_lr}")
+        _require(all(0.0 <= b < 1.0 for b in self.critic_betas),
+                 f"train.critic_betas must lie in [0, 1), got {self.critic_betas}")
+        _require(self.critic_channels >= 1, f"train.critic_channels must be >= 1, got {self.critic_channels}")
+        _require(self.critic_weight == 0 or self.objective == "flow",
+                 f"train.critic_weight > 0 judges the motion a flow model's velocity leads to: it needs "
+                 f"train.objective=flow, got {self.objective}")
+        _require(self.critic_weight == 0 or self.mixed_precision != "fp16",
+                 "train.critic_weight > 0 does not go with train.mixed_precision=fp16: the critic's own update is not "
+                 "loss-scaled (use bf16 or no)")
         _require(0 < self.shortcut_fraction < 1, f"train.shortcut_fraction must be in (0, 1), got {self.shortcut_fraction}")
         _require(self.shortcut_guidance >= 0, f"train.shortcut_guidance must be >= 0, got {self.shortcut_guidance}")
         _require(self.init_from is None or bool(self.init_from.strip()),
@@ -596,6 +622,11 @@ class TrainConfig:
         _require(
             self.train.self_condition_start_step == 0 or self.model.self_condition_prob > 0,
             "train.self_condition_start_step > 0 starts self-conditioning late: it needs model.self_condition_prob > 0",
+        )
+        _require(
+            self.train.critic_weight == 0 or self.model.shortcut_levels == 0,
+            "train.critic_weight > 0 (a critic) trains with the flow-matching loss; a shortcut model's "
+            "self-consistency rows have no motion to judge: use model.shortcut_levels=0",
         )
         _require(
             self.model.shortcut_levels == 0 or self.train.objective == "flow",

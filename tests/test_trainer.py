@@ -285,6 +285,9 @@ KILL_RESUME_CASES = {
     "flame-ema": (base_overrides, FLAME_EMA_RUN, 3, 2, [2]),
     # flags read one step late, off the log steps too (log_every 4, saves every 5)
     "deferred": (resume_overrides, ("train.step_sync=deferred", "train.log_every=4"), KILL_STEP, 10, [5, 10]),
+    # a critic beside the model (train.critic_weight), its update skipped on the device with the model's
+    "critic-deferred": (resume_overrides, ("train.critic_weight=0.05", "train.step_sync=deferred", "train.log_every=4"),
+                        KILL_STEP, 10, [5, 10]),
 }
 UNINTERRUPTED = "uninterrupted"  # killed_and_resumed's launch of every case's run A
 
@@ -337,6 +340,21 @@ def test_deferred_step_sync_resumes_bit_exactly(killed_and_resumed):
     SIGKILLed in the middle of step 12 and resumed from checkpoint 10 ends as the uninterrupted run does."""
     a_out, b_out = killed_and_resumed("deferred")
     assert_runs_identical(a_out / "run", b_out / "run", MAX_STEPS, log_every=4, resumed_from=10)
+
+
+@pytest.mark.slow
+def test_a_critic_beside_the_model_resumes_bit_exactly(killed_and_resumed):
+    """train.critic_weight > 0 with train.step_sync=deferred: the critic's weights, spectral-norm vectors and Adam
+    state are part of the checkpoint (state.pt's "auxiliary"), so a run SIGKILLed in the middle of step 12 and
+    resumed from checkpoint 10 ends as the uninterrupted run does, critic included; the critic took every update."""
+    a_out, b_out = killed_and_resumed("critic-deferred")
+    assert_runs_identical(a_out / "run", b_out / "run", MAX_STEPS, log_every=4, resumed_from=10)
+    _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(a_out / "run") / ckpt.step_dir_name(MAX_STEPS))
+    critic = state["auxiliary"]["critic"]
+    assert {int(s["step"]) for s in critic["optimizer"]["state"].values()} == {MAX_STEPS}
+    assert any(k.endswith("_u") for k in critic["critic"]), "the spectral norms' power-iteration vectors are kept"
+    metrics = metrics_by_step(a_out / "run")
+    assert all(m["critic_loss"] is not None and m["adversarial_loss"] is not None for m in metrics.values())
 
 
 @pytest.mark.slow

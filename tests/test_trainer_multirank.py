@@ -145,6 +145,8 @@ def misc_scenarios(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dic
                                  "model.dropout=0.0"]}
     self_conditioned = {"kind": "equivalence", "out": str(root / "self-conditioned"), "steps": EQUIVALENCE_STEPS,
                         "overrides": self_conditioned_overrides(dataset, root)}
+    critic = {"kind": "equivalence", "out": str(root / "critic"), "steps": EQUIVALENCE_STEPS,
+              "overrides": critic_overrides(dataset, root)}
     validate = {"kind": "validate", "out": str(root / "validate"), "overrides": validation_overrides(dataset, root)}
     skip = fit_scenario(root / "skip", [f"data.manifest={dataset}", f"train.out_dir={root / 'skip' / 'run'}",
                                         "train.log_every=1", "train.max_steps=5"],
@@ -153,7 +155,14 @@ def misc_scenarios(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dic
     skip_deferred = fit_scenario(root / "skip-deferred", [
         f"data.manifest={dataset}", f"train.out_dir={root / 'skip-deferred' / 'run'}", "train.log_every=5",
         "train.max_steps=5", "train.step_sync=deferred"], nan_at=[1, [NAN_STEP]], snapshot_at=[NAN_STEP, 5])
-    return [equivalence, self_conditioned, validate, skip, skip_deferred], {"root": root, "dataset": dataset}
+    return ([equivalence, self_conditioned, critic, validate, skip, skip_deferred],
+            {"root": root, "dataset": dataset})
+
+
+def critic_overrides(dataset: Path, root: Path) -> list[str]:
+    """A critic beside the model (train.critic_weight): its gradients are averaged over the ranks by hand."""
+    return [f"data.manifest={dataset}", f"train.out_dir={root / 'critic' / 'run'}", "model.dropout=0.0",
+            "train.critic_weight=0.05"]
 
 
 def self_conditioned_overrides(dataset: Path, root: Path) -> list[str]:
@@ -180,38 +189,49 @@ def validation_overrides(dataset: Path, root: Path) -> list[str]:
             "train.val_every=1"]
 
 
-def test_two_ranks_match_one_process_on_the_same_global_batches(misc_launch, tmp_path):
+def two_ranks_and_one_process(misc_launch: dict[str, Any], name: str, overrides: list[str]
+                              ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The equivalence scenario ``name``: both ranks' results (their weights checked identical) and one process's
+    run of the same steps on the whole global batches (``overrides`` on the tiny preset)."""
     import trainer_worker
 
-    root, dataset = misc_launch["root"], misc_launch["dataset"]
-    assert (root / "equivalence" / "result-rank0.json").exists(), output_of(misc_launch["proc"])
-    ranks = [torch.load(root / "equivalence" / f"equivalence-rank{r}.pt") for r in (0, 1)]
+    root = misc_launch["root"]
+    assert (root / name / "result-rank0.json").exists(), output_of(misc_launch["proc"])
+    ranks = [torch.load(root / name / f"equivalence-rank{r}.pt") for r in (0, 1)]
     assert_identical(ranks[0]["model"], ranks[1]["model"], "rank 0 vs rank 1 weights")
-
-    cfg = load_config(TrainConfig, "tiny", [f"data.manifest={dataset}", f"train.out_dir={tmp_path}",
-                                            "model.dropout=0.0"])
+    cfg = load_config(TrainConfig, "tiny", overrides)
     batches = trainer_worker.global_batches(cfg, EQUIVALENCE_STEPS, 2 * cfg.data.batch_size)
+    if cfg.model.self_condition_prob > 0:
+        assert all(draws.self_condition_rows is not None for _, draws in batches)
     with Dist(mixed_precision="no") as dist:
         single = trainer_worker.run_equivalence(Trainer(cfg, dist), batches)
     assert_equivalent(ranks[0], single)
+    return ranks, single
+
+
+def test_two_ranks_match_one_process_on_the_same_global_batches(misc_launch, tmp_path):
+    two_ranks_and_one_process(misc_launch, "equivalence", [f"data.manifest={misc_launch['dataset']}",
+                                                           f"train.out_dir={tmp_path}", "model.dropout=0.0"])
 
 
 def test_self_conditioned_two_ranks_match_one_process(misc_launch, tmp_path):
     """The estimate's extra pass runs on each rank's chosen rows (or one discarded row when it has none), so the
     ranks make the same collectives and the step is the one-process step on the same global batches and draws."""
-    import trainer_worker
-
-    root, dataset = misc_launch["root"], misc_launch["dataset"]
-    assert (root / "self-conditioned" / "result-rank0.json").exists(), output_of(misc_launch["proc"])
-    ranks = [torch.load(root / "self-conditioned" / f"equivalence-rank{r}.pt") for r in (0, 1)]
-    assert_identical(ranks[0]["model"], ranks[1]["model"], "rank 0 vs rank 1 weights")
-    cfg = load_config(TrainConfig, "tiny", self_conditioned_overrides(dataset, tmp_path))
-    batches = trainer_worker.global_batches(cfg, EQUIVALENCE_STEPS, 2 * cfg.data.batch_size)
-    assert all(draws.self_condition_rows is not None for _, draws in batches)
-    with Dist(mixed_precision="no") as dist:
-        single = trainer_worker.run_equivalence(Trainer(cfg, dist), batches)
-    assert_equivalent(ranks[0], single)
+    ranks, _ = two_ranks_and_one_process(misc_launch, "self-conditioned",
+                                         self_conditioned_overrides(misc_launch["dataset"], tmp_path))
     assert any(ranks[0]["model"][k].abs().sum() > 0 for k in ranks[0]["model"] if "self_condition_proj" in k)
+
+
+def test_a_critic_on_two_ranks_matches_one_process(misc_launch, tmp_path):
+    """The critic is not wrapped for data parallelism: its gradients are one all-reduce of a flat vector, averaged,
+    and its update is taken with the model's. Two ranks on halves of fixed global batches end with the model and
+    the critic of one process on the whole batches, and the same critic on both ranks."""
+    ranks, single = two_ranks_and_one_process(misc_launch, "critic", critic_overrides(misc_launch["dataset"], tmp_path))
+    assert_identical(ranks[0]["critic"], ranks[1]["critic"], "rank 0 vs rank 1 critic")
+    torch.testing.assert_close(ranks[0]["critic"], single["critic"], rtol=1e-5, atol=1e-6)
+    moved = max((single["critic"][k] - single["initial_critic"][k]).abs().max().item() for k in single["critic"]
+                if k.endswith("original"))
+    assert moved > 1e-5, "the critic's weights hardly moved: the comparison above would prove nothing"
 
 
 def test_two_ranks_give_the_validation_loss_of_one_process(misc_launch, tmp_path):

@@ -215,10 +215,14 @@ def run_equivalence(trainer: Trainer, batches: list[tuple[dict[str, Any], Draws]
     random sign, so weights of runs that summed in another order would differ by ~lr. The promise under test is
     about gradients; the gradient norms are compared too (a sum-instead-of-mean bug would show there, not in
     Adam's scale-invariant update)."""
-    for group in trainer.optimizer.param_groups:
-        group["eps"] = 1e-3
+    critic_optimizer = [] if trainer.critic is None else [trainer.critic.optimizer]
+    for optimizer in [trainer.optimizer, *critic_optimizer]:
+        for group in optimizer.param_groups:
+            group["eps"] = 1e-3
     dist = trainer.dist
     initial = {k: v.detach().clone() for k, v in dist.unwrap(trainer.model).state_dict().items()}
+    initial_critic = None if trainer.critic is None else {
+        k: v.clone() for k, v in trainer.critic.state_dict()["critic"].items()}
     parts = dist.world_size * micro_batches
     losses, grad_norms = [], []
     for step, (batch, draws) in enumerate(batches, start=1):
@@ -235,6 +239,9 @@ def run_equivalence(trainer: Trainer, batches: list[tuple[dict[str, Any], Draws]
         "initial": initial,
         "losses": losses,
         "grad_norms": grad_norms,
+        # train.critic_weight > 0: the critic's weights before and after
+        **({} if trainer.critic is None else {"critic": trainer.critic.state_dict()["critic"],
+                                               "initial_critic": initial_critic}),
     }
 
 

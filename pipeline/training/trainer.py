@@ -104,6 +104,7 @@ from pipeline.data.stream import (
     verify_shards,
 )
 from pipeline.distributed import Dist
+from pipeline.training.critic import CriticTraining
 from pipeline.training.loss_scaling import LossScaler
 from pipeline.training.previews import Preview, PreviewSampler
 from pipeline.training.reporting import PREVIEW_IMAGE_TAG, MetricsSink, require_tensorboard
@@ -593,6 +594,10 @@ class Trainer:
             model.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas, weight_decay=cfg.optim.weight_decay,
             fused=fused or None,
         )
+        # train.critic_weight > 0: the critic beside the model (pipeline.training.critic), made after the model so
+        # the model's initial weights are those of the run without it
+        self.critic = (CriticTraining(cfg.train, self.model_config, dist, fused=fused)
+                       if cfg.train.critic_weight > 0 else None)
         scheduler = torch.optim.lr_scheduler.LambdaLR(
             optimizer,
             lr_lambda(cfg.optim.warmup_steps, cfg.optim.schedule, cfg.train.max_steps, cfg.optim.min_lr_ratio,
@@ -690,11 +695,14 @@ class Trainer:
         return batch["text_emb"].to(self.dist.device, non_blocking=True)
 
     def _micro_batch_loss(self, batch: Mapping[str, Any], draws: Draws | None,
-                          generator: torch.Generator | None = None, model: Callable[..., Any] | None = None
-                          ) -> torch.Tensor:
+                          generator: torch.Generator | None = None, model: Callable[..., Any] | None = None,
+                          critic_inputs: list[tuple[torch.Tensor, ...]] | None = None) -> torch.Tensor:
         """The objective's loss on one micro-batch. Draw order from the per-rank generator (replayed exactly on
         resume; ``generator`` replaces it): dropped conditions, the BPE positional mode (BPE models), the skipped
-        blocks (model.layer_dropout > 0, in training mode), then the objective's own draws. ``model`` replaces the prepared training model (validation)."""
+        blocks (model.layer_dropout > 0, in training mode), then the objective's own draws. ``model`` replaces the prepared training model (validation).
+        ``critic_inputs`` (a list, with train.critic_weight > 0): the loss adds the critic's term on the motion the
+        pass leads to, and the list receives (batch motions, that motion detached, conditions, frame mask) for the
+        critic's own update (:meth:`train_step`). Draws nothing more."""
         device, config = self.dist.device, self.model_config
         generator = self.generator if generator is None else generator
         features = batch["features"].to(device, non_blocking=True)
@@ -728,9 +736,16 @@ class Trainer:
                 model_kwargs["positional_mode"] = draws.positional_mode
         phase = self._objective_phase(self.step)  # self.step: the updates before this one
         objective = self.objective if all(phase) else self.objectives_before_start[phase]
-        loss, _ = objective.loss(self.model if model is None else model, features, self._condition(batch),
-                                 lengths, generator=generator,
-                                 cond_mask=cond_mask, model_kwargs=model_kwargs, **overrides)
+        judged = self.critic is not None and critic_inputs is not None
+        if judged:
+            overrides["estimate"] = True
+        cond = self._condition(batch)
+        loss, info = objective.loss(self.model if model is None else model, features, cond,
+                                    lengths, generator=generator,
+                                    cond_mask=cond_mask, model_kwargs=model_kwargs, **overrides)
+        if judged:
+            loss = loss + self.critic.student_loss(info["x1_hat"], cond, info["frame_mask"])
+            critic_inputs.append((features, info["x1_hat"].detach(), cond, info["frame_mask"]))
         return loss
 
     def _phase_starts(self) -> list[int]:
@@ -818,13 +833,17 @@ class Trainer:
         loss_sum = torch.zeros((), device=device)
         for i, batch in enumerate(micro_batches):
             sync = i == accum - 1
+            critic_inputs: list[tuple[torch.Tensor, ...]] | None = [] if self.critic is not None else None
             with nullcontext() if sync else self.dist.no_sync(model):
                 if batch["ids"]:
-                    loss = self._micro_batch_loss(batch, None if draws is None else draws[i])
+                    loss = self._micro_batch_loss(batch, None if draws is None else draws[i],
+                                                  critic_inputs=critic_inputs)
                 else:
                     loss = self._stand_in_loss(batch)
                 weighted = loss if isinstance(weights[i], float) and weights[i] == 1.0 else loss * weights[i]
                 self.dist.backward(self.loss_scaler.scale(weighted / accum))
+            if critic_inputs:  # the critic's gradients for this micro-batch, weighted as the model's loss is
+                self.critic.accumulate(*critic_inputs[0], scale=weights[i] / accum)
             loss_sum += weighted.detach()  # unscaled: what is logged and checked
         loss_mean = loss_sum / accum
         # fp16: the gradients back to their true size before they are measured, clipped or applied, and this
@@ -843,6 +862,8 @@ class Trainer:
             )
         loss_nonfinite = ~torch.isfinite(loss_mean)
         grad_nonfinite = ~torch.isfinite(grad_norm)
+        if self.critic is not None:  # averaged over the ranks here; a non-finite critic skips both updates
+            grad_nonfinite = grad_nonfinite | ~torch.isfinite(self.critic.reduce_gradients())
         if self.loss_scaler.enabled:
             # fp16: non-finite gradients under a finite loss are the scaled gradients overflowing (the scaler's
             # business); only a non-finite loss is the bad-data case
@@ -860,10 +881,14 @@ class Trainer:
         nonfinite_ranks, overflow_ranks, loss_sum, *signal_counts, total_samples, data_error_ranks = flags.tolist()
         if data_error_ranks > 0:  # before any update: the run stops here on every rank
             self.optimizer.zero_grad(set_to_none=True)
+            if self.critic is not None:
+                self.critic.discard_gradients()
             raise self._data_error_of_some_rank()
         skip = nonfinite_ranks > 0
         empty = total_samples == 0
         overflowed = overflow_ranks > 0 and not (skip or empty)
+        if self.critic is not None:
+            self.critic.step(skip or empty or overflowed)
         if skip or empty or overflowed:
             self.optimizer.zero_grad(set_to_none=True)
             if overflowed:
@@ -898,6 +923,8 @@ class Trainer:
         finally:
             del optimizer.found_inf
         self.optimizer.zero_grad(set_to_none=True)
+        if self.critic is not None:
+            self.critic.step(skip)
         applied = ~skip
         ema_updated = self.ema.after_step(self.dist.unwrap(self.model), self.step + 1, applied=applied)
         self._pending = PendingStep(self.step + 1, flags, grad_norm, ema_updated)
@@ -1034,6 +1061,7 @@ class Trainer:
             data_states=data_states,
             config=to_dict(self.cfg),
             manifest=dataset_identity(self.manifest),
+            auxiliary_state={} if self.critic is None else {"critic": self.critic.state_dict()},
             extra={"samples_seen": self.samples_seen, "skipped_steps": self.skipped_steps,
                    "consecutive_skips": self.consecutive_skips, "empty_steps": self.empty_steps,
                    "scaler_skips": self.scaler_skips, "mixed_precision": self.dist.mixed_precision,
@@ -1081,6 +1109,16 @@ class Trainer:
                 f"{self.manifest.dataset_id}. Resume with the checkpoint's data.manifest, or start a new run in "
                 "another train.out_dir",
                 setting="data.manifest", saved=state["manifest"]["dataset_id"], now=self.manifest.dataset_id)
+        saved_critic = state.get("auxiliary", {}).get("critic")
+        if (saved_critic is None) != (self.critic is None):
+            saved_weight = state["config"].get("train", {}).get("critic_weight", 0.0)
+            raise ckpt.ResumeSettingError(
+                f"cannot resume from {path}: it was written {'without' if saved_critic is None else 'with'} a "
+                f"critic (train.critic_weight={saved_weight}) and this run has train.critic_weight="
+                f"{self.cfg.train.critic_weight}; an exact resume needs the critic's state as it was. Resume with "
+                f"train.critic_weight={saved_weight}, or start a new run in another train.out_dir (train.init_from "
+                "takes the weights)", setting="train.critic_weight", saved=saved_weight,
+                now=self.cfg.train.critic_weight)
         try:  # checked before any weights are loaded: a refusal leaves this process as it was
             self.loader.load_state_dict(state["data"][self.dist.rank])
         except DataResumeError as err:
@@ -1088,6 +1126,8 @@ class Trainer:
         self.dist.unwrap(self.model).load_state_dict(model_state)
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
+        if self.critic is not None:
+            self.critic.load_state_dict(saved_critic)
         extra = state["extra"]
         self.ema.load_state_dict({k: v.to(self.dist.device) for k, v in ema_state.items()}, extra["ema_updates"])
         own = state["rng"][self.dist.rank]
@@ -1311,9 +1351,12 @@ class Trainer:
         grad_norm = float(result.grad_norm)
         # Tolerant mode's records left out of their batches, and batches left empty, so far (this run and the runs
         # it resumes), all ranks.
-        records_skipped, empty_batches, from_cache, fetched = self.dist.all_reduce_sum(torch.tensor(
-            [self.loader.records_skipped, self.loader.empty_batches, self.loader.shards_from_cache,
-             self.loader.shards_fetched], device=self.dist.device)).tolist()
+        counters = torch.tensor([self.loader.records_skipped, self.loader.empty_batches,
+                                 self.loader.shards_from_cache, self.loader.shards_fetched],
+                                dtype=torch.float64, device=self.dist.device)
+        if self.critic is not None:  # the critic's sums since the last log line ride along
+            counters = torch.cat([counters, self.critic.window_sums().to(torch.float64)])
+        records_skipped, empty_batches, from_cache, fetched, *critic_sums = self.dist.all_reduce_sum(counters).tolist()
         return {
             "step": self.step,
             "loss": stats["loss"],  # None (JSON null) when every step of the window was skipped
@@ -1331,7 +1374,21 @@ class Trainer:
             **({"shards_from_cache": int(from_cache), "shards_fetched": int(fetched)}
                if self.cfg.data.cache_dir is not None else {}),
             **self._loss_scale_record(),
+            **self._critic_record(critic_sums),
         }
+
+    def _critic_record(self, sums: list[float]) -> dict[str, Any]:
+        """train.critic_weight > 0 only: the critic's hinge loss and the model's adversarial term (unweighted;
+        ``loss`` holds it times train.critic_weight), means over the window's micro-batches on all ranks (None when
+        there were none, or when a skipped step's non-finite value is among them)."""
+        if self.critic is None:
+            return {}
+        critic_loss, term, count = sums
+
+        def mean(total: float) -> float | None:
+            return total / count if count and math.isfinite(total) else None
+
+        return {"critic_loss": mean(critic_loss), "adversarial_loss": mean(term)}
 
     def _loss_scale_record(self) -> dict[str, Any]:
         """fp16 only: the loss scale after this step and the overflow steps skipped so far (this run and the runs
