@@ -143,6 +143,17 @@ def test_a_resume_that_adds_or_drops_the_critic_is_refused(dataset, tmp_path):
     assert refused.value.setting == "train.critic_weight"
 
 
+def test_a_run_trained_with_a_critic_says_so_on_its_model_card(dataset, tmp_path):
+    from pipeline.generation.pretrained import export_pretrained
+
+    cfg = load_config(TrainConfig, "tiny", base_overrides(dataset, tmp_path / "run", "train.max_steps=2",
+                                                          "train.critic_weight=0.05"))
+    with Dist(mixed_precision="no") as dist:
+        assert Trainer(cfg, dist).fit() == 0
+    card = (export_pretrained(tmp_path / "run", tmp_path / "model") / "README.md").read_text()
+    assert "trained with a critic" in card and "weighted 0.05" in card
+
+
 @pytest.mark.parametrize("overrides, reason", [
     (["train.mixed_precision=fp16"], "not loss-scaled"),
     (["train.objective=diffusion"], "needs train.objective=flow"),

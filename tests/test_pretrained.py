@@ -215,6 +215,7 @@ def test_the_model_card_is_a_hub_card_without_local_paths(exported, text_run, tm
     for split, facts in manifest["splits"].items():  # the split sizes of the manifest the checkpoint records
         assert f"| {split} | {facts['num_motions']} | {facts['num_captions']} | {facts['num_frames']} |" in body
     assert "- 4 steps, batch" in body and "No evaluator results" in body
+    assert "trained with a critic" not in body  # train.critic_weight 0 (tests/test_critic.py: a run with one)
     assert_no_local_path(card, [text_run, exported, tmp_path_factory.getbasetemp()])
 
 

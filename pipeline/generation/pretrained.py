@@ -221,6 +221,7 @@ def recipe_facts(trained: TrainedModel, train_config: Mapping[str, Any]) -> dict
         "flow_time_sampling": loop.get("flow_time_sampling", "uniform") if trained.objective == "flow" else None,
         "flow_time_grid_steps": loop.get("flow_time_grid_steps"),
         "flow_grid_inputs": loop.get("flow_grid_inputs"),
+        "critic_weight": loop.get("critic_weight", 0.0),  # train.critic_weight: an adversarial term (mfm.critic)
         "steps": trained.step, "batch_size": data.get("batch_size"), "window": trained.window,
         "lr": optim.get("lr"), "schedule": optim.get("schedule"), "warmup_steps": optim.get("warmup_steps"),
         "weight_decay": optim.get("weight_decay"), "ema_decay": optim.get("ema_decay"),
@@ -383,6 +384,10 @@ def _recipe_lines(config: Mapping[str, Any], model: ModelConfig, recipe: Mapping
             if recipe.get("flow_grid_inputs") == "own_path":
                 lines.append("- each later step trained from the state its own earlier steps reach, not from the "
                              "straight path's (`train.flow_grid_inputs=own_path`, backward distillation)")
+    if recipe.get("critic_weight"):
+        lines.append(f"- trained with a critic on the motion its training pass leads to, the critic's judgement "
+                     f"weighted {recipe['critic_weight']:g} in the loss (adversarial distillation, "
+                     "`train.critic_weight`; docs/few-step.md, 'A critic in the trainer')")
     return lines + [
         f"- {recipe.get('steps')} steps, batch {recipe.get('batch_size')} of {recipe.get('window')}-frame windows, "
         f"lr {recipe.get('lr')} ({recipe.get('schedule')}, {recipe.get('warmup_steps')} warm-up steps), weight decay "
