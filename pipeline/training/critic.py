@@ -95,11 +95,12 @@ class CriticTraining:
         rank's were)."""
         params = list(self.critic.parameters())
         flat = torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) for p in params])
-        if self.dist.world_size > 1:
-            flat = self.dist.all_reduce_sum(flat) / self.dist.world_size
+        if self.dist.world_size == 1:  # nothing to average: the gradients stay where they are
+            return torch.linalg.vector_norm(flat)
+        flat = self.dist.all_reduce_sum(flat) / self.dist.world_size  # a new tensor: the views below own it
         offset = 0
         for p in params:
-            p.grad = flat[offset:offset + p.numel()].view_as(p).clone()
+            p.grad = flat[offset:offset + p.numel()].view_as(p)
             offset += p.numel()
         return torch.linalg.vector_norm(flat)
 
