@@ -247,7 +247,13 @@ class TrainLoopConfig:
     """With fp16: the run stops (NonFiniteLossError) when overflow skips push the loss scale below this: the
     gradients overflow even barely scaled, which is divergence, not fp16's range (use bf16 or no)."""
     seed: int = 0
-    """Seed of model initialisation and of the noise / time draws of training."""
+    """Seed of model initialisation (unless train.init_seed is set) and of the noise / time draws of training."""
+    init_seed: int | None = None
+    """Seed of the initial weights, and of everything else drawn from the global generators (a critic's weights,
+    the DataLoader workers' base seed, the network's dropout); null: train.seed. The flow loss's draws (times,
+    noise, condition dropout: the trainer's own generator) stay train.seed's, so two runs that differ in one of
+    the two seeds separate what the initial weights decide from what the draws decide (docs/generator-study.md,
+    "Initial weights or draws"). The data order is data.seed's in every case."""
     nonfinite: Literal["skip", "stop"] = "skip"
     """On a non-finite loss or gradient norm on any rank: skip the update on every rank, or stop the run. With
     fp16, non-finite gradients under a finite loss are a loss-scale overflow instead (see mixed_precision): they
@@ -488,6 +494,8 @@ class TrainLoopConfig:
                  "loss-scaled (use bf16 or no)")
         _require(0 < self.shortcut_fraction < 1, f"train.shortcut_fraction must be in (0, 1), got {self.shortcut_fraction}")
         _require(self.shortcut_guidance >= 0, f"train.shortcut_guidance must be >= 0, got {self.shortcut_guidance}")
+        _require(self.init_seed is None or self.init_seed >= 0,
+                 f"train.init_seed must be >= 0, or null for train.seed, got {self.init_seed}")
         _require(self.init_from is None or bool(self.init_from.strip()),
                  "train.init_from must be a checkpoint folder, or null for a random initialisation")
         _require(self.log_every >= 1, f"train.log_every must be >= 1, got {self.log_every}")

@@ -37,7 +37,7 @@ from conftest import REPO_ROOT, flip_byte, load_launch_script, start_two_at_a_ti
 import pipeline.training.run_folder as run_folder_module
 import pipeline.training.trainer as trainer_module
 from pipeline import checkpoint as ckpt
-from pipeline.config import TrainConfig, from_dict, load_config, to_dict
+from pipeline.config import ConfigError, TrainConfig, from_dict, load_config, to_dict
 from pipeline.data.stream import ShardVerificationError
 from pipeline.distributed import Dist
 from pipeline.training.run_folder import (
@@ -224,6 +224,33 @@ def test_loss_decreases_and_run_folder_is_complete(dataset, tmp_path):
     _, ema, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(run) / "step-00000060")
     assert state["step"] == 60 and state["world_size"] == 1 and state["extra"]["samples_seen"] == 480
     assert ema is not None and state["extra"]["ema_updates"] == 60
+
+
+def test_init_seed_sets_the_initial_weights_and_train_seed_the_losss_draws(dataset, tmp_path):
+    """train.init_seed: the weights start as those of a run whose train.seed is init_seed, while the flow loss's
+    draws (times, noise, condition dropout) stay train.seed's; init_seed = train.seed is the run without it."""
+
+    def one_step(name: str, *seeds: str) -> tuple[dict[str, torch.Tensor], float]:
+        run = tmp_path / name  # one step at a negligible rate: the weights are the initial ones within 1e-6
+        overrides = base_overrides(dataset, run, "train.max_steps=1", "train.save_every=1", "optim.lr=1e-12",
+                                   "model.dropout=0.0", *seeds)
+        assert train_entry.main(["--config", "tiny", *overrides]) == 0
+        weights, _, _ = ckpt.load_checkpoint(ckpt.resolve_checkpoint(run))
+        return weights, metrics_by_step(run)[1]["loss"]
+
+    seed0, loss0 = one_step("seed0", "train.seed=0")
+    seed1, loss1 = one_step("seed1", "train.seed=1")
+    init0_draws1, loss_init0_draws1 = one_step("init0-draws1", "train.seed=1", "train.init_seed=0")
+    init1_draws1, loss_init1_draws1 = one_step("init1-draws1", "train.seed=1", "train.init_seed=1")
+
+    assert any(not torch.allclose(seed0[name], seed1[name]) for name in seed0)
+    for name, value in seed0.items():
+        torch.testing.assert_close(init0_draws1[name], value, rtol=0, atol=1e-6)
+    # the same weights and data with train.seed=1's draws: not seed 0's loss (the data order is data.seed's)
+    assert loss_init0_draws1 != loss0
+    assert loss_init1_draws1 == loss1 and all(torch.equal(init1_draws1[n], seed1[n]) for n in seed1)
+    with pytest.raises(ConfigError, match="train.init_seed must be >= 0"):
+        load_config(TrainConfig, "tiny", ["train.init_seed=-1"])
 
 
 # ---------------------------------------------------------------------------------------------------------------

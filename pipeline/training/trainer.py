@@ -579,7 +579,8 @@ class Trainer:
         self.model_config = model_config_for(
             self.manifest, cfg.model, learned_variance=getattr(self.objective, "learn_sigma", False))
 
-        seed_everything(cfg.train.seed)  # identical initial weights on every rank
+        # identical initial weights on every rank
+        seed_everything(cfg.train.seed if cfg.train.init_seed is None else cfg.train.init_seed)
         model = MotionFlowTransformer(self.model_config)
         if self.model_config.null_condition == "empty_caption":
             fill_null_condition(model, self.manifest)
