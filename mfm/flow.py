@@ -87,7 +87,18 @@ def sample_time(
     return torch.rand(batch, generator=generator, device=_draw_device(generator, device)).to(device)
 
 
-TIME_SAMPLINGS = ("uniform", "logit_normal", "grid")
+TIME_SAMPLINGS = ("uniform", "logit_normal", "grid", "stratified")
+
+
+def stratify_times(u: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+    """A batch's training times one per stratum: with B rows, row i gets t = (π_i + u_i) / B for a random
+    permutation π (drawn from ``generator`` after ``u``), so every stratum [k/B, (k+1)/B) holds exactly one time
+    while each row's time is still U(0, 1). The low-discrepancy sampler of Kingma et al. 2021 ("Variational
+    Diffusion Models", appendix), which spreads one shifted grid in row order; the permutation keeps a row's
+    stratum independent of its place in the batch. Not MFM's (uniform, drawn row by row)."""
+    rows = u.shape[0]
+    order = torch.randperm(rows, generator=generator, device=_draw_device(generator, u.device)).to(u.device)
+    return (order.to(u.dtype) + u) / rows
 GRID_INPUTS = ("interpolated", "own_path")
 """What a grid-trained row's network input is (``flow_matching_loss(grid_inputs=)``): 'interpolated', the point of
 the straight path between its noise and its data (rectified flow's k-step distillation); 'own_path', the state the
@@ -102,6 +113,8 @@ def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scal
     'uniform': t = u (MFM). 'logit_normal': t = sigmoid(loc + scale·Φ⁻¹(u)), the density Esser et al. (2024,
     "Scaling Rectified Flow Transformers") found best for rectified flows on images: more training where the
     path is neither noise nor data; loc < 0 moves it toward the noise (t = 0), loc > 0 toward the data.
+    'stratified': t = u; the batch's draws were spread one per stratum first (:func:`stratify_times`, which
+    :func:`flow_matching_loss` applies to the times it draws itself).
     'grid': t = floor(u·K)/K with K = ``grid_steps``, the times 0, 1/K, ..., (K−1)/K at which Euler with K steps
     evaluates the network, each equally often: the k-step distillation of a reflowed model (Liu et al. 2022,
     rectified flow, section 2.3), which spends the student's training on the times its few-step sampler visits
@@ -109,7 +122,7 @@ def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scal
     for training from data. ``grid_times`` (K start times, ``ModelConfig.sampling_times``) replace 0, 1/K, ...:
     the k-th draws train ``grid_times[k]``.
     """
-    if sampling == "uniform":
+    if sampling in ("uniform", "stratified"):
         return u
     if sampling == "grid":
         if grid_steps < 1:
@@ -303,7 +316,7 @@ def flow_matching_loss(
 
     x1: (B, T, D) normalised motion features, padded beyond ``lengths`` (B,).
     Random draws, in this order, all from ``generator`` if given (deterministic tests and resume):
-    t (B,), noise x0 (B, T, D), the input perturbation ξ (B, T, D; only when ``input_perturbation`` > 0 and
+    t (B,) (and, with stratified time sampling, the permutation of :func:`stratify_times`), noise x0 (B, T, D), the input perturbation ξ (B, T, D; only when ``input_perturbation`` > 0 and
     ``perturbation`` is not given), the self-conditioned rows (B,; only when ``self_condition_prob`` > 0), then the
     model's condition dropout (unless ``cond_mask`` is given).
     ``self_condition_prob`` p > 0 (a self-conditioned model, ``ModelConfig.self_condition_prob``; Chen et al.
@@ -350,6 +363,8 @@ def flow_matching_loss(
                          f"input_perturbation {input_perturbation!r}, self_condition_prob {self_condition_prob!r}")
     if t is None:
         t = sample_time(x1.shape[0], generator, x1.device)
+        if time_sampling.name == "stratified":
+            t = stratify_times(t, generator)
     t = time_sampling.warp(t)
     if x0 is None:
         x0 = sample_noise(x1, generator)

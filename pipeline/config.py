@@ -388,9 +388,11 @@ class TrainLoopConfig:
     contacts (the last 4) times feat_bias², the weight text-to-motion's own generator (Comp_v6) trained with by
     dividing those groups' std by 5. 1 = every channel alike (MDM, MFM, FlowMDM). The temporal, bone and trajectory
     terms are not weighted."""
-    flow_time_sampling: Literal["uniform", "logit_normal", "grid"] = "uniform"
+    flow_time_sampling: Literal["uniform", "logit_normal", "grid", "stratified"] = "uniform"
     """objective=flow: the density of the training times (``mfm.flow.warp_time``): 'uniform' = MFM; 'logit_normal' =
-    sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice); 'grid' = the times
+    sigmoid(N(flow_time_loc, flow_time_scale²)) (Esser et al. 2024; not MFM's choice); 'stratified' = uniform, but
+    each micro-batch's B times one per stratum [k/B, (k+1)/B) (Kingma et al. 2021's low-discrepancy sampler, with
+    a random permutation of the strata over the rows; ``mfm.flow.stratify_times``; not MFM's); 'grid' = the times
     0, 1/K, ..., (K−1)/K of Euler with K = flow_time_grid_steps steps, for a reflow student's pair set
     (launch/distill.py; rectified flow's k-step distillation, Liu et al. 2022), not for training from data."""
     flow_time_loc: float = 0.0
@@ -639,6 +641,11 @@ class TrainConfig:
         _require(
             self.model.shortcut_levels == 0 or self.train.objective == "flow",
             "model.shortcut_levels > 0 (a shortcut model) trains with train.objective=flow",
+        )
+        _require(
+            self.train.flow_time_sampling != "stratified" or self.model.shortcut_levels == 0,
+            "train.flow_time_sampling=stratified spreads a flow-matching batch's times one per stratum; a shortcut "
+            "model's batch splits its rows between two objectives: use uniform or logit_normal",
         )
         _require(
             self.train.flow_grid_inputs == "interpolated" or (

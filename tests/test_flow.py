@@ -18,6 +18,7 @@ from mfm.flow import (
     target_velocity,
 )
 from mfm.model import ModelConfig, MotionFlowTransformer, valid_frame_mask
+from pipeline.config import ConfigError, TrainConfig, load_config
 
 
 def tiny_model(seed: int = 0, **overrides) -> MotionFlowTransformer:
@@ -452,6 +453,37 @@ def test_grid_time_sampling_draws_the_k_step_eulers_times_equally_often():
         warp_time(u, "grid")
     with pytest.raises(ValueError, match="time_grid_steps"):
         FlowMatchingObjective(time_sampling="grid")
+
+
+def test_stratified_times_hold_one_per_stratum_each_row_still_uniform():
+    """stratify_times: a batch of B times has exactly one in each [k/B, (k+1)/B); over batches each row's time is
+    U(0, 1) (the permutation, not the row's place, picks its stratum); the loss draws it after t, before x0."""
+    from mfm.flow import stratify_times
+    generator = torch.Generator().manual_seed(0)
+    batches = []
+    for _ in range(4000):
+        t = stratify_times(torch.rand(8, generator=generator), generator)
+        assert sorted(torch.floor(t * 8).long().tolist()) == list(range(8))
+        batches.append(t)
+    rows = torch.stack(batches)  # (4000, 8)
+    for row in rows.T:  # each row's histogram over 4 bins of [0, 1): 1/4 each
+        shares = torch.histc(row, bins=4, min=0, max=1) / len(row)
+        assert (shares - 0.25).abs().max() < 0.03
+    assert torch.equal(warp_time(rows[0], "stratified"), rows[0])
+
+    torch.manual_seed(0)
+    model = MotionFlowTransformer(ModelConfig(feature_dim=6, latent_dim=16, ff_dim=32, num_layers=1, num_heads=2,
+                                              cond_dim=4, dropout=0.0, cond_drop_prob=0.0)).eval()
+    x1, cond, lengths = torch.randn(4, 8, 6), torch.randn(4, 4), torch.tensor([8, 5, 7, 8])
+    drawn, _ = flow_matching_loss(model, x1, cond, lengths, generator=torch.Generator().manual_seed(3),
+                                  time_sampling=TimeSampling("stratified"))
+    replay = torch.Generator().manual_seed(3)
+    t = stratify_times(torch.rand(4, generator=replay), replay)
+    x0 = torch.randn(x1.shape, generator=replay)
+    given, _ = flow_matching_loss(model, x1, cond, lengths, t=t, x0=x0)
+    assert torch.allclose(drawn, given)
+    with pytest.raises(ConfigError, match="stratified"):
+        load_config(TrainConfig, "tiny", ["train.flow_time_sampling=stratified", "model.shortcut_levels=2"])
 
 
 def test_the_loss_trains_at_the_warped_time():
