@@ -99,6 +99,8 @@ def stratify_times(u: torch.Tensor, generator: torch.Generator | None = None) ->
     rows = u.shape[0]
     order = torch.randperm(rows, generator=generator, device=_draw_device(generator, u.device)).to(u.device)
     return (order.to(u.dtype) + u) / rows
+
+
 GRID_INPUTS = ("interpolated", "own_path")
 """What a grid-trained row's network input is (``flow_matching_loss(grid_inputs=)``): 'interpolated', the point of
 the straight path between its noise and its data (rectified flow's k-step distillation); 'own_path', the state the
@@ -316,9 +318,10 @@ def flow_matching_loss(
 
     x1: (B, T, D) normalised motion features, padded beyond ``lengths`` (B,).
     Random draws, in this order, all from ``generator`` if given (deterministic tests and resume):
-    t (B,) (and, with stratified time sampling, the permutation of :func:`stratify_times`), noise x0 (B, T, D), the input perturbation ξ (B, T, D; only when ``input_perturbation`` > 0 and
-    ``perturbation`` is not given), the self-conditioned rows (B,; only when ``self_condition_prob`` > 0), then the
-    model's condition dropout (unless ``cond_mask`` is given).
+    t (B,) (with stratified time sampling, then the permutation of :func:`stratify_times`), noise x0 (B, T, D),
+    the input perturbation ξ (B, T, D; only when ``input_perturbation`` > 0 and ``perturbation`` is not given),
+    the self-conditioned rows (B,; only when ``self_condition_prob`` > 0), then the model's condition dropout
+    (unless ``cond_mask`` is given).
     ``self_condition_prob`` p > 0 (a self-conditioned model, ``ModelConfig.self_condition_prob``; Chen et al.
     2022): a share p of the rows first runs through the model without gradient, and the x̂1 that pass implies
     (:func:`mfm.path.data_from_velocity`) is the second, trained pass's ``self_condition`` input; the other rows get

@@ -226,7 +226,7 @@ def test_loss_decreases_and_run_folder_is_complete(dataset, tmp_path):
     assert ema is not None and state["extra"]["ema_updates"] == 60
 
 
-def test_init_seed_sets_the_initial_weights_and_train_seed_the_losss_draws(dataset, tmp_path):
+def test_init_seed_sets_the_initial_weights_and_train_seed_the_draws(dataset, tmp_path):
     """train.init_seed: the weights start as those of a run whose train.seed is init_seed, while the flow loss's
     draws (times, noise, condition dropout) stay train.seed's; init_seed = train.seed is the run without it."""
 
