@@ -157,7 +157,8 @@ class DataConfig:
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class OptimConfig:
-    """AdamW, linear warm-up, gradient clipping and accumulation, and the EMA of the weights."""
+    """The optimizer (AdamW, or Muon with AdamW), linear warm-up and schedule, gradient clipping and accumulation,
+    and the EMA of the weights."""
 
     lr: float = 1e-4
     """Peak learning rate (reached after warmup_steps; then constant or decayed, see ``schedule``)."""
@@ -174,6 +175,19 @@ class OptimConfig:
     """wsd: the share of the steps after warm-up spent in the final linear decay (1: linear decay from warm-up on)."""
     weight_decay: float = 0.0
     betas: tuple[float, float] = (0.9, 0.999)
+    optimizer: Literal["adamw", "muon"] = "adamw"
+    """'adamw' (MFM, FLAME, FlowMDM): AdamW on every parameter. 'muon' (ours, in none of the three): torch.optim.Muon
+    (Jordan et al. 2024) on the Transformer blocks' 2-D weights, whose momentum it orthogonalises before each step,
+    and AdamW (``lr``, ``betas``) on everything else: input and output projections, embeddings, biases, norms
+    (pipeline.training.optimizers). Both take ``weight_decay`` and the same schedule. A step costs more (five
+    Newton–Schulz iterations per matrix: 1.3x on the synthetic preset's 2-core CPU step) and learns more: the
+    synthetic preset's loss at step 300 is AdamW's at step 750 (docs/generator-study.md, "Muon on the blocks'
+    matrices"). Not with train.step_sync=deferred (Muon has no on-device skip)."""
+    muon_lr: float = 0.02
+    """optimizer=muon: the peak learning rate of Muon's matrices (Jordan's default; each step is muon_lr ·
+    sqrt(max(1, fan_out/fan_in)) times an orthogonal matrix), scaled by the schedule as ``lr`` is."""
+    muon_momentum: float = 0.95
+    """optimizer=muon: Muon's Nesterov momentum (Jordan's default)."""
     warmup_steps: int = 0
     """Optimizer steps of linear warm-up from 0 to lr."""
     grad_clip: float = 1.0
@@ -198,6 +212,8 @@ class OptimConfig:
         _require(self.lr > 0.0, f"optim.lr must be > 0, got {self.lr}")
         _require(self.weight_decay >= 0.0, f"optim.weight_decay must be >= 0, got {self.weight_decay}")
         _require(all(0.0 <= b < 1.0 for b in self.betas), f"optim.betas must lie in [0, 1), got {self.betas}")
+        _require(self.muon_lr > 0.0, f"optim.muon_lr must be > 0, got {self.muon_lr}")
+        _require(0.0 <= self.muon_momentum < 1.0, f"optim.muon_momentum must lie in [0, 1), got {self.muon_momentum}")
         _require(self.warmup_steps >= 0, f"optim.warmup_steps must be >= 0, got {self.warmup_steps}")
         _require(0.0 <= self.min_lr_ratio <= 1.0, f"optim.min_lr_ratio must lie in [0, 1], got {self.min_lr_ratio}")
         _require(0.0 < self.decay_fraction <= 1.0,
@@ -637,6 +653,11 @@ class TrainConfig:
             self.train.critic_weight == 0 or self.model.shortcut_levels == 0,
             "train.critic_weight > 0 (a critic) trains with the flow-matching loss; a shortcut model's "
             "self-consistency rows have no motion to judge: use model.shortcut_levels=0",
+        )
+        _require(
+            self.optim.optimizer != "muon" or self.train.step_sync != "deferred",
+            "optim.optimizer=muon does not go with train.step_sync=deferred: a deferred step is skipped on the device "
+            "through fused AdamW's found_inf, which Muon does not take (use train.step_sync=every_step or auto)",
         )
         _require(
             self.model.shortcut_levels == 0 or self.train.objective == "flow",

@@ -413,6 +413,16 @@ def test_grid_times_train_the_few_step_samplers_map_closer(student_run, teacher_
                        ["train.flow_time_sampling=grid", "distill.student_steps=3"])
 
 
+def test_a_student_fine_tunes_with_adamw_whatever_its_teacher_trained_with(teacher_run, tmp_path):
+    """A teacher trained with Muon (optim.optimizer=muon, the synthetic preset's) gives a student with AdamW, so
+    the students' optim.lr reaches every parameter; Muon stays one override away."""
+    teacher = load_trained_model(teacher_run)
+    config = yaml.safe_load((teacher_run / "config.yaml").read_text())
+    config["optim"]["optimizer"] = "muon"
+    assert student_config(teacher, config, tmp_path / "s", []).optim.optimizer == "adamw"
+    assert student_config(teacher, config, tmp_path / "s", ["optim.optimizer=muon"]).optim.optimizer == "muon"
+
+
 def test_a_second_step_trained_from_the_first_steps_own_states_lands_nearer(student_run, teacher_run,
                                                                             grid_student_run, tmp_path_factory,
                                                                             tmp_path):

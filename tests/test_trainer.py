@@ -315,6 +315,8 @@ KILL_RESUME_CASES = {
     # a critic beside the model (train.critic_weight), its update skipped on the device with the model's
     "critic-deferred": (resume_overrides, ("train.critic_weight=0.05", "train.step_sync=deferred", "train.log_every=4"),
                         KILL_STEP, 10, [5, 10]),
+    # Muon on the blocks' matrices beside AdamW (optim.optimizer=muon): both states and the schedule's link to both
+    "muon": (resume_overrides, ("optim.optimizer=muon",), KILL_STEP, 10, [5, 10]),
 }
 UNINTERRUPTED = "uninterrupted"  # killed_and_resumed's launch of every case's run A
 
@@ -382,6 +384,18 @@ def test_a_critic_beside_the_model_resumes_bit_exactly(killed_and_resumed):
     assert any(k.endswith("_u") for k in critic["critic"]), "the spectral norms' power-iteration vectors are kept"
     metrics = metrics_by_step(a_out / "run")
     assert all(m["critic_loss"] is not None and m["adversarial_loss"] is not None for m in metrics.values())
+
+
+@pytest.mark.slow
+def test_muon_with_adamw_resumes_bit_exactly(killed_and_resumed):
+    """optim.optimizer=muon: Muon's momentum, AdamW's moments and both optimizers' scheduled learning rates come
+    back from the checkpoint, so a run SIGKILLed in the middle of step 12 and resumed from checkpoint 10 ends as
+    the uninterrupted run does."""
+    a_out, b_out = killed_and_resumed("muon")
+    assert_runs_identical(a_out / "run", b_out / "run", MAX_STEPS)
+    _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(b_out / "run") / ckpt.step_dir_name(MAX_STEPS))
+    assert state["optimizer"]["muon"]["state"] and state["optimizer"]["adamw"]["state"]
+    assert all("momentum_buffer" in s for s in state["optimizer"]["muon"]["state"].values())
 
 
 @pytest.mark.slow

@@ -24,7 +24,7 @@ import sys
 from concurrent.futures import Future
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import pytest
 import torch
@@ -147,6 +147,8 @@ def misc_scenarios(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dic
                         "overrides": self_conditioned_overrides(dataset, root)}
     critic = {"kind": "equivalence", "out": str(root / "critic"), "steps": EQUIVALENCE_STEPS,
               "overrides": critic_overrides(dataset, root)}
+    muon = {"kind": "equivalence", "out": str(root / "muon"), "steps": EQUIVALENCE_STEPS,
+            "overrides": muon_overrides(dataset, root)}
     validate = {"kind": "validate", "out": str(root / "validate"), "overrides": validation_overrides(dataset, root)}
     skip = fit_scenario(root / "skip", [f"data.manifest={dataset}", f"train.out_dir={root / 'skip' / 'run'}",
                                         "train.log_every=1", "train.max_steps=5"],
@@ -155,7 +157,7 @@ def misc_scenarios(dataset: Path, root: Path) -> tuple[list[dict[str, Any]], dic
     skip_deferred = fit_scenario(root / "skip-deferred", [
         f"data.manifest={dataset}", f"train.out_dir={root / 'skip-deferred' / 'run'}", "train.log_every=5",
         "train.max_steps=5", "train.step_sync=deferred"], nan_at=[1, [NAN_STEP]], snapshot_at=[NAN_STEP, 5])
-    return ([equivalence, self_conditioned, critic, validate, skip, skip_deferred],
+    return ([equivalence, self_conditioned, critic, muon, validate, skip, skip_deferred],
             {"root": root, "dataset": dataset})
 
 
@@ -163,6 +165,12 @@ def critic_overrides(dataset: Path, root: Path) -> list[str]:
     """A critic beside the model (train.critic_weight): its gradients are averaged over the ranks by hand."""
     return [f"data.manifest={dataset}", f"train.out_dir={root / 'critic' / 'run'}", "model.dropout=0.0",
             "train.critic_weight=0.05"]
+
+
+def muon_overrides(dataset: Path, root: Path) -> list[str]:
+    """Muon on the blocks' matrices, AdamW on the rest (optim.optimizer=muon), on the data-parallel gradients."""
+    return [f"data.manifest={dataset}", f"train.out_dir={root / 'muon' / 'run'}", "model.dropout=0.0",
+            "optim.optimizer=muon"]
 
 
 def self_conditioned_overrides(dataset: Path, root: Path) -> list[str]:
@@ -189,10 +197,12 @@ def validation_overrides(dataset: Path, root: Path) -> list[str]:
             "train.val_every=1"]
 
 
-def two_ranks_and_one_process(misc_launch: dict[str, Any], name: str, overrides: list[str]
+def two_ranks_and_one_process(misc_launch: dict[str, Any], name: str, overrides: list[str],
+                              equivalent: Callable[[dict[str, Any], dict[str, Any]], None] = assert_equivalent
                               ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """The equivalence scenario ``name``: both ranks' results (their weights checked identical) and one process's
-    run of the same steps on the whole global batches (``overrides`` on the tiny preset)."""
+    run of the same steps on the whole global batches (``overrides`` on the tiny preset), compared by
+    ``equivalent``."""
     import trainer_worker
 
     root = misc_launch["root"]
@@ -205,7 +215,7 @@ def two_ranks_and_one_process(misc_launch: dict[str, Any], name: str, overrides:
         assert all(draws.self_condition_rows is not None for _, draws in batches)
     with Dist(mixed_precision="no") as dist:
         single = trainer_worker.run_equivalence(Trainer(cfg, dist), batches)
-    assert_equivalent(ranks[0], single)
+    equivalent(ranks[0], single)
     return ranks, single
 
 
@@ -232,6 +242,31 @@ def test_a_critic_on_two_ranks_matches_one_process(misc_launch, tmp_path):
     moved = max((single["critic"][k] - single["initial_critic"][k]).abs().max().item() for k in single["critic"]
                 if k.endswith("original"))
     assert moved > 1e-5, "the critic's weights hardly moved: the comparison above would prove nothing"
+
+
+def test_muon_on_two_ranks_matches_one_process(misc_launch, tmp_path):
+    """Muon steps on the data-parallel (all-reduced) gradients: both ranks end with the same weights, and with one
+    process's on the whole global batches up to the rounding of Muon's Newton–Schulz iterations, which torch runs
+    in bf16: a last-bit difference of a gradient between the ranks' all-reduce and one process's sum can flip a
+    bf16 rounding (2⁻⁸ of the value), and the five iterations carry it through the whole matrix: the change of a
+    block's weights over the 3 steps then differs from one process's by about 2 % of itself. A gradient of one
+    rank's half of the batches alone would give another orthogonalised direction altogether, so each tensor's
+    change must agree with one process's to 10 % of its size. (Muon's step does not see the gradient's scale: a
+    sum instead of a mean is the equivalence test's to catch, above.)"""
+    def equivalent(result: dict[str, Any], reference: dict[str, Any]) -> None:
+        torch.testing.assert_close(result["losses"], reference["losses"], rtol=1e-4, atol=1e-5)
+        for name, weights in reference["model"].items():
+            change = weights - reference["initial"][name]
+            if change.norm() > 0:
+                gap = (result["model"][name] - weights).norm() / change.norm()
+                assert gap < 0.1, f"{name}: the two ranks' change differs from one process's by {gap:.2%}"
+        moved = max((reference["model"][k] - reference["initial"][k]).abs().max().item() for k in reference["model"])
+        assert moved > 1e-2, "the weights hardly moved: the comparison above would prove nothing"
+
+    ranks, single = two_ranks_and_one_process(misc_launch, "muon", muon_overrides(misc_launch["dataset"], tmp_path),
+                                              equivalent)
+    muon_weights = [k for k in single["model"] if k.startswith("layers.") and single["model"][k].ndim == 2]
+    assert muon_weights and all(not torch.equal(single["model"][k], single["initial"][k]) for k in muon_weights)
 
 
 def test_two_ranks_give_the_validation_loss_of_one_process(misc_launch, tmp_path):

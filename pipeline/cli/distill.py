@@ -28,8 +28,9 @@ train.shortcut_fraction of them self-consistency, one step of d against two of d
 taken on its flow field guided at the teacher's scale (train.shortcut_guidance, model.guided_features), so the
 guidance is built into its few steps: it samples them with guidance 1 (model.sampling_guidance=1).
 
-Settings: the teacher's resolved training config, with the student's settings above, then ``key.sub=value``
-overrides (train.max_steps, optim.lr, distill.pairs_per_caption, ...). The ``distill`` section (method, teacher
+Settings: the teacher's resolved training config, with the student's settings above (and AdamW, whatever
+optimizer the teacher trained with: optim.optimizer=muon is an override), then ``key.sub=value`` overrides
+(train.max_steps, optim.lr, distill.pairs_per_caption, ...). The ``distill`` section (method, teacher
 checkpoint path, id and step, the teacher's sampler) is recorded in OUT/config.yaml and every checkpoint; set by this
 command, it is not an override (nor are data.manifest, train.out_dir, train.init_from, train.flow_noise,
 train.shortcut_guidance, model.shortcut_levels and model.sampling_steps: use distill.shortcut_levels and
@@ -91,6 +92,9 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
     base = {section: dict(values) for section, values in teacher_config.items() if section != "distill"}
     method = method_of(overrides)
     base["model"].update(sampling_guidance=1.0)
+    # every student recipe (docs/few-step.md) fine-tunes with AdamW at its own optim.lr; a teacher's Muon (the
+    # synthetic preset's) would keep its matrices at optim.muon_lr whatever optim.lr the student is given
+    base["optim"].update(optimizer="adamw")
     base["train"].update(out_dir=str(out), init_from=str(teacher.checkpoint), resume="auto",
                          resume_discard_newer=False)
     if method == "reflow":

@@ -223,6 +223,7 @@ def recipe_facts(trained: TrainedModel, train_config: Mapping[str, Any]) -> dict
         "flow_grid_inputs": loop.get("flow_grid_inputs"),
         "critic_weight": loop.get("critic_weight", 0.0),  # train.critic_weight: an adversarial term (mfm.critic)
         "steps": trained.step, "batch_size": data.get("batch_size"), "window": trained.window,
+        "optimizer": optim.get("optimizer", "adamw"), "muon_lr": optim.get("muon_lr"),
         "lr": optim.get("lr"), "schedule": optim.get("schedule"), "warmup_steps": optim.get("warmup_steps"),
         "weight_decay": optim.get("weight_decay"), "ema_decay": optim.get("ema_decay"),
         "mixed_precision": loop.get("mixed_precision"), "weights": trained.weights,
@@ -388,9 +389,11 @@ def _recipe_lines(config: Mapping[str, Any], model: ModelConfig, recipe: Mapping
         lines.append(f"- trained with a critic on the motion its training pass leads to, the critic's judgement "
                      f"weighted {recipe['critic_weight']:g} in the loss (adversarial distillation, "
                      "`train.critic_weight`; docs/few-step.md, 'A critic in the trainer')")
+    rate = (f"AdamW lr {recipe.get('lr')} and Muon lr {recipe.get('muon_lr')} on the Transformer blocks' matrices "
+            "(`optim.optimizer=muon`)" if recipe.get("optimizer") == "muon" else f"lr {recipe.get('lr')}")
     return lines + [
         f"- {recipe.get('steps')} steps, batch {recipe.get('batch_size')} of {recipe.get('window')}-frame windows, "
-        f"lr {recipe.get('lr')} ({recipe.get('schedule')}, {recipe.get('warmup_steps')} warm-up steps), weight decay "
+        f"{rate} ({recipe.get('schedule')}, {recipe.get('warmup_steps')} warm-up steps), weight decay "
         f"{recipe.get('weight_decay')}, EMA decay {recipe.get('ema_decay')}, mixed precision "
         f"{recipe.get('mixed_precision')}; exported weights: {recipe.get('weights')}",
     ]

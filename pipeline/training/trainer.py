@@ -1,8 +1,9 @@
 """The training loop: ``Trainer(cfg, dist).fit()``.
 
-One object owns a run: the model (wrapped for the device by :mod:`pipeline.distributed`), its EMA, AdamW with
-linear warm-up, the self-sharded streaming loader (never passed through ``accelerator.prepare``), and one
-versioned resume state saved atomically by :mod:`pipeline.checkpoint`. ``fit`` reads top to bottom:
+One object owns a run: the model (wrapped for the device by :mod:`pipeline.distributed`), its EMA, its optimizer
+(AdamW, or Muon with AdamW: :mod:`pipeline.training.optimizers`) with linear warm-up, the self-sharded streaming
+loader (never passed through ``accelerator.prepare``), and one versioned resume state saved atomically by
+:mod:`pipeline.checkpoint`. ``fit`` reads top to bottom:
 
     resume → write run files → for each optimizer step: stop requested? → train_step → maybe_log (+ maybe_validate)
     → maybe_save
@@ -106,6 +107,7 @@ from pipeline.data.stream import (
 from pipeline.distributed import Dist
 from pipeline.training.critic import CriticTraining
 from pipeline.training.loss_scaling import LossScaler
+from pipeline.training.optimizers import build_optimizer
 from pipeline.training.previews import Preview, PreviewSampler
 from pipeline.training.reporting import PREVIEW_IMAGE_TAG, MetricsSink, require_tensorboard
 from pipeline.training.run_folder import (
@@ -512,11 +514,12 @@ class StepResult:
     overflow: bool = False  # fp16: the scaled gradients overflowed on some rank: update skipped, scale lowered
 
 
-def resolve_step_sync(setting: str, device: torch.device, mixed_precision: str) -> bool:
+def resolve_step_sync(setting: str, device: torch.device, mixed_precision: str, optimizer: str = "adamw") -> bool:
     """Whether train.step_sync defers the host's reading of each step's flags (see the option): auto defers on
-    CUDA without fp16. A deferred run under fp16 (the launcher's ``--mixed_precision fp16``) is refused."""
+    CUDA without fp16 with AdamW (optim.optimizer=muon has no on-device skip). A deferred run under fp16 (the
+    launcher's ``--mixed_precision fp16``) is refused."""
     if setting == "auto":
-        return device.type == "cuda" and mixed_precision != "fp16"
+        return device.type == "cuda" and mixed_precision != "fp16" and optimizer == "adamw"
     if setting == "deferred" and mixed_precision == "fp16":
         raise ConfigError("train.step_sync=deferred does not go with fp16 (here from the launcher): fp16's loss scale "
                           "is decided on the host every step; use bf16, or train.step_sync=every_step")
@@ -588,13 +591,11 @@ class Trainer:
         self.ema = EMA(model, cfg.optim.ema_decay, every=cfg.optim.ema_every, start=cfg.optim.ema_start,
                        warmup=cfg.optim.ema_warmup)
         # train.step_sync=deferred needs fused AdamW (it takes the skip as found_inf, on the device) on every device
-        self.defers_step_sync = resolve_step_sync(cfg.train.step_sync, dist.device, dist.mixed_precision)
+        self.defers_step_sync = resolve_step_sync(cfg.train.step_sync, dist.device, dist.mixed_precision,
+                                                  cfg.optim.optimizer)
         self._pending: PendingStep | None = None  # deferred: the step whose flags the host has not read yet
         fused = dist.device.type == "cuda" or self.defers_step_sync
-        optimizer = torch.optim.AdamW(
-            model.parameters(), lr=cfg.optim.lr, betas=cfg.optim.betas, weight_decay=cfg.optim.weight_decay,
-            fused=fused or None,
-        )
+        optimizer = build_optimizer(model, cfg.optim, fused)
         # train.critic_weight > 0: the critic beside the model (pipeline.training.critic), made after the model so
         # the model's initial weights are those of the run without it
         self.critic = (CriticTraining(cfg.train, self.model_config, dist, fused=fused)
@@ -804,7 +805,7 @@ class Trainer:
 
     def train_step(self, micro_batches: list[Mapping[str, Any]], draws: list[Draws] | None = None
                    ) -> list[StepResult]:
-        """Forward/backward over the micro-batches (gradient accumulation), clip, and one AdamW + EMA update —
+        """Forward/backward over the micro-batches (gradient accumulation), clip, and one optimizer + EMA update —
         unless the loss or gradient norm is non-finite on ANY rank, in which case every rank skips the update.
         ``draws`` replaces the generator's draws (tests slice a global batch's draws across ranks).
 
@@ -1120,6 +1121,14 @@ class Trainer:
                 f"train.critic_weight={saved_weight}, or start a new run in another train.out_dir (train.init_from "
                 "takes the weights)", setting="train.critic_weight", saved=saved_weight,
                 now=self.cfg.train.critic_weight)
+        saved_optimizer = state["config"].get("optim", {}).get("optimizer", "adamw")
+        if saved_optimizer != self.cfg.optim.optimizer:
+            raise ckpt.ResumeSettingError(
+                f"cannot resume from {path}: it was trained with optim.optimizer={saved_optimizer} and this run has "
+                f"optim.optimizer={self.cfg.optim.optimizer}; an exact resume needs the optimizer's state as it was. "
+                f"Resume with optim.optimizer={saved_optimizer}, or start a new run in another train.out_dir "
+                "(train.init_from takes the weights)", setting="optim.optimizer", saved=saved_optimizer,
+                now=self.cfg.optim.optimizer)
         try:  # checked before any weights are loaded: a refusal leaves this process as it was
             self.loader.load_state_dict(state["data"][self.dist.rank])
         except DataResumeError as err:
