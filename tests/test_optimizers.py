@@ -120,9 +120,9 @@ def test_the_trainer_trains_with_muon_and_refuses_to_resume_across_optimizers(da
     with Dist(mixed_precision="no") as dist:
         trainer = Trainer(cfg, dist)
         before = {n: p.detach().clone() for n, p in trainer.model.named_parameters()}
+        by_muon = set(muon_parameter_names(trainer.model))
         assert trainer.fit() == 0
-        assert all(not torch.equal(before[n], p) for n, p in trainer.model.named_parameters()
-                   if n in set(muon_parameter_names(trainer.model)))
+        assert all(not torch.equal(before[n], p) for n, p in trainer.model.named_parameters() if n in by_muon)
         with_adamw = load_config(TrainConfig, "tiny", base_overrides(dataset, tmp_path / "run", "train.max_steps=3"))
         with pytest.raises(ckpt.ResumeSettingError, match="optim.optimizer=muon") as refused:
             Trainer(with_adamw, dist).fit()
