@@ -413,14 +413,21 @@ def test_grid_times_train_the_few_step_samplers_map_closer(student_run, teacher_
                        ["train.flow_time_sampling=grid", "distill.student_steps=3"])
 
 
-def test_a_student_fine_tunes_with_adamw_whatever_its_teacher_trained_with(teacher_run, tmp_path):
-    """A teacher trained with Muon (optim.optimizer=muon, the synthetic preset's) gives a student with AdamW, so
-    the students' optim.lr reaches every parameter; Muon stays one override away."""
+def test_a_student_keeps_its_teachers_optimizer_with_muons_rate_scaled_as_its_lr(teacher_run, tmp_path):
+    """A teacher trained with Muon (optim.optimizer=muon, the synthetic preset's) gives a Muon student whose
+    matrices' rate moves with the student's optim.lr as the rest's does (a Muon student of the synthetic preset beat
+    the AdamW one at one step on every figure: docs/few-step.md); a given optim.muon_lr is kept, AdamW is one
+    override away, and an AdamW teacher's student stays AdamW."""
     teacher = load_trained_model(teacher_run)
     config = yaml.safe_load((teacher_run / "config.yaml").read_text())
-    config["optim"]["optimizer"] = "muon"
     assert student_config(teacher, config, tmp_path / "s", []).optim.optimizer == "adamw"
-    assert student_config(teacher, config, tmp_path / "s", ["optim.optimizer=muon"]).optim.optimizer == "muon"
+    config["optim"].update(optimizer="muon", lr=1e-3, muon_lr=0.02)
+    student = student_config(teacher, config, tmp_path / "s", ["optim.lr=3e-4"]).optim
+    assert (student.optimizer, student.lr) == ("muon", 3e-4) and student.muon_lr == pytest.approx(0.006)
+    assert student_config(teacher, config, tmp_path / "s", []).optim.muon_lr == pytest.approx(0.02)
+    assert student_config(teacher, config, tmp_path / "s", ["optim.lr=3e-4", "optim.muon_lr=0.01"]
+                          ).optim.muon_lr == 0.01
+    assert student_config(teacher, config, tmp_path / "s", ["optim.optimizer=adamw"]).optim.optimizer == "adamw"
 
 
 def test_a_second_step_trained_from_the_first_steps_own_states_lands_nearer(student_run, teacher_run,
@@ -499,6 +506,35 @@ def test_refused_overrides_exit_2(teacher_run, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err[-1].startswith("error: override 'train.flow_noise=independent'")
     assert not (tmp_path / "s").exists()
+
+
+def test_a_new_student_starts_in_a_folder_holding_only_a_linked_pair_set(student_run, teacher_run, tmp_path,
+                                                                         monkeypatch, capsys):
+    """Several students of one pair set (the method comparisons of docs/few-step.md): a new folder holding only
+    ``pairs``, a link to another student's finished set, is taken as a student's folder and its pairs are reused,
+    not solved again; a folder holding anything beside them, or an unfinished set, is still refused."""
+    monkeypatch.setattr(pairs_module, "solve_pairs", refuse_solving)
+    args = ["--teacher", str(teacher_run), *STUDENT_OVERRIDES, "train.max_steps=2", "train.save_every=2",
+            "train.log_every=1", "train.preview_every=0"]
+    seeded = tmp_path / "seeded"
+    seeded.mkdir()
+    (seeded / "pairs").symlink_to(student_run / "pairs", target_is_directory=True)
+    with single_threaded_torch():
+        assert distill_entry.main(["--out", str(seeded), *args]) == 0
+    assert (seeded / RUN_MARKER).is_file() and ckpt.resolve_checkpoint(seeded).name == "step-00000002"
+    assert (seeded / "pairs").is_symlink()
+
+    crowded = tmp_path / "crowded"
+    crowded.mkdir()
+    (crowded / "pairs").symlink_to(student_run / "pairs", target_is_directory=True)
+    (crowded / "notes.txt").write_text("someone's files")
+    unfinished = tmp_path / "unfinished"
+    (unfinished / "pairs").mkdir(parents=True)
+    for folder in (crowded, unfinished):
+        capsys.readouterr()
+        assert distill_entry.main(["--out", str(folder), *args]) == 2
+        assert "is a non-empty folder that is not a run folder" in capsys.readouterr().err
+        assert not (folder / RUN_MARKER).exists()
 
 
 @pytest.fixture(scope="module")

@@ -28,14 +28,16 @@ train.shortcut_fraction of them self-consistency, one step of d against two of d
 taken on its flow field guided at the teacher's scale (train.shortcut_guidance, model.guided_features), so the
 guidance is built into its few steps: it samples them with guidance 1 (model.sampling_guidance=1).
 
-Settings: the teacher's resolved training config, with the student's settings above (and AdamW, whatever
-optimizer the teacher trained with: optim.optimizer=muon is an override), then ``key.sub=value`` overrides
+Settings: the teacher's resolved training config, with the student's settings above (its optimizer too: a Muon
+teacher's student fine-tunes with Muon, its optim.muon_lr scaled by the student's optim.lr over the teacher's unless
+given; optim.optimizer=adamw is an override), then ``key.sub=value`` overrides
 (train.max_steps, optim.lr, distill.pairs_per_caption, ...). The ``distill`` section (method, teacher
 checkpoint path, id and step, the teacher's sampler) is recorded in OUT/config.yaml and every checkpoint; set by this
 command, it is not an override (nor are data.manifest, train.out_dir, train.init_from, train.flow_noise,
 train.shortcut_guidance, model.shortcut_levels and model.sampling_steps: use distill.shortcut_levels and
 distill.student_steps). Running the same command again reuses the pair set and resumes
-training (train.resume=auto). The student is a checkpoint like any other: launch/sample.py, MotionPipeline, the
+training (train.resume=auto). Another student of the same pairs starts in a new folder holding only them
+(``mkdir runs/B && ln -s ../A/pairs runs/B/pairs``, or a copy). The student is a checkpoint like any other: launch/sample.py, MotionPipeline, the
 evaluator and launch/export.py take it, sampling it in distill.student_steps steps unless --steps says otherwise.
 
 Exit codes as launch/train.py: 0 at train.max_steps, 128 + N after a clean stop on signal N, 2 for settings, a
@@ -61,7 +63,7 @@ from pipeline.data.stages import DataError
 from pipeline.distributed import Dist, MixedPrecisionError, ends_rank_processes
 from pipeline.generation.inference import TrainedModel, load_trained_model
 from pipeline.generation.pairs import FLOW_MAP_KEY, PairSetError, make_pairs, pairs_dir
-from pipeline.training.run_folder import RunFolderLock, check_run_folder, write_run_marker
+from pipeline.training.run_folder import RUN_LOCK, RunFolderLock, check_run_folder, write_run_marker
 from pipeline.training.trainer import CheckpointSaveError, Trainer
 from preprocess.shards import MANIFEST_NAME, ManifestError, OutputFolderError
 
@@ -92,9 +94,6 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
     base = {section: dict(values) for section, values in teacher_config.items() if section != "distill"}
     method = method_of(overrides)
     base["model"].update(sampling_guidance=1.0)
-    # every student recipe (docs/few-step.md) fine-tunes with AdamW at its own optim.lr; a teacher's Muon (the
-    # synthetic preset's) would keep its matrices at optim.muon_lr whatever optim.lr the student is given
-    base["optim"].update(optimizer="adamw")
     base["train"].update(out_dir=str(out), init_from=str(teacher.checkpoint), resume="auto",
                          resume_discard_newer=False)
     if method == "reflow":
@@ -103,7 +102,7 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
         base["train"].update(flow_noise="recorded", val_every=0)
     else:  # shortcut: the teacher's data; condition dropout kept (the flow field's guidance builds the levels)
         base["train"].update(shortcut_guidance=float(teacher.model_config.sampling_guidance))
-    cfg = load_config(TrainConfig, base, overrides)
+    cfg = with_muon_rate_following_lr(load_config(TrainConfig, base, overrides), teacher_config, overrides)
     settings = cfg.distill or DistillConfig()
     teacher_model = teacher.model_config
     settings = dataclasses.replace(
@@ -117,6 +116,17 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
                                                                           if settings.method == "shortcut" else 0)))
 
 
+def with_muon_rate_following_lr(cfg: TrainConfig, teacher_config: dict[str, Any], overrides: list[str]
+                                ) -> TrainConfig:
+    """``cfg`` with Muon's rate scaled as its AdamW rate is: every student recipe (docs/few-step.md) fine-tunes at its
+    own optim.lr, and the teacher's optim.muon_lr (a from-scratch rate, 0.02 in the synthetic preset) would otherwise
+    move its matrices 3-30 times further than the rest. optim.muon_lr given as an override is kept as it is."""
+    if cfg.optim.optimizer != "muon" or "optim.muon_lr" in {".".join(parse_override(t)[0]) for t in overrides}:
+        return cfg
+    scale = cfg.optim.lr / float(teacher_config["optim"]["lr"])
+    return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, muon_lr=cfg.optim.muon_lr * scale))
+
+
 def with_flow_map(cfg: TrainConfig, pair_manifest: Path) -> TrainConfig:
     """``cfg`` with the pair set's probed teacher flow-map amplification recorded in its distill section."""
     flow_map = json.loads(pair_manifest.read_text()).get(FLOW_MAP_KEY)
@@ -124,11 +134,23 @@ def with_flow_map(cfg: TrainConfig, pair_manifest: Path) -> TrainConfig:
     return dataclasses.replace(cfg, distill=dataclasses.replace(cfg.distill, teacher_flow_map_amplification=median))
 
 
+def holds_only_a_pair_set(out: Path) -> bool:
+    """``out`` holds a complete pair set at ``pairs/`` (made there, copied, or linked from another student's folder)
+    and nothing else: a new student may start there and reuse the pairs (make_pairs checks they are its teacher's
+    and settings')."""
+    if not out.is_dir():
+        return False
+    entries = sorted(entry.name for entry in out.iterdir() if entry.name != RUN_LOCK)
+    return entries == ["pairs"] and (pairs_dir(out) / MANIFEST_NAME).is_file()
+
+
 def prepare_out_dir(out: Path, dist: Dist) -> None:
-    """Rank 0: the folder is one a run may use (new, empty, or a run of ours: a student being resumed), and from now
-    on a run of ours (its marker), so the pair set may go inside it. Held under the run lock while checked."""
+    """Rank 0: the folder is one a run may use (new, empty, a run of ours: a student being resumed, or a folder
+    holding only a finished pair set for a new student to reuse), and from now on a run of ours (its marker), so the
+    pair set may go inside it. Held under the run lock while checked."""
     if dist.is_main:
-        check_run_folder(out)
+        if not holds_only_a_pair_set(out):
+            check_run_folder(out)
         lock = RunFolderLock.acquire(out)
         try:
             write_run_marker(out, written_by="pipeline/cli/distill.py")
