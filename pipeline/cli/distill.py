@@ -37,8 +37,9 @@ command, it is not an override (nor are data.manifest, train.out_dir, train.init
 train.shortcut_guidance, model.shortcut_levels and model.sampling_steps: use distill.shortcut_levels and
 distill.student_steps). Running the same command again reuses the pair set and resumes
 training (train.resume=auto). Another student of the same pairs starts in a new folder holding only them
-(``mkdir runs/B && ln -s ../A/pairs runs/B/pairs``, or a copy). The student is a checkpoint like any other: launch/sample.py, MotionPipeline, the
-evaluator and launch/export.py take it, sampling it in distill.student_steps steps unless --steps says otherwise.
+(``mkdir runs/B && ln -s ../A/pairs runs/B/pairs``, or a copy). The student is a checkpoint like any other:
+launch/sample.py, MotionPipeline, the evaluator and launch/export.py take it, sampling it in distill.student_steps
+steps unless --steps says otherwise.
 
 Exit codes as launch/train.py: 0 at train.max_steps, 128 + N after a clean stop on signal N, 2 for settings, a
 teacher or data refused (one line on stderr), 1 when a checkpoint could not be saved.
