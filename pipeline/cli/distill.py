@@ -86,8 +86,10 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
                    ) -> TrainConfig:
     """The student's resolved config: the teacher's training config, the student's settings (module docstring),
     the overrides, then the recorded teacher fields of the ``distill`` section."""
+    given: set[str] = set()
     for text in overrides:
         key = ".".join(parse_override(text)[0])
+        given.add(key)
         if key in FIXED_BY_METHOD or key.startswith("distill.teacher"):
             raise ConfigError(f"override {text!r}: {key} is set by launch/distill.py (the pair set, --out, the "
                               "teacher and its guidance; the student's steps are distill.student_steps, its levels "
@@ -103,7 +105,9 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
         base["train"].update(flow_noise="recorded", val_every=0)
     else:  # shortcut: the teacher's data; condition dropout kept (the flow field's guidance builds the levels)
         base["train"].update(shortcut_guidance=float(teacher.model_config.sampling_guidance))
-    cfg = with_muon_rate_following_lr(load_config(TrainConfig, base, overrides), teacher_config, overrides)
+    cfg = load_config(TrainConfig, base, overrides)
+    if "optim.muon_lr" not in given:
+        cfg = with_muon_rate_following_lr(cfg, teacher_lr=float(teacher_config["optim"]["lr"]))
     settings = cfg.distill or DistillConfig()
     teacher_model = teacher.model_config
     settings = dataclasses.replace(
@@ -117,15 +121,15 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
                                                                           if settings.method == "shortcut" else 0)))
 
 
-def with_muon_rate_following_lr(cfg: TrainConfig, teacher_config: dict[str, Any], overrides: list[str]
-                                ) -> TrainConfig:
-    """``cfg`` with Muon's rate scaled as its AdamW rate is: every student recipe (docs/few-step.md) fine-tunes at its
-    own optim.lr, and the teacher's optim.muon_lr (a from-scratch rate, 0.02 in the synthetic preset) would otherwise
-    move its matrices 3-30 times further than the rest. optim.muon_lr given as an override is kept as it is."""
-    if cfg.optim.optimizer != "muon" or "optim.muon_lr" in {".".join(parse_override(t)[0]) for t in overrides}:
+def with_muon_rate_following_lr(cfg: TrainConfig, teacher_lr: float) -> TrainConfig:
+    """``cfg`` with Muon's rate scaled as its AdamW rate is (by the student's optim.lr over the teacher's): every
+    student recipe (docs/few-step.md) fine-tunes at its own optim.lr, and the teacher's optim.muon_lr (a
+    from-scratch rate, 0.02 in the synthetic preset) would otherwise move its matrices 3-30 times further than the
+    rest. Not called when optim.muon_lr is given as an override."""
+    if cfg.optim.optimizer != "muon":
         return cfg
-    scale = cfg.optim.lr / float(teacher_config["optim"]["lr"])
-    return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, muon_lr=cfg.optim.muon_lr * scale))
+    scaled = cfg.optim.muon_lr * (cfg.optim.lr / teacher_lr)
+    return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, muon_lr=scaled))
 
 
 def with_flow_map(cfg: TrainConfig, pair_manifest: Path) -> TrainConfig:
