@@ -102,6 +102,9 @@ def stratify_times(u: torch.Tensor, generator: torch.Generator | None = None) ->
 
 
 GRID_INPUTS = ("interpolated", "own_path")
+BONE_TARGETS = ("frames", "clip_median")
+"""What :func:`bone_length_loss` holds x̂1's bones to: 'frames' = each frame's bone lengths of x1; 'clip_median' =
+each bone's median length over x1's valid frames, one length per bone for the whole motion."""
 """What a grid-trained row's network input is (``flow_matching_loss(grid_inputs=)``): 'interpolated', the point of
 the straight path between its noise and its data (rectified flow's k-step distillation); 'own_path', the state the
 model's own Euler steps reach from that noise (backward distillation)."""
@@ -292,6 +295,7 @@ def flow_matching_loss(
     loss_space: str = "velocity",
     temporal_weight: float = 0.0,
     bone_weight: float = 0.0,
+    bone_target: str = "frames",
     trajectory_weight: float = 0.0,
     trajectory_min_t: float = 0.0,
     trajectory_huber: float = 0.0,
@@ -312,7 +316,8 @@ def flow_matching_loss(
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """MFM's conditional flow-matching loss on a padded batch (``loss_space='velocity'``), or the same error
     weighted into the data space (:func:`loss_space_weight`), plus ``temporal_weight`` × :func:`temporal_loss` and
-    ``bone_weight`` × :func:`bone_length_loss`, ``trajectory_weight`` × :func:`trajectory_loss` and
+    ``bone_weight`` × :func:`bone_length_loss` (its ``target`` is ``bone_target``), ``trajectory_weight`` ×
+    :func:`trajectory_loss` and
     ``foot_contact_weight`` × :func:`foot_contact_loss` (the three need ``geometry``), and ``root_mean_weight`` ×
     :func:`root_rate_mean_loss` over the ``root_rate_channels``.
 
@@ -395,7 +400,8 @@ def flow_matching_loss(
     frame_mask = valid_frame_mask(lengths, x1.shape[1])
     loss = velocity_loss(velocity, target, x1, t, frame_mask, sigma_min=sigma_min,
                          loss_space=loss_space, temporal_weight=temporal_weight, bone_weight=bone_weight,
-                         trajectory_weight=trajectory_weight, trajectory_min_t=trajectory_min_t,
+                         bone_target=bone_target, trajectory_weight=trajectory_weight,
+                         trajectory_min_t=trajectory_min_t,
                          trajectory_huber=trajectory_huber, foot_contact_weight=foot_contact_weight,
                          root_mean_weight=root_mean_weight, root_rate_channels=root_rate_channels,
                          geometry=geometry, terms_weighting=terms_weighting,
@@ -418,6 +424,7 @@ def velocity_loss(
     loss_space: str = "velocity",
     temporal_weight: float = 0.0,
     bone_weight: float = 0.0,
+    bone_target: str = "frames",
     trajectory_weight: float = 0.0,
     trajectory_min_t: float = 0.0,
     trajectory_huber: float = 0.0,
@@ -431,7 +438,8 @@ def velocity_loss(
 ) -> torch.Tensor:
     """:func:`flow_matching_loss` of a velocity the model made at times ``t`` against its ``target``: the weighted
     MSE, plus the temporal term of the implied motion's error, the bone term, whose bones are ``x1``'s (the
-    clip the path leads to), the trajectory term, whose path is ``x1``'s (counted only for the rows whose ``t`` is
+    clip the path leads to; per frame, or each bone's clip median with ``bone_target='clip_median'``), the
+    trajectory term, whose path is ``x1``'s (counted only for the rows whose ``t`` is
     at least ``trajectory_min_t``; pseudo-Huber per frame beyond ``trajectory_huber`` m when > 0), and the
     foot-contact term, whose contact labels are ``x1``'s, and the root-rate mean term."""
     weight = loss_space_weight(t, loss_space, sigma_min, velocity_weight_cap)
@@ -449,7 +457,7 @@ def velocity_loss(
     if geometric:
         x1_hat = x1.float() + error
         if bone_weight > 0:
-            loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms)
+            loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms, target=bone_target)
         if trajectory_weight > 0:
             loss = loss + trajectory_weight * trajectory_loss(x1_hat, x1, frame_mask, geometry,
                                                               _from_time(terms, t, trajectory_min_t),
@@ -554,14 +562,34 @@ class MotionGeometry:
 
 
 def bone_length_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Tensor,
-                     geometry: MotionGeometry, sample_weight: torch.Tensor | None = None) -> torch.Tensor:
+                     geometry: MotionGeometry, sample_weight: torch.Tensor | None = None,
+                     target: str = "frames") -> torch.Tensor:
     """MSE (m²) between the bone lengths of the implied motion x̂1 and those of the clip x1, over valid frames (per
     sample, then the batch mean). The ric block gives every joint its own position, so nothing else holds a
-    generated skeleton together: this term does (MDM's geometric losses in the same spirit; not part of MFM)."""
+    generated skeleton together: this term does (MDM's geometric losses in the same spirit; not part of MFM).
+
+    ``target`` (:data:`BONE_TARGETS`): 'frames' holds each frame's bones to that frame's of x1; 'clip_median' to
+    each bone's median length over x1's valid frames. Why: a reflow student's x1 is its teacher's raw output, whose
+    bones vary from frame to frame (by 1-3 cm on the synthetic preset), and 'frames' teaches the student that
+    variation as if it were the motion's; a body's bones do not change length, and the median of a motion's
+    lengths is the length its skeleton has. For mocap clips the two targets agree. Ours, not MFM's."""
+    if target not in BONE_TARGETS:
+        raise ValueError(f"bone_length_loss target must be one of {BONE_TARGETS}, got {target!r}")
     mask = frame_mask.unsqueeze(-1).float()
-    error = (geometry.bone_lengths(x1_hat) - geometry.bone_lengths(x1)).square() * mask
+    target_lengths = geometry.bone_lengths(x1)
+    if target == "clip_median":
+        target_lengths = clip_median_over_frames(target_lengths, frame_mask)
+    error = (geometry.bone_lengths(x1_hat) - target_lengths).square() * mask
     per_sample = error.sum(dim=(1, 2)) / (mask.sum(dim=(1, 2)) * error.shape[-1]).clamp_min(1.0)
     return _weighted_mean(per_sample, sample_weight)
+
+
+def clip_median_over_frames(values: torch.Tensor, frame_mask: torch.Tensor) -> torch.Tensor:
+    """Each sample's median over its valid frames: (B, T, C) values with a (B, T) mask -> (B, 1, C). A sample with
+    no valid frame gets 0 (its terms are masked out anyway)."""
+    valid = frame_mask.unsqueeze(-1).expand_as(values)
+    masked = torch.where(valid, values, torch.full_like(values, float("nan")))
+    return torch.nanmedian(masked, dim=1, keepdim=True).values.nan_to_num(0.0)
 
 
 def trajectory_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.Tensor,
@@ -724,6 +752,8 @@ class FlowMatchingObjective:
     loss_space: str = "velocity"
     temporal_weight: float = 0.0
     bone_weight: float = 0.0
+    bone_target: str = "frames"
+    """What the bone term holds the bones to (:data:`BONE_TARGETS`)."""
     trajectory_weight: float = 0.0
     trajectory_min_t: float = 0.0
     """The trajectory term counts only for rows trained at t >= this (0: every row)."""
@@ -784,6 +814,9 @@ class FlowMatchingObjective:
         if self.bone_weight < 0 or (self.bone_weight > 0 and self.geometry is None):
             raise ValueError(f"FlowMatchingObjective.bone_weight must be >= 0 and needs a geometry when > 0, got "
                              f"{self.bone_weight!r}")
+        if self.bone_target not in BONE_TARGETS:
+            raise ValueError(f"FlowMatchingObjective.bone_target must be one of {BONE_TARGETS}, got "
+                             f"{self.bone_target!r}")
         if self.trajectory_weight < 0 or (self.trajectory_weight > 0 and self.geometry is None):
             raise ValueError(f"FlowMatchingObjective.trajectory_weight must be >= 0 and needs a geometry when > 0, "
                              f"got {self.trajectory_weight!r}")
@@ -833,7 +866,7 @@ class FlowMatchingObjective:
         return flow_matching_loss(
             model, x1, cond, lengths, generator=generator, sigma_min=self.sigma_min, cond_mask=cond_mask,
             t=t, x0=x0, model_kwargs=model_kwargs, loss_space=self.loss_space,
-            temporal_weight=self.temporal_weight, bone_weight=self.bone_weight,
+            temporal_weight=self.temporal_weight, bone_weight=self.bone_weight, bone_target=self.bone_target,
             trajectory_weight=self.trajectory_weight, trajectory_min_t=self.trajectory_min_t,
             trajectory_huber=self.trajectory_huber, foot_contact_weight=self.foot_contact_weight,
             root_mean_weight=self.root_mean_weight, geometry=self.geometry,

@@ -153,7 +153,8 @@ class ShortcutObjective:
 
         frame_mask = valid_frame_mask(lengths, x1.shape[1])
         terms = dict(sigma_min=sigma_min, loss_space=flow.loss_space, temporal_weight=flow.temporal_weight,
-                     bone_weight=flow.bone_weight, trajectory_weight=flow.trajectory_weight,
+                     bone_weight=flow.bone_weight, bone_target=flow.bone_target,
+                     trajectory_weight=flow.trajectory_weight,
                      trajectory_min_t=flow.trajectory_min_t, trajectory_huber=flow.trajectory_huber,
                      foot_contact_weight=flow.foot_contact_weight, root_mean_weight=flow.root_mean_weight,
                      geometry=flow.geometry, terms_weighting=flow.terms_weighting,

@@ -346,6 +346,12 @@ class TrainLoopConfig:
     flow_bone_weight: float = 0.0
     """objective=flow: weight of ``mfm.flow.bone_length_loss`` (bone lengths of the implied motion against the
     clip's, m²), added to the flow loss. 0 = MFM."""
+    flow_bone_target: Literal["frames", "clip_median"] = "frames"
+    """objective=flow: what the bone term holds the implied motion's bones to (``mfm.flow.BONE_TARGETS``): 'frames' =
+    each frame's bone lengths of the clip (as introduced); 'clip_median' = each bone's median length over the clip's
+    frames. For mocap clips the two agree; for a reflow student (launch/distill.py) the "clip" is the teacher's raw
+    output, whose bones vary from frame to frame, and 'frames' teaches the student that variation
+    (docs/few-step.md, "Bones held to their median"). Ours, not MFM's."""
     flow_trajectory_weight: float = 0.0
     """objective=flow: weight of ``mfm.flow.trajectory_loss`` (the root's integrated path of the implied motion
     against the clip's: ground position m² plus heading rad²), added to the flow loss. 0 = MFM."""
@@ -467,6 +473,9 @@ class TrainLoopConfig:
         coerce_fields(self)
         _require(self.max_steps >= 1, f"train.max_steps must be >= 1, got {self.max_steps}")
         _require(self.flow_bone_weight >= 0, f"train.flow_bone_weight must be >= 0, got {self.flow_bone_weight}")
+        _require(self.flow_bone_target == "frames" or self.flow_bone_weight > 0,
+                 f"train.flow_bone_target={self.flow_bone_target} changes the bone term, which is off "
+                 "(train.flow_bone_weight=0)")
         _require(self.flow_trajectory_weight >= 0,
                  f"train.flow_trajectory_weight must be >= 0, got {self.flow_trajectory_weight}")
         _require(self.flow_input_perturbation >= 0,

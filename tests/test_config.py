@@ -133,6 +133,8 @@ def test_unknown_override_key_names_key_and_valid_keys(override, fragments):
         ("train.flow_foot_contact_weight=-1", "train.flow_foot_contact_weight must be >= 0"),
         ("train.flow_trajectory_min_t=1", "train.flow_trajectory_min_t must be in [0, 1)"),
         ("train.flow_trajectory_huber=-0.1", "train.flow_trajectory_huber must be >= 0"),
+        ("train.flow_bone_target=clip_median", "the bone term, which is off"),
+        ("train.flow_bone_target=mean", "train.flow_bone_target"),
         ("train.flow_trajectory_start_step=-1", "train.flow_trajectory_start_step must be in [0, train.max_steps="),
     ],
 )

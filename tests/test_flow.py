@@ -253,6 +253,44 @@ def test_motion_geometry_reads_the_bones_of_a_real_clip(reference_data):
     assert loss.item() == pytest.approx(0.1 ** 2 / len(children), rel=1e-3)
 
 
+def test_bone_term_held_to_the_clip_median_ignores_a_targets_frame_jitter(reference_data):
+    """bone_length_loss(target='clip_median') holds x̂1's bones to each bone's median over the target's valid frames:
+    a target whose left wrist is 10 cm long on every third frame (a teacher's jitter) charges a steady x̂1 nothing,
+    where target='frames' charges it a third of the squared stretch; the padded frames (stretched by 1 m) count in
+    neither the median nor the mean."""
+    from mfm.flow import MotionGeometry, bone_length_loss, clip_median_over_frames
+    from mfm.skeleton import get_skeleton
+
+    skeleton = get_skeleton("humanml3d")
+    features = np.load(reference_data / "humanml3d" / "new_joint_vecs_012314.npy").astype(np.float32)[:90]
+    mean = np.load(reference_data / "humanml3d" / "Mean.npy").astype(np.float32)
+    std = np.load(reference_data / "humanml3d" / "Std.npy").astype(np.float32)
+    geometry = MotionGeometry.from_dataset(mean, std, skeleton)
+    bones = len([p for p in skeleton.parents if p >= 0])
+
+    def wrist_stretched(frames, metres):
+        stretched = torch.as_tensor(features).clone()
+        positions = stretched[frames, 4:4 + 63].reshape(-1, 21, 3)
+        positions[:, 19] += metres * torch.nn.functional.normalize(positions[:, 19] - positions[:, 17], dim=-1)
+        stretched[frames, 4:4 + 63] = positions.reshape(-1, 63)
+        return stretched
+
+    valid = 84
+    jittery = wrist_stretched(slice(0, valid, 3), 0.1)
+    jittery[valid:] = wrist_stretched(slice(valid, None), 1.0)[valid:]
+    normalise = lambda f: torch.as_tensor((f.numpy() - mean) / std)[None]
+    steady, target = normalise(torch.as_tensor(features)), normalise(jittery)
+    mask = torch.zeros(1, features.shape[0], dtype=torch.bool)
+    mask[:, :valid] = True
+
+    assert bone_length_loss(steady, target, mask, geometry, target="clip_median").item() < 1e-8
+    assert bone_length_loss(steady, target, mask, geometry).item() == pytest.approx(0.1 ** 2 / 3 / bones, rel=1e-3)
+    medians = clip_median_over_frames(geometry.bone_lengths(target), mask)
+    np.testing.assert_allclose(medians[0, 0].numpy(), geometry.bone_lengths(steady)[0, 0].numpy(), atol=1e-5)
+    with pytest.raises(ValueError, match="clip_median"):
+        bone_length_loss(steady, target, mask, geometry, target="mean")
+
+
 def test_root_path_is_the_root_of_recover_from_ric_on_a_real_clip(reference_data):
     """mfm.features.root_path integrates the root as features_to_joints places it (clip 012314), and
     MotionGeometry.root_path reads the same path off normalised features."""

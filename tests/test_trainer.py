@@ -1353,6 +1353,20 @@ def test_build_objective_gives_the_foot_contact_term_its_weight_and_the_datasets
     assert build_objective(load_config(TrainConfig, "tiny"), manifest).foot_contact_weight == 0.0
 
 
+def test_build_objective_gives_the_bone_term_its_target():
+    from types import SimpleNamespace
+
+    from pipeline.training.trainer import build_objective
+
+    manifest = SimpleNamespace(data={"feature_spec": {"skeleton": "humanml3d"},
+                                     "normalization": {"mean": [0.0] * 263, "std": [1.0] * 263}})
+    median = build_objective(load_config(TrainConfig, "tiny", ["train.flow_bone_weight=2",
+                                                               "train.flow_bone_target=clip_median"]), manifest)
+    assert (median.bone_weight, median.bone_target) == (2.0, "clip_median")
+    assert build_objective(load_config(TrainConfig, "tiny", ["train.flow_bone_weight=2"]),
+                           manifest).bone_target == "frames"
+
+
 def test_build_objective_gives_the_trajectory_term_its_minimum_time_and_pseudo_huber_scale():
     from types import SimpleNamespace
 

@@ -472,6 +472,7 @@ def build_objective(cfg: TrainConfig, manifest: Manifest, *, trajectory_term: bo
                           else feat_bias_channel_weight(FeatureLayout(skeleton), cfg.train.flow_feat_bias))
         flow = FlowMatchingObjective(loss_space=cfg.train.flow_loss, temporal_weight=cfg.train.flow_temporal_weight,
                                      bone_weight=cfg.train.flow_bone_weight,
+                                     bone_target=cfg.train.flow_bone_target,
                                      trajectory_weight=trajectory_weight,
                                      trajectory_min_t=cfg.train.flow_trajectory_min_t,
                                      trajectory_huber=cfg.train.flow_trajectory_huber,
