@@ -17,7 +17,8 @@ checkpoint's motions show against the test split's clips and the captions' check
 
 ``--steps`` and ``--guidance`` replace the checkpoint's own solver steps and guidance scale in all four;
 ``--model-weights model`` samples all four with the raw training weights instead of the EMA;
-``--smoothing-keeps-bones`` sets how the output smoothing keeps the bones in all four.
+``--smoothing`` (σ in frames) and ``--smoothing-keeps-bones`` set the output smoothing and how it keeps the bones
+in all four.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ CHECKS = ("count", "place", "turn_angle", "all")
 
 def sheet_figures(checkpoint: str, out: Path, rows: int, seeds: list[int], sampling: dict) -> dict:
     """``sampling``: the sampler settings every part of the judge shares (steps, guidance, weights,
-    smoothing_keeps_bones; None: the model's)."""
+    smoothing, smoothing_keeps_bones; None: the model's)."""
     sheets = []
     for seed in seeds:
         sheet = run_contact_sheet(ContactSheetRequest(out=out / f"sheet-s{seed}.png", checkpoint=checkpoint,
@@ -102,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--guidance", type=float, help="guidance scale (default: the model's)")
     p.add_argument("--model-weights", choices=("ema", "model"), default="ema",
                    help="the checkpoint's EMA weights (default) or its raw training weights")
+    p.add_argument("--smoothing", type=float, help="output smoothing σ in frames (default: the model's; as "
+                                                   "launch/sample.py)")
     p.add_argument("--smoothing-keeps-bones", type=bone_keeping_setting, metavar="{true,false,smoothed}",
                    help="how the output smoothing keeps the bones (default: the model's; as launch/sample.py)")
     args = p.parse_args(argv)
@@ -109,9 +112,10 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     seeds = [int(s) for s in args.seeds.split(",")]
     sampling = {"steps": args.steps, "guidance": args.guidance, "weights": args.model_weights,
-                "smoothing_keeps_bones": args.smoothing_keeps_bones}
+                "smoothing": args.smoothing, "smoothing_keeps_bones": args.smoothing_keeps_bones}
     summary = {"checkpoint": args.checkpoint, "seeds": seeds, "guidance": args.guidance,
-               "model_weights": args.model_weights, "smoothing_keeps_bones": args.smoothing_keeps_bones,
+               "model_weights": args.model_weights, "smoothing": args.smoothing,
+               "smoothing_keeps_bones": args.smoothing_keeps_bones,
                **sheet_figures(args.checkpoint, args.out, args.rows, seeds, sampling),
                "jump_sweep": jump_sweep(args.checkpoint, [int(n) for n in args.jump_lengths.split(",")], seeds,
                                         sampling)}
@@ -120,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
                   "--model-weights", args.model_weights]
     length_sweep_main(sweep_args + (["--steps", str(args.steps)] if args.steps else [])
                       + (["--guidance", str(args.guidance)] if args.guidance is not None else [])
+                      + (["--smoothing", str(args.smoothing)] if args.smoothing is not None else [])
                       + (["--smoothing-keeps-bones", str(args.smoothing_keeps_bones).lower()]
                          if args.smoothing_keeps_bones is not None else []))
     rows = json.loads(sweep_out.read_text())["rows"]

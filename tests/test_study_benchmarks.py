@@ -15,19 +15,20 @@ from test_sample_cli import text_run  # noqa: F401  (the session's tiny checkpoi
 def test_the_judge_summarises_its_sheets_and_sweeps(text_run, tmp_path, capsys):  # noqa: F811
     """The summary's sheet figures are the sheets' own (one seed: equal); the jump sweep counts 3 captions × 2
     lengths, and its travel is the root's ground distance in the longest "3 times" motion as sampling makes it in
-    the same batch; --steps, --guidance, --model-weights and --smoothing-keeps-bones reach every part."""
+    the same batch; --steps, --guidance, --model-weights, --smoothing and --smoothing-keeps-bones reach every part."""
     judge = load_benchmark("synthetic_judge")
     from length_sweep import sample_joints
 
     out = tmp_path / "judge"
     assert judge.main(["--checkpoint", str(text_run), "--out", str(out), "--rows", "3", "--seeds", "1",
                        "--jump-lengths", "20,28", "--sweep-lengths", "20,32", "--steps", "2", "--guidance", "1.5", "--model-weights", "model",
-                       "--smoothing-keeps-bones", "smoothed"]) == 0
+                       "--smoothing", "0.6", "--smoothing-keeps-bones", "smoothed"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     whole_sheet = json.loads((out / "sheet-s1.json").read_text())
     assert (summary["guidance"], whole_sheet["guidance"], whole_sheet["steps"]) == (1.5, 1.5, 2)
     assert (summary["model_weights"], whole_sheet["weights"]) == ("model", "model")
     assert (summary["smoothing_keeps_bones"], whole_sheet["smoothing_keeps_bones"]) == ("smoothed", "smoothed")
+    assert (summary["smoothing"], whole_sheet["smoothing_sigma"]) == (0.6, 0.6)
     sheet = whole_sheet["against_dataset_clips"]
     assert (out / "sheet-s1.png").stat().st_size > 0
     assert summary["sheet"]["caption_match"] == sheet["caption_match"]
@@ -38,15 +39,15 @@ def test_the_judge_summarises_its_sheets_and_sweeps(text_run, tmp_path, capsys):
     cells = [(text, n) for text in judge.IN_PLACE_JUMPS for n in (20, 28)]  # each motion's noise: seed + its index
     motion = sample_joints(str(text_run), [t for t, _ in cells], [n for _, n in cells], 1,
                            {"device": "cpu", "weights": "model", "steps": 2, "guidance": 1.5,
-                            "smoothing_keeps_bones": "smoothed"})[-1]
+                            "smoothing": 0.6, "smoothing_keeps_bones": "smoothed"})[-1]
     moved = motion[-1, 0] - motion[0, 0]
     assert jumps["travel_m"][0] == pytest.approx(float(np.hypot(moved[0], moved[2])), abs=1e-3)
     assert set(summary["length_sweep"]["turns_deg"]) == {f"{text} @{n}" for text in (
         "a person turns around to the left.", "a person turns 90 degrees to the left.") for n in (20, 32)}
     assert 0.0 <= summary["length_sweep"]["passed"] <= 1.0
     sweep_options = json.loads((out / "length_sweep.json").read_text())["options"]
-    assert (sweep_options["guidance"], sweep_options["weights"], sweep_options["smoothing_keeps_bones"]) == (
-        1.5, "model", "smoothed")
+    assert (sweep_options["guidance"], sweep_options["weights"], sweep_options["smoothing"],
+            sweep_options["smoothing_keeps_bones"]) == (1.5, "model", 0.6, "smoothed")
 
 
 @pytest.mark.usefixtures("single_thread")
