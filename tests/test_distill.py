@@ -430,6 +430,28 @@ def test_a_student_keeps_its_teachers_optimizer_with_muons_rate_scaled_as_its_lr
     assert student_config(teacher, config, tmp_path / "s", ["optim.optimizer=adamw"]).optim.optimizer == "adamw"
 
 
+def test_a_reflow_students_bone_term_holds_each_bone_to_its_median(teacher_run, tmp_path):
+    """A reflow student's targets are the teacher's raw motions, whose bones vary from frame to frame: its bone term
+    holds each bone to its median over the motion (train.flow_bone_target=clip_median) unless told otherwise; with
+    the term off nothing changes (the config would refuse a target for a term that is off), and a shortcut student,
+    which trains on the teacher's clips, keeps the teacher's target."""
+    teacher = load_trained_model(teacher_run)
+    config = yaml.safe_load((teacher_run / "config.yaml").read_text())
+    assert config["train"]["flow_bone_weight"] == 0
+    assert student_config(teacher, config, tmp_path / "s", []).train.flow_bone_target == "frames"
+    config["train"]["flow_bone_weight"] = 30.0
+    assert student_config(teacher, config, tmp_path / "s", []).train.flow_bone_target == "clip_median"
+    assert student_config(teacher, config, tmp_path / "s", ["train.flow_bone_weight=0"]).train.flow_bone_target == (
+        "frames")
+    assert student_config(teacher, config, tmp_path / "s", ["train.flow_bone_target=frames"]
+                          ).train.flow_bone_target == "frames"
+    assert student_config(teacher, config, tmp_path / "s", ["distill.method=shortcut"]
+                          ).train.flow_bone_target == "frames"
+    # the output filter is the student's own sampling setting (the synthetic recipe samples at σ 0.9)
+    assert student_config(teacher, config, tmp_path / "s", ["model.output_smoothing=0.9"]
+                          ).model.output_smoothing == 0.9
+
+
 def test_a_second_step_trained_from_the_first_steps_own_states_lands_nearer(student_run, teacher_run,
                                                                             grid_student_run, tmp_path_factory,
                                                                             tmp_path):

@@ -30,7 +30,8 @@ guidance is built into its few steps: it samples them with guidance 1 (model.sam
 
 Settings: the teacher's resolved training config, with the student's settings above (its optimizer too: a Muon
 teacher's student fine-tunes with Muon, its optim.muon_lr scaled by the student's optim.lr over the teacher's unless
-given; optim.optimizer=adamw is an override), then ``key.sub=value`` overrides
+given; optim.optimizer=adamw is an override; a reflow student's bone term holds each bone to its median length over
+the teacher's motion, train.flow_bone_target=clip_median, unless given), then ``key.sub=value`` overrides
 (train.max_steps, optim.lr, distill.pairs_per_caption, ...). The ``distill`` section (method, teacher
 checkpoint path, id and step, the teacher's sampler) is recorded in OUT/config.yaml and every checkpoint; set by this
 command, it is not an override (nor are data.manifest, train.out_dir, train.init_from, train.flow_noise,
@@ -108,6 +109,8 @@ def student_config(teacher: TrainedModel, teacher_config: dict[str, Any], out: P
     cfg = load_config(TrainConfig, base, overrides)
     if "optim.muon_lr" not in given:
         cfg = with_muon_rate_following_lr(cfg, teacher_lr=float(teacher_config["optim"]["lr"]))
+    if method == "reflow" and "train.flow_bone_target" not in given:
+        cfg = with_bones_held_to_their_median(cfg)
     settings = cfg.distill or DistillConfig()
     teacher_model = teacher.model_config
     settings = dataclasses.replace(
@@ -130,6 +133,17 @@ def with_muon_rate_following_lr(cfg: TrainConfig, teacher_lr: float) -> TrainCon
         return cfg
     scaled = cfg.optim.muon_lr * (cfg.optim.lr / teacher_lr)
     return dataclasses.replace(cfg, optim=dataclasses.replace(cfg.optim, muon_lr=scaled))
+
+
+def with_bones_held_to_their_median(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` with the bone term (when on) holding each bone to its median length over the pair's motion
+    (train.flow_bone_target=clip_median): a pair's motion is the teacher's raw output, whose bones vary from frame to
+    frame, and a student held to each frame's length learns that variation; held to the median, the synthetic
+    preset's 1- and 2-step students' bones came out steadier than their teacher's (docs/few-step.md, "Bones held to
+    their median"). Not called when train.flow_bone_target is given as an override."""
+    if cfg.train.flow_bone_weight == 0:
+        return cfg
+    return dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, flow_bone_target="clip_median"))
 
 
 def with_flow_map(cfg: TrainConfig, pair_manifest: Path) -> TrainConfig:
