@@ -102,12 +102,12 @@ def stratify_times(u: torch.Tensor, generator: torch.Generator | None = None) ->
 
 
 GRID_INPUTS = ("interpolated", "own_path")
-BONE_TARGETS = ("frames", "clip_median")
-"""What :func:`bone_length_loss` holds x̂1's bones to: 'frames' = each frame's bone lengths of x1; 'clip_median' =
-each bone's median length over x1's valid frames, one length per bone for the whole motion."""
 """What a grid-trained row's network input is (``flow_matching_loss(grid_inputs=)``): 'interpolated', the point of
 the straight path between its noise and its data (rectified flow's k-step distillation); 'own_path', the state the
 model's own Euler steps reach from that noise (backward distillation)."""
+BONE_TARGETS = ("frames", "clip_median")
+"""What :func:`bone_length_loss` holds x̂1's bones to: 'frames' = each frame's bone lengths of x1; 'clip_median' =
+each bone's median length over x1's valid frames, one length per bone for the whole motion."""
 
 
 def warp_time(u: torch.Tensor, sampling: str = "uniform", loc: float = 0.0, scale: float = 1.0,
@@ -457,7 +457,8 @@ def velocity_loss(
     if geometric:
         x1_hat = x1.float() + error
         if bone_weight > 0:
-            loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms, target=bone_target)
+            loss = loss + bone_weight * bone_length_loss(x1_hat, x1, frame_mask, geometry, terms,
+                                                         target=bone_target)
         if trajectory_weight > 0:
             loss = loss + trajectory_weight * trajectory_loss(x1_hat, x1, frame_mask, geometry,
                                                               _from_time(terms, t, trajectory_min_t),
@@ -570,9 +571,10 @@ def bone_length_loss(x1_hat: torch.Tensor, x1: torch.Tensor, frame_mask: torch.T
 
     ``target`` (:data:`BONE_TARGETS`): 'frames' holds each frame's bones to that frame's of x1; 'clip_median' to
     each bone's median length over x1's valid frames. Why: a reflow student's x1 is its teacher's raw output, whose
-    bones vary from frame to frame (by 1-3 cm on the synthetic preset), and 'frames' teaches the student that
-    variation as if it were the motion's; a body's bones do not change length, and the median of a motion's
-    lengths is the length its skeleton has. For mocap clips the two targets agree. Ours, not MFM's."""
+    bones vary from frame to frame, and 'frames' teaches the student that variation as if it were the motion's; a
+    body's bones do not change length, and the median of a motion's lengths is the length its skeleton has (the
+    synthetic preset's students held to it keep their bones within 0.1 cm of the clips', docs/few-step.md, "Bones
+    held to their median"). For mocap clips the two targets agree. Ours, not MFM's."""
     if target not in BONE_TARGETS:
         raise ValueError(f"bone_length_loss target must be one of {BONE_TARGETS}, got {target!r}")
     mask = frame_mask.unsqueeze(-1).float()
