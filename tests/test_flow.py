@@ -220,6 +220,17 @@ def test_temporal_loss_charges_jitter_not_smooth_error():
         FlowMatchingObjective(temporal_weight=-1.0)
 
 
+def wrist_stretched(features: np.ndarray, frames: slice, metres: float) -> torch.Tensor:
+    """HumanML3D features (T, 263) with the left wrist (joint 20, a leaf) ``metres`` further from its elbow (18) on
+    ``frames``, moved along the forearm in the ric block."""
+    stretched = torch.as_tensor(features).clone()
+    ric = slice(4, 4 + 63)
+    positions = stretched[frames, ric].reshape(-1, 21, 3)
+    positions[:, 20 - 1] += metres * torch.nn.functional.normalize(positions[:, 20 - 1] - positions[:, 18 - 1], dim=-1)
+    stretched[frames, ric] = positions.reshape(-1, 63)
+    return stretched
+
+
 def test_motion_geometry_reads_the_bones_of_a_real_clip(reference_data):
     """MotionGeometry's bone lengths off normalised features = those of recover_from_ric's joints (clip 012314,
     HumanML3D's Mean/Std); bone_length_loss is 0 against itself and the squared stretch when a bone stretches."""
@@ -244,11 +255,7 @@ def test_motion_geometry_reads_the_bones_of_a_real_clip(reference_data):
 
     mask = torch.ones(1, normalised.shape[1], dtype=torch.bool)
     assert bone_length_loss(normalised, normalised, mask, geometry).item() == 0.0
-    stretched = torch.as_tensor(features).clone()
-    ric = slice(4, 4 + 63)
-    positions = stretched[:, ric].reshape(-1, 21, 3)
-    positions[:, 20 - 1] += 0.1 * torch.nn.functional.normalize(positions[:, 20 - 1] - positions[:, 18 - 1], dim=-1)
-    stretched[:, ric] = positions.reshape(-1, 63)  # the left wrist (20, a leaf) 10 cm further from its elbow (18)
+    stretched = wrist_stretched(features, slice(None), 0.1)
     loss = bone_length_loss(torch.as_tensor((stretched.numpy() - mean) / std)[None], normalised, mask, geometry)
     assert loss.item() == pytest.approx(0.1 ** 2 / len(children), rel=1e-3)
 
@@ -268,16 +275,9 @@ def test_bone_term_held_to_the_clip_median_ignores_a_targets_frame_jitter(refere
     geometry = MotionGeometry.from_dataset(mean, std, skeleton)
     bones = len([p for p in skeleton.parents if p >= 0])
 
-    def wrist_stretched(frames, metres):
-        stretched = torch.as_tensor(features).clone()
-        positions = stretched[frames, 4:4 + 63].reshape(-1, 21, 3)
-        positions[:, 19] += metres * torch.nn.functional.normalize(positions[:, 19] - positions[:, 17], dim=-1)
-        stretched[frames, 4:4 + 63] = positions.reshape(-1, 63)
-        return stretched
-
     valid = 84
-    jittery = wrist_stretched(slice(0, valid, 3), 0.1)
-    jittery[valid:] = wrist_stretched(slice(valid, None), 1.0)[valid:]
+    jittery = wrist_stretched(features, slice(0, valid, 3), 0.1)
+    jittery[valid:] = wrist_stretched(features, slice(valid, None), 1.0)[valid:]
     normalise = lambda f: torch.as_tensor((f.numpy() - mean) / std)[None]
     steady, target = normalise(torch.as_tensor(features)), normalise(jittery)
     mask = torch.zeros(1, features.shape[0], dtype=torch.bool)
