@@ -67,6 +67,27 @@ def resolve_precision(setting: str, device: torch.device | str) -> str:
     return setting
 
 
+class PassLengths:
+    """A batch's valid lengths as each model pass should get them: None when every motion fills the pass's window.
+
+    A model given lengths builds a key-padding mask, and any attention mask keeps
+    ``F.scaled_dot_product_attention`` off the flash kernels on a GPU. With lengths None the model attends over
+    the whole window unmasked, which is the same arithmetic when no frame is padding: bit-identical on CPU
+    (``tests/test_solvers.py -k window``), within a kernel's rounding on a GPU. One motion always fills its window,
+    because the pipeline samples each batch in a window of its longest length. The shortest length is read to the
+    host once, when the sampler is built, not at every pass (a CUDA-graphed pass must not wait on the device)."""
+
+    def __init__(self, lengths: Tensor | None) -> None:
+        self.lengths = lengths
+        self.shortest = None if lengths is None else int(lengths.min())
+
+    def for_window(self, num_frames: int) -> Tensor | None:
+        """The lengths for a pass over ``num_frames`` frames: None when no motion is shorter than the window."""
+        if self.shortest is None or self.shortest >= num_frames:
+            return None
+        return self.lengths
+
+
 def classifier_free_guidance(
     model: Callable[..., Tensor],
     cond: Tensor,
@@ -90,6 +111,7 @@ def classifier_free_guidance(
         instead of the mix, e.g. :attr:`mfm.layout.FeatureLayout.root_motion_mask` for ``model.guided_features='pose'``
         (applied after ``guided_channels``). None or all False: no exception.
     precision: the model passes' arithmetic (:data:`SAMPLING_PRECISIONS`); the output and the mix are fp32 either way.
+    A pass whose window no motion is shorter than gets no lengths (:class:`PassLengths`): the unmasked kernels.
     """
     model = in_precision(model, precision)
     batch = cond.shape[0]
@@ -102,17 +124,19 @@ def classifier_free_guidance(
         if not bool(conditional_channels.any()):
             conditional_channels = None
     if scale == 1.0:
-        return lambda x, t: model(x, t, cond, lengths, cond_mask=keep)
+        single = PassLengths(lengths)
+        return lambda x, t: model(x, t, cond, single.for_window(x.shape[1]), cond_mask=keep)
     if scale == 0.0:
-        return lambda x, t: model(x, t, uncond, lengths, cond_mask=drop)
+        single = PassLengths(lengths)
+        return lambda x, t: model(x, t, uncond, single.for_window(x.shape[1]), cond_mask=drop)
 
     both_cond = torch.cat([cond, uncond])
     both_mask = torch.cat([keep, drop])
-    both_lengths = None if lengths is None else torch.cat([lengths, lengths])
+    both_lengths = PassLengths(None if lengths is None else torch.cat([lengths, lengths]))
 
     def guided(x: Tensor, t: Tensor) -> Tensor:
-        out_cond, out_uncond = model(torch.cat([x, x]), torch.cat([t, t]), both_cond, both_lengths,
-                                     cond_mask=both_mask).chunk(2)
+        out_cond, out_uncond = model(torch.cat([x, x]), torch.cat([t, t]), both_cond,
+                                     both_lengths.for_window(x.shape[1]), cond_mask=both_mask).chunk(2)
         if guided_channels is None or guided_channels >= out_cond.shape[-1]:
             mixed = out_uncond + scale * (out_cond - out_uncond)
         else:

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from mfm.guidance import classifier_free_guidance
+from mfm.guidance import PassLengths, classifier_free_guidance
 from mfm.model import valid_frame_mask
 
 logger = logging.getLogger(__name__)
@@ -279,12 +279,17 @@ def _solve_torchdiffeq(
 
 
 def zero_padded_frames(velocity_fn: VelocityFn, lengths: Tensor | None) -> VelocityFn:
-    """``velocity_fn`` with the velocity of frames ``>= lengths[b]`` set to zero (identity if lengths is None)."""
+    """``velocity_fn`` with the velocity of frames ``>= lengths[b]`` set to zero (identity if lengths is None; a
+    pass whose window no motion is shorter than is left as it is: it has no padded frame)."""
     if lengths is None:
         return velocity_fn
+    pass_lengths = PassLengths(lengths)
 
     def masked(x: Tensor, t: Tensor) -> Tensor:
-        valid = valid_frame_mask(lengths.to(x.device), x.shape[1])
+        window_lengths = pass_lengths.for_window(x.shape[1])
+        if window_lengths is None:
+            return velocity_fn(x, t)
+        valid = valid_frame_mask(window_lengths.to(x.device), x.shape[1])
         return velocity_fn(x, t) * valid.unsqueeze(-1).to(x.dtype)
 
     return masked

@@ -383,6 +383,71 @@ def test_zero_padded_frames_masks_the_velocity():
     assert v[:, :, 0].tolist() == [[1, 1, 0, 0], [1, 1, 1, 0]]
 
 
+def test_zero_padded_frames_leaves_a_window_no_motion_is_shorter_than_untouched():
+    field = lambda x, t: torch.full_like(x, 2.0)  # noqa: E731
+    fn = zero_padded_frames(field, torch.tensor([4, 4]))
+    assert torch.equal(fn(torch.zeros(2, 4, 1), torch.zeros(2)), torch.full((2, 4, 1), 2.0))
+    # the same lengths in a wider window still zero the frames past them
+    assert fn(torch.zeros(2, 6, 1), torch.zeros(2))[:, :, 0].tolist() == [[2, 2, 2, 2, 0, 0]] * 2
+
+
+class LengthsSpy(nn.Module):
+    """The model, recording the lengths each pass was given (None: the unmasked pass)."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+        self.config = model.config
+        self.seen = []
+
+    def forward(self, x, t, cond, lengths=None, **kwargs):
+        self.seen.append(None if lengths is None else lengths.tolist())
+        return self.model(x, t, cond, lengths, **kwargs)
+
+
+class FullLengthsGiven(nn.Module):
+    """The model, always handed the lengths (the masked pass), as the samplers did before PassLengths."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+        self.config = model.config
+
+    def forward(self, x, t, cond, lengths=None, **kwargs):
+        if lengths is None:
+            lengths = torch.full((x.shape[0],), x.shape[1], dtype=torch.long)
+        return self.model(x, t, cond, lengths, **kwargs)
+
+
+@pytest.mark.parametrize("guidance", [2.5, 1.0, 0.0])
+def test_passes_whose_window_every_motion_fills_run_unmasked_and_others_keep_their_lengths(guidance):
+    model = LengthsSpy(tiny_text_model())
+    cond = torch.randn(2, 8, generator=torch.Generator().manual_seed(6))
+    sample(model, cond, [9, 9], num_frames=9, steps=3, guidance=guidance, seed=1)
+    assert model.seen == [None] * 3
+    model.seen.clear()
+    sample(model, cond, [9, 5], num_frames=9, steps=3, guidance=guidance, seed=1)
+    halves = 2 if guidance not in (0.0, 1.0) else 1
+    assert model.seen == [[9, 5] * halves] * 3
+
+
+@pytest.mark.parametrize("variant", [
+    {}, {"length_token": True}, {"progress_positions": True}, {"frames_per_token": 2}, {"positional": "bpe"},
+])
+def test_a_motion_filling_its_window_is_sampled_bit_identical_unmasked_or_masked(variant):
+    """The unmasked pass is the same arithmetic as the masked one when no frame is padding, in every layout that
+    reads the lengths (length token, progress positions, grouped frames, blended positions)."""
+    torch.manual_seed(0)
+    config = ModelConfig(feature_dim=6, latent_dim=16, ff_dim=32, num_layers=2, num_heads=2, cond_dim=8,
+                         max_frames=16, **variant)
+    model = MotionFlowTransformer(config).eval()
+    cond = torch.randn(3, 8, generator=torch.Generator().manual_seed(7))
+    unmasked = sample(model, cond, [11, 11, 11], num_frames=11, steps=4, guidance=2.5, seed=3)
+    masked = sample(FullLengthsGiven(model), cond, [11, 11, 11], num_frames=11, steps=4, guidance=2.5, seed=3)
+    assert torch.equal(unmasked.x1, masked.x1)
+    assert torch.count_nonzero(unmasked.x1) == unmasked.x1.numel()
+
+
 def test_sample_lengths_draws_from_the_distribution_deterministically():
     pool = [40, 40, 40, 120, 196]
     first = sample_lengths(pool, 500, torch.Generator().manual_seed(0))
