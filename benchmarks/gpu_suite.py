@@ -13,7 +13,7 @@ Full size is the HumanML3D preset (configs/humanml3d.yaml: 8 layers, width 512, 
   flow-matching loss of ``mfm.flow``, backward, clipping, AdamW, EMA) on random batches, timed by
   ``benchmarks/bench_train.py``. fp32 = no autocast, eager. Optimised = bf16 autocast where the device has it,
   ``torch.compile`` (``--compile``, default on CUDA only) and fused AdamW (the trainer's choice on CUDA, for both
-  steps). Samples/s from the median step time, MFU against the device's dense bf16 peak (:data:`DENSE_BF16_PEAKS`),
+  steps). Samples/s from the median step time, MFU against the device's dense bf16 peak (:data:`mfm.flops.DENSE_BF16_PEAKS`),
   peak memory (``torch.cuda.max_memory_allocated`` on CUDA; the process's max RSS on CPU).
 * ``equal_loss``: both steps' loss on the same batch, initial weights and flow draws (dropout off, so only the
   arithmetic differs); value = |optimised − fp32| / |fp32|.
@@ -35,7 +35,8 @@ Full size is the HumanML3D preset (configs/humanml3d.yaml: 8 layers, width 512, 
   device (``sampling.noise_device=model``; the CPU's own on a CPU), averaged over the protocol.
 * ``suite_wall``: the suite's own wall time.
 
-FLOPs per training sample (fwd + bwd = 3 x forward; :func:`training_flops_per_sample`)::
+FLOPs per training sample (fwd + bwd = 3 x forward, counted by :class:`mfm.flops.TrainingFlops`; for this
+architecture the count is)::
 
     3 * [ 2 * (L * (4*d^2 + 2*d*F)) * S        per-token matmuls of the L layers (qkv, out, two FF Linears)
         + 2 * (D*d + d*D_out) * T               input and output projections of the T frames
@@ -55,7 +56,6 @@ import json
 import math
 import os
 import platform
-import re
 import sys
 import tempfile
 import time
@@ -75,6 +75,7 @@ import bench_eval  # noqa: E402
 import bench_sampling  # noqa: E402
 import bench_train  # noqa: E402
 
+from mfm.flops import PeakLookup, TrainingFlops, dense_bf16_peak, model_flops_utilisation  # noqa: E402
 from mfm.model import ModelConfig, count_parameters  # noqa: E402
 from pipeline.config import TrainConfig, load_config  # noqa: E402
 from pipeline.data.stream import LoaderOptions, open_manifest  # noqa: E402
@@ -93,103 +94,6 @@ EQUAL_LOSS_RTOL = 2e-2
 relative rounding error 2^-9 = 0.2 %); matmuls accumulate in fp32 and the model's LayerNorms and the loss run in
 fp32, so the loss itself agrees to about 1e-3. 2e-2 leaves a margin and still catches a wrong step (a missed mask,
 a dtype bug), which moves the loss by far more."""
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Dense bf16 peaks
-# ---------------------------------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class DevicePeak:
-    """Dense bf16 tensor-core throughput of one GPU model (no 2:4 structured sparsity), TFLOP/s, and its source.
-
-    ``pattern`` is searched case-insensitively in ``torch.cuda.get_device_name()``; the first matching row wins,
-    so more specific rows come first. ``tflops`` None: a known device whose figure is not tabulated here."""
-
-    name: str
-    pattern: str
-    tflops: float | None
-    source: str
-
-
-DENSE_BF16_PEAKS: tuple[DevicePeak, ...] = (
-    DevicePeak("H100 PCIe", r"h100.*pcie", 756.0,
-               "NVIDIA H100 Tensor Core GPU datasheet: BF16 Tensor Core 1,513 TFLOPS (PCIe) with sparsity; "
-               "dense is half, 756"),
-    DevicePeak("H100 NVL", r"h100.*nvl", None,
-               "not tabulated here (an H100 NVL's dense bf16 rate differs from both SXM and PCIe): MFU not reported"),
-    DevicePeak("H100 SXM", r"h100", 989.4,
-               "NVIDIA H100 Tensor Core GPU datasheet: BF16 Tensor Core 1,979 TFLOPS (SXM) with sparsity; dense "
-               "989.4 (H100 architecture whitepaper)"),
-    DevicePeak("H200 NVL", r"h200.*nvl", None,
-               "not tabulated here (the H200 NVL's dense bf16 rate is below the SXM's): MFU not reported"),
-    DevicePeak("H200", r"h200", 989.4,
-               "NVIDIA H200 Tensor Core GPU datasheet: BF16 Tensor Core 1,979 TFLOPS with sparsity (the H100 SXM's "
-               "compute); dense 989.4"),
-    DevicePeak("A100", r"a100", 312.0,
-               "NVIDIA A100 Tensor Core GPU datasheet: BF16 Tensor Core 312 TFLOPS dense (624 with sparsity)"),
-    DevicePeak("L4", r"\bl4\b", 121.0,
-               "NVIDIA L4 Tensor Core GPU datasheet: BF16 Tensor Core 242 TFLOPS with sparsity; dense is half, 121"),
-    DevicePeak("RTX 4090", r"rtx 4090", 165.2,
-               "NVIDIA Ada Lovelace GPU architecture whitepaper, GeForce RTX 4090: peak BF16 Tensor TFLOPS with FP32 "
-               "accumulate 165.2 dense (330.4 with sparsity)"),
-)
-
-
-@dataclasses.dataclass(frozen=True)
-class PeakLookup:
-    """The device's dense bf16 peak (None when unknown) and why: the table row's source, or the reason for none."""
-
-    tflops: float | None
-    source: str
-
-
-def dense_bf16_peak(device_type: str, device_name: str) -> PeakLookup:
-    """Look the device up in :data:`DENSE_BF16_PEAKS`. CPUs get none: their bf16 rate depends on the core count,
-    clock and ISA (AVX-512 BF16, AMX) of the exact part and no single figure is published for this use."""
-    if device_type != "cuda":
-        return PeakLookup(None, "CPU: no dense bf16 peak is tabulated (it depends on the part's cores, clock and "
-                                "AVX-512/AMX units), so MFU is reported as null")
-    for row in DENSE_BF16_PEAKS:
-        if re.search(row.pattern, device_name, flags=re.IGNORECASE):
-            return PeakLookup(row.tflops, f"{row.name}: {row.source}")
-    return PeakLookup(None, f"{device_name!r} is not in the dense bf16 peak table: MFU not reported")
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# FLOPs and MFU
-# ---------------------------------------------------------------------------------------------------------------
-
-
-def forward_flops_per_sample(config: ModelConfig, window: int) -> float:
-    """Forward matmul FLOPs of one padded sample of ``window`` frames (see the module docstring for the formula).
-
-    Only MFM's default architecture (one prefix token, dense absolute-position attention) is covered: the variants'
-    extra projections and masks would need their own terms, and a silently wrong MFU is worse than none."""
-    if config.conditioning != "prefix" or config.positional != "absolute":
-        raise ValueError("the FLOP count covers the prefix-token, absolute-position model only, got "
-                         f"conditioning={config.conditioning!r}, positional={config.positional!r}")
-    d, layers = config.latent_dim, config.num_layers
-    tokens = window + config.num_prefix_tokens
-    per_token = layers * (4 * d * d + 2 * d * config.ff_dim)
-    frames = config.feature_dim * d + d * config.output_size
-    condition = 0 if config.is_action_model else config.cond_dim * d  # an action id is a table lookup
-    per_sample = 2 * d * d + condition
-    attention = layers * 4 * tokens * tokens * d
-    return 2.0 * per_token * tokens + 2.0 * frames * window + 2.0 * per_sample + attention
-
-
-def training_flops_per_sample(config: ModelConfig, window: int) -> float:
-    """Forward + backward: the backward pass costs two forward passes (gradients w.r.t. inputs and weights)."""
-    return 3.0 * forward_flops_per_sample(config, window)
-
-
-def model_flops_utilisation(flops_per_sample: float, samples_per_s: float, peak_tflops: float | None) -> float | None:
-    """Achieved model FLOP/s over the dense bf16 peak; None without a peak."""
-    if peak_tflops is None:
-        return None
-    return flops_per_sample * samples_per_s / (peak_tflops * 1e12)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -316,6 +220,7 @@ class TrainingRun:
     loss: float
     timing: dict[str, Any]
     model_config: ModelConfig
+    flops_per_sample: float
     loader_timing: dict[str, Any] | None = None
 
 
@@ -328,7 +233,8 @@ def run_training(options: SuiteOptions, cfg: TrainConfig, *, with_loader: bool) 
         loss = probe_loss(trainer)
         timing = bench_train.measure(trainer, "random", size.steps, size.warmup)
         loader_timing = bench_train.measure(trainer, "loader", size.steps, size.warmup) if with_loader else None
-        return TrainingRun(loss, timing, trainer.model_config, loader_timing)
+        flops = TrainingFlops(dist.unwrap(trainer.model)).per_sample(cfg.data.window)
+        return TrainingRun(loss, timing, trainer.model_config, flops, loader_timing)
 
 
 def training_figure(name: str, run: TrainingRun, cfg: TrainConfig, peak: PeakLookup, device: str) -> dict[str, Any]:
@@ -336,8 +242,8 @@ def training_figure(name: str, run: TrainingRun, cfg: TrainConfig, peak: PeakLoo
     timing = run.timing
     step_s = timing["step_s_median"]
     samples_per_s = cfg.data.batch_size * cfg.optim.grad_accum / step_s
-    flops = training_flops_per_sample(run.model_config, cfg.data.window)
-    mfu = model_flops_utilisation(flops, samples_per_s, peak.tflops)
+    flops = run.flops_per_sample
+    mfu = model_flops_utilisation(flops * samples_per_s, peak.tflops)
     return {
         "figure": name, "value": round(samples_per_s, 2), "unit": "samples/s",
         "s_per_step": step_s, "s_per_step_p90": timing["step_s_p90"], "samples_per_s_mean": timing["samples_per_s"],

@@ -50,6 +50,8 @@ from test_trainer import (
 )
 from test_trainer_bad_data import copy_dataset, planned_batches, shard_of, write_nan_into
 
+from mfm.flops import TrainingFlops
+from mfm.model import ModelConfig, MotionFlowTransformer
 from pipeline import checkpoint as ckpt
 from pipeline.config import TrainConfig, load_config
 from pipeline.distributed import Dist
@@ -297,6 +299,12 @@ def test_nan_on_one_rank_is_skipped_by_every_rank_at_the_same_step(misc_launch):
     assert metrics[NAN_STEP]["loss"] is None and all(metrics[s]["loss"] > 0 for s in (1, 2, 4, 5))
     _, _, state = ckpt.load_checkpoint(ckpt.checkpoints_dir(out / "run") / "step-00000005")
     assert state["extra"]["skipped_steps"] == 1 and state["extra"]["ema_updates"] == 4
+    # the log's model FLOPs and samples are both summed over the ranks: their ratio is one sample's FLOPs
+    model = MotionFlowTransformer(ModelConfig(**state["extra"]["model_config"]))
+    per_sample = TrainingFlops(model).per_sample(state["config"]["data"]["window"])
+    for record in metrics.values():
+        assert record["model_tflops"] * 1e12 / record["samples_per_s"] == pytest.approx(per_sample)
+        assert 0 <= record["padding_frac"] < 1 and record["mfu"] is None
 
 
 def test_deferred_nan_on_one_rank_is_skipped_on_the_device_by_every_rank(misc_launch):

@@ -297,6 +297,51 @@ def test_an_explicit_evaluation_wandb_wins_over_wandb_mode(fake_wandb, tmp_path,
 
 
 # ---------------------------------------------------------------------------------------------------------------
+# Model FLOPs, MFU and padding (issue 26)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def batches_of(dataset: Path, run: Path, *overrides: str) -> list[dict]:
+    """The STEPS batches a run of these settings trains on, read by a Trainer's own loader (not fitted)."""
+    cfg = load_config(TrainConfig, "tiny", [f"data.manifest={dataset}", f"train.out_dir={run}", *overrides])
+    with Dist(mixed_precision="no", cpu=True) as dist:
+        trainer = Trainer(cfg, dist)
+        stream = trainer.loader.iter_batches()
+        try:
+            return [next(stream) for _ in range(STEPS)], trainer.training_flops
+        finally:
+            stream.close()
+
+
+@pytest.mark.parametrize("batching", ["fixed", "length_aware"])
+def test_each_log_line_has_the_model_flops_of_its_batches_their_padding_and_no_mfu_on_a_cpu(dataset, tmp_path,
+                                                                                         batching):
+    overrides = ("train.val_every=0", f"data.batching={batching}", "data.window=196")  # clips of 40-196 frames
+    run = fit(dataset, tmp_path / "run", *overrides)
+    batches, flops = batches_of(dataset, tmp_path / "probe", *overrides)
+    metrics = metrics_by_step(run)
+    for step, batch in zip(sorted(metrics), batches, strict=True):
+        record = metrics[step]  # one batch per line (train.log_every=1)
+        rows, width = batch["features"].shape[:2]
+        # both rates share the line's elapsed time, so their ratio is the batch's FLOPs per sample
+        assert record["model_tflops"] * 1e12 / record["samples_per_s"] == pytest.approx(flops.per_sample(width))
+        assert record["padding_frac"] == pytest.approx(1 - batch["lengths"].sum().item() / (rows * width))
+        assert record["mfu"] is None  # a CPU has no dense bf16 peak
+    widths = {batch["features"].shape[1] for batch in batches}
+    assert (len(widths) > 1) == (batching == "length_aware"), widths  # each width's FLOPs, counted once
+
+
+def test_mfu_is_the_logged_model_flops_over_the_devices_peak(dataset, tmp_path, monkeypatch):
+    import pipeline.training.trainer as trainer_module
+    from mfm.flops import PeakLookup
+
+    monkeypatch.setattr(trainer_module, "device_peak", lambda device: PeakLookup(0.002, "a 2 GFLOP/s test device"))
+    metrics = metrics_by_step(fit(dataset, tmp_path / "run", "train.val_every=0"))
+    for record in metrics.values():
+        assert record["mfu"] == pytest.approx(record["model_tflops"] / 0.002) and record["mfu"] > 0
+
+
+# ---------------------------------------------------------------------------------------------------------------
 # TensorBoard
 # ---------------------------------------------------------------------------------------------------------------
 

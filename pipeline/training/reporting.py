@@ -163,6 +163,8 @@ class MetricsSink:
             postfix["loss"] = "skipped" if record["loss"] is None else f"{record['loss']:.4f}"
             postfix["sps"] = f"{record['samples_per_s']:.0f}"
             postfix["wait"] = f"{record['data_wait_frac']:.0%}"
+            if record.get("mfu") is not None:
+                postfix["mfu"] = f"{record['mfu']:.1%}"
         if record.get("val_loss") is not None:
             postfix["val"] = f"{record['val_loss']:.4f}"
         if postfix:

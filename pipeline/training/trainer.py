@@ -77,6 +77,7 @@ from tqdm.auto import tqdm
 from mfm.compilation import compiled_for_training, compiles  # train.compile's rule, shared with sampling's
 from mfm.diffusion import diffusion_from_preset
 from mfm.flow import FlowMatchingObjective, MotionGeometry, draw_self_condition_rows, feat_bias_channel_weight
+from mfm.flops import TrainingFlops, device_peak, model_flops_utilisation
 from mfm.guidance import guided_feature_mask
 from mfm.layout import FeatureLayout
 from mfm.model import (
@@ -610,6 +611,8 @@ class Trainer:
             model = compiled_for_training(model, cfg.train.compile_mode, batch_widths=(
                 batch_widths(cfg.data.window, cfg.data.pad_multiple) if cfg.data.batching == "length_aware" else None))
         self.model, self.optimizer, self.scheduler = dist.prepare(model, optimizer, scheduler)
+        self.training_flops = TrainingFlops(dist.unwrap(self.model))  # the log's model FLOPs and MFU
+        self.device_peak = device_peak(dist.device)
         self.ema.shadow = {k: v.to(dist.device) for k, v in self.ema.shadow.items()}
         # fp16's dynamic loss scale (the identity for no/bf16); its state is part of the resume state
         self.loss_scaler = LossScaler(dist.device, enabled=dist.mixed_precision == "fp16",
@@ -1238,6 +1241,7 @@ class Trainer:
         try:
             while self.step < cfg.train.max_steps:
                 micro_batches = self._next_micro_batches(window, batches)
+                window.add_work(*self._work_of(micro_batches))
                 outcomes = self.train_step(micro_batches)  # deferred: the previous step's, read during this one
                 self.step += 1
                 self.samples_seen += cfg.data.batch_size * cfg.optim.grad_accum * self.dist.world_size
@@ -1367,7 +1371,12 @@ class Trainer:
                                 dtype=torch.float64, device=self.dist.device)
         if self.critic is not None:  # the critic's sums since the last log line ride along
             counters = torch.cat([counters, self.critic.window_sums().to(torch.float64)])
-        records_skipped, empty_batches, from_cache, fetched, *critic_sums = self.dist.all_reduce_sum(counters).tolist()
+        # this window's model FLOPs and frames, all ranks (pipeline.training's MFU: mfm.flops)
+        work = torch.tensor([stats["model_flops"], stats["frames_valid"], stats["frames_computed"]],
+                            dtype=torch.float64, device=self.dist.device)
+        (records_skipped, empty_batches, from_cache, fetched, flops, frames_valid, frames_computed,
+         *critic_sums) = self.dist.all_reduce_sum(torch.cat([counters[:4], work, counters[4:]])).tolist()
+        model_flops_per_s = flops / stats["elapsed_s"]
         return {
             "step": self.step,
             "loss": stats["loss"],  # None (JSON null) when every step of the window was skipped
@@ -1375,6 +1384,11 @@ class Trainer:
             "lr": self.scheduler.get_last_lr()[0],
             "samples_per_s": stats["samples_per_s"] * self.dist.world_size,
             "data_wait_frac": stats["data_wait_frac"],
+            # model FLOPs (one forward and backward of the generator per sample, padding included: it is computed)
+            # per second, all ranks, and MFU against each device's dense bf16 peak (None without one, e.g. a CPU)
+            "model_tflops": model_flops_per_s / 1e12,
+            "mfu": model_flops_utilisation(model_flops_per_s / self.dist.world_size, self.device_peak.tflops),
+            "padding_frac": 1.0 - frames_valid / frames_computed if frames_computed else None,
             "epoch": self.loader.epoch,
             "samples_seen": self.samples_seen,
             "skipped_steps": self.skipped_steps,
@@ -1387,6 +1401,20 @@ class Trainer:
             **self._loss_scale_record(),
             **self._critic_record(critic_sums),
         }
+
+    def _work_of(self, micro_batches: list[Mapping[str, Any]]) -> tuple[float, int, int]:
+        """A step's model FLOPs (mfm.flops, counted once per batch width and caption length), valid frames and
+        computed frames (rows × width), on this rank, from the batches' host tensors (no device sync)."""
+        flops, valid, computed = 0.0, 0, 0
+        for batch in micro_batches:
+            rows, width = batch["features"].shape[:2]
+            if rows == 0:  # a stand-in for a batch this rank could not read
+                continue
+            text_tokens = batch["text_tokens"].shape[1] if self.model_config.conditioning == "cross_attention" else 0
+            flops += rows * self.training_flops.per_sample(width, text_tokens)
+            valid += int(batch["lengths"].sum())
+            computed += rows * width
+        return flops, valid, computed
 
     def _critic_record(self, sums: list[float]) -> dict[str, Any]:
         """train.critic_weight > 0 only: the critic's hinge loss and the model's adversarial term (unweighted;
@@ -1431,7 +1459,15 @@ class WindowStats:
         self.loss_steps = 0
         self.samples = 0
         self.data_wait = 0.0
+        self.model_flops = 0.0
+        self.frames_valid = 0
+        self.frames_computed = 0
         self.started = time.perf_counter()
+
+    def add_work(self, model_flops: float, frames_valid: int, frames_computed: int) -> None:
+        self.model_flops += model_flops
+        self.frames_valid += frames_valid
+        self.frames_computed += frames_computed
 
     def timed_next(self, batches: Iterator[dict[str, Any]], count: int) -> list[dict[str, Any]]:
         start = time.perf_counter()
@@ -1452,6 +1488,10 @@ class WindowStats:
             "loss": self.loss_sum / self.loss_steps if self.loss_steps else None,
             "samples_per_s": self.samples / elapsed,
             "data_wait_frac": self.data_wait / elapsed,
+            "elapsed_s": elapsed,
+            "model_flops": self.model_flops,
+            "frames_valid": self.frames_valid,
+            "frames_computed": self.frames_computed,
         }
         self._reset()
         return out
