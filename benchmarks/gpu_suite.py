@@ -35,8 +35,8 @@ Full size is the HumanML3D preset (configs/humanml3d.yaml: 8 layers, width 512, 
   device (``sampling.noise_device=model``; the CPU's own on a CPU), averaged over the protocol.
 * ``suite_wall``: the suite's own wall time.
 
-FLOPs per training sample (fwd + bwd = 3 x forward, counted by :class:`mfm.flops.TrainingFlops`; for this
-architecture the count is)::
+FLOPs per training sample: fwd + bwd = 3 x forward, the forward pass counted by :class:`mfm.flops.TrainingFlops`
+(as the training log counts it). For the suite's architecture, MFM's, the count equals this closed form::
 
     3 * [ 2 * (L * (4*d^2 + 2*d*F)) * S        per-token matmuls of the L layers (qkv, out, two FF Linears)
         + 2 * (D*d + d*D_out) * T               input and output projections of the T frames

@@ -1365,17 +1365,15 @@ class Trainer:
         stats = window.flush()
         grad_norm = float(result.grad_norm)
         # Tolerant mode's records left out of their batches, and batches left empty, so far (this run and the runs
-        # it resumes), all ranks.
+        # it resumes), then this window's model FLOPs and frames (mfm.flops); all ranks.
         counters = torch.tensor([self.loader.records_skipped, self.loader.empty_batches,
-                                 self.loader.shards_from_cache, self.loader.shards_fetched],
+                                 self.loader.shards_from_cache, self.loader.shards_fetched,
+                                 stats["model_flops"], stats["frames_valid"], stats["frames_computed"]],
                                 dtype=torch.float64, device=self.dist.device)
         if self.critic is not None:  # the critic's sums since the last log line ride along
             counters = torch.cat([counters, self.critic.window_sums().to(torch.float64)])
-        # this window's model FLOPs and frames, all ranks (pipeline.training's MFU: mfm.flops)
-        work = torch.tensor([stats["model_flops"], stats["frames_valid"], stats["frames_computed"]],
-                            dtype=torch.float64, device=self.dist.device)
         (records_skipped, empty_batches, from_cache, fetched, flops, frames_valid, frames_computed,
-         *critic_sums) = self.dist.all_reduce_sum(torch.cat([counters[:4], work, counters[4:]])).tolist()
+         *critic_sums) = self.dist.all_reduce_sum(counters).tolist()
         model_flops_per_s = flops / stats["elapsed_s"]
         return {
             "step": self.step,
