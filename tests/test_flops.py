@@ -91,3 +91,11 @@ def test_dense_bf16_peak_table(name, peak):
     assert lookup.tflops == peak and lookup.source
     cpu = dense_bf16_peak("cpu", "cpu: anything")
     assert cpu.tflops is None and "CPU" in cpu.source
+
+
+def test_a_torch_device_is_looked_up_by_its_cuda_name_and_a_cpu_has_no_peak(monkeypatch):
+    from mfm.flops import device_peak
+
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "NVIDIA H100 80GB HBM3")
+    assert device_peak("cuda:1").tflops == 989.4 and device_peak(torch.device("cuda")).source.startswith("H100 SXM")
+    assert device_peak("cpu").tflops is None
