@@ -18,6 +18,7 @@ from test_trainer import assert_identical, build_dataset_once, metrics_by_step
 from test_trainer_bad_data import copy_dataset
 
 import pipeline.training.reporting as reporting
+from mfm.flops import TrainingFlops
 from mfm.model import ModelConfig
 from pipeline import checkpoint as ckpt
 from pipeline.config import ConfigError, TrainConfig, load_config, wandb_mode
@@ -301,8 +302,9 @@ def test_an_explicit_evaluation_wandb_wins_over_wandb_mode(fake_wandb, tmp_path,
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def batches_of(dataset: Path, run: Path, *overrides: str) -> list[dict]:
-    """The STEPS batches a run of these settings trains on, read by a Trainer's own loader (not fitted)."""
+def batches_of(dataset: Path, run: Path, *overrides: str) -> tuple[list[dict], TrainingFlops]:
+    """The STEPS batches a run of these settings trains on, read by a Trainer's own loader (not fitted), and that
+    trainer's FLOP count."""
     cfg = load_config(TrainConfig, "tiny", [f"data.manifest={dataset}", f"train.out_dir={run}", *overrides])
     with Dist(mixed_precision="no", cpu=True) as dist:
         trainer = Trainer(cfg, dist)
@@ -328,7 +330,7 @@ def test_each_log_line_has_the_model_flops_of_its_batches_their_padding_and_no_m
         assert record["padding_frac"] == pytest.approx(1 - batch["lengths"].sum().item() / (rows * width))
         assert record["mfu"] is None  # a CPU has no dense bf16 peak
     widths = {batch["features"].shape[1] for batch in batches}
-    assert (len(widths) > 1) == (batching == "length_aware"), widths  # each width's FLOPs, counted once
+    assert (len(widths) > 1) == (batching == "length_aware"), widths  # length-aware batches meet several widths
 
 
 def test_mfu_is_the_logged_model_flops_over_the_devices_peak(dataset, tmp_path, monkeypatch):
